@@ -1,0 +1,1 @@
+"""Body models: loaders, linear blend skinning, the upper-body cut, FLAME/MANO fusion."""

@@ -1,0 +1,1 @@
+"""Python client library, CLI tools and the browser page (streaming-service issue)."""

@@ -1,0 +1,1 @@
+"""The FastAPI service: streaming sessions, avatar registry, jobs, auth (streaming-service issue)."""
