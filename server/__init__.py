@@ -1,1 +1,4 @@
-"""The FastAPI service: streaming sessions, avatar registry, jobs, auth (streaming-service issue)."""
+"""The FastAPI service: streaming sessions, avatar registry, jobs and auth.
+
+Filled in by the streaming-service issue.
+"""

@@ -9,6 +9,7 @@ unpickled, so a model file cannot run arbitrary code.
 
 from __future__ import annotations
 
+import _compat_pickle
 import importlib
 import pickle
 from pathlib import Path
@@ -19,8 +20,7 @@ import scipy.sparse
 
 from .errors import ModelFileError
 
-_ALLOWED_MODULES = ("numpy", "scipy.sparse", "copyreg", "builtins", "__builtin__", "_codecs",
-                    "collections")  # fmt: skip
+_ALLOWED_MODULES = ("numpy", "scipy.sparse", "copyreg", "builtins", "_codecs", "collections")
 
 
 class ChumpyStub:
@@ -37,6 +37,10 @@ class ChumpyStub:
 
 class _SafeUnpickler(pickle.Unpickler):
     def find_class(self, module: str, name: str) -> Any:
+        # Python 2 names (__builtin__.set, copy_reg, ...), as pickle's own find_class maps them.
+        if (module, name) in _compat_pickle.NAME_MAPPING:
+            module, name = _compat_pickle.NAME_MAPPING[(module, name)]
+        module = _compat_pickle.IMPORT_MAPPING.get(module, module)
         if module == "chumpy" or module.startswith("chumpy."):
             return type(name, (ChumpyStub,), {"chumpy_class": f"{module}.{name}"})
         if module.startswith("scipy.sparse"):
@@ -66,6 +70,20 @@ def to_array(value: Any, key: str, path: Path) -> np.ndarray:
         raise ModelFileError(f"{path}: '{key}' is not an array ({type(value).__name__})") from exc
 
 
+def _read_npy(path: Path) -> Any:
+    """A .npy file; an object array (a pickled dict) goes through the safe unpickler."""
+    with path.open("rb") as f:
+        version = np.lib.format.read_magic(f)
+        read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                       else np.lib.format.read_array_header_2_0)
+        _, _, dtype = read_header(f)
+        if not dtype.hasobject:
+            f.seek(0)
+            return np.load(f, allow_pickle=False)
+        data = _SafeUnpickler(f, encoding="latin1").load()
+    return data.item() if isinstance(data, np.ndarray) and data.shape == () else data
+
+
 def read_model_file(path: str | Path) -> dict[str, Any]:
     """Raw key -> value mapping of a .npz or .pkl model file (values not yet converted)."""
     path = Path(path)
@@ -86,8 +104,7 @@ def read_model_file(path: str | Path) -> dict[str, Any]:
             with path.open("rb") as f:
                 data = _SafeUnpickler(f, encoding="latin1").load()
         elif suffix == ".npy":
-            data = np.load(path, allow_pickle=True)
-            data = data.item() if data.dtype == object and data.shape == () else data
+            data = _read_npy(path)
         else:
             raise ModelFileError(f"{path}: unknown model file type '{suffix}' (use .npz or .pkl)")
     except ModelFileError:

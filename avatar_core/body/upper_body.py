@@ -2,9 +2,9 @@
 
 Vertices are selected by the part labels of the SMPL-X vertex segmentation
 (`smplx_vert_segmentation.json`: part name -> vertex indices). Faces with a removed corner are
-dropped and the rest re-indexed. The model keeps all 55 SMPL-X joints at the positions the full
-model gives them, so it takes exactly the SMPL-X parameters and poses the kept vertices exactly
-as the full model does.
+dropped and the rest re-indexed; seam vertices left without a face are dropped too. The model
+keeps all 55 SMPL-X joints at the positions the full model gives them, so it takes exactly the
+SMPL-X parameters and poses the kept vertices exactly as the full model does.
 """
 
 from __future__ import annotations
@@ -66,6 +66,11 @@ class UpperBodyModel(SMPLXModel):
         keep = select_vertices(segmentation, keep_parts)
         if keep.max() >= smplx_data.num_vertices:
             raise ModelFileError("the segmentation indexes vertices outside the SMPL-X model")
+        # Vertices on the seam whose every face is cut would be orphans: drop them too.
+        inside = np.zeros(smplx_data.num_vertices, dtype=bool)
+        inside[keep] = True
+        kept_faces = smplx_data.faces[inside[smplx_data.faces].all(axis=1)]
+        keep = np.unique(kept_faces)
         super().__init__(smplx_data.subset(keep), **kwargs)
         self.keep_parts = keep_parts
 

@@ -1,0 +1,57 @@
+"""Shared fixtures: one family of synthetic model files per test session (per xdist worker)."""
+
+import numpy as np
+import pytest
+import torch
+
+from avatar_core.body.model_data import load_flame, load_mano, load_smplx
+from avatar_core.body.upper_body import load_segmentation
+from avatar_core.synth.model_files import write_synthetic_models
+
+
+@pytest.fixture(scope="session")
+def synthetic_files(tmp_path_factory):
+    return write_synthetic_models(tmp_path_factory.mktemp("synthetic"), seed=0)
+
+
+@pytest.fixture(scope="session")
+def smplx_data(synthetic_files):
+    return load_smplx(synthetic_files.smplx_npz)
+
+
+@pytest.fixture(scope="session")
+def segmentation(synthetic_files, smplx_data):
+    return load_segmentation(synthetic_files.segmentation, smplx_data.num_vertices)
+
+
+@pytest.fixture(scope="session")
+def flame_data(synthetic_files):
+    return load_flame(synthetic_files.flame_pkl,
+                      static_landmarks=synthetic_files.flame_static_embedding,
+                      dynamic_landmarks=synthetic_files.flame_dynamic_embedding)
+
+
+@pytest.fixture(scope="session")
+def mano_data(synthetic_files):
+    return {side: load_mano(synthetic_files.mano_pkl(side)) for side in ("left", "right")}
+
+
+def random_smplx_params(batch: int, seed: int, *, scale: float = 0.3, num_betas: int = 10,
+                        num_expression: int = 10) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    return {
+        "betas": rng.normal(0, 1, (batch, num_betas)),
+        "expression": rng.normal(0, 1, (batch, num_expression)),
+        "global_orient": rng.normal(0, scale, (batch, 3)),
+        "body_pose": rng.normal(0, scale, (batch, 21, 3)),
+        "jaw_pose": rng.normal(0, scale, (batch, 3)),
+        "leye_pose": rng.normal(0, scale, (batch, 3)),
+        "reye_pose": rng.normal(0, scale, (batch, 3)),
+        "left_hand_pose": rng.normal(0, scale, (batch, 15, 3)),
+        "right_hand_pose": rng.normal(0, scale, (batch, 15, 3)),
+        "transl": rng.normal(0, 0.5, (batch, 3)),
+    }
+
+
+def as_torch(params: dict, dtype=torch.float64) -> dict[str, torch.Tensor]:
+    return {k: torch.as_tensor(v, dtype=dtype) for k, v in params.items()}
