@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import torch
 
+from avatar_core.body import lbs
 from avatar_core.body.errors import ParameterError
 from avatar_core.body.models import FLAMEModel, MANOModel, SMPLXModel
 from avatar_core.body.skeleton import JOINT, SMPLX_PARENTS
@@ -127,3 +128,20 @@ def test_device_move_clears_the_cache(smplx_data):
         model.double()
         out = model({})
     assert out.vertices.dtype == torch.float64
+
+
+def test_cached_staged_model_matches_the_plain_lbs_reference(smplx_data):
+    """The model's shortcuts (joint blend shapes, pruned correctives, stage cache) are exact."""
+    params = random_smplx_params(2, seed=9, scale=0.5)
+    model = SMPLXModel(smplx_data, dtype=torch.float64)
+    out = model(params)
+    t = {k: torch.as_tensor(v) for k, v in params.items()}
+    coeffs = torch.cat([t["betas"], t["expression"]], 1)
+    dirs = torch.as_tensor(np.concatenate([smplx_data.shapedirs, smplx_data.exprdirs], 2))
+    verts, joints = lbs.lbs(coeffs, out.full_pose, torch.as_tensor(smplx_data.v_template), dirs,
+                            torch.as_tensor(smplx_data.posedirs),
+                            torch.as_tensor(smplx_data.joint_regressor), smplx_data.parents,
+                            torch.as_tensor(smplx_data.weights))
+    transl = t["transl"][:, None]
+    assert torch.allclose(out.vertices, verts + transl, atol=1e-12)
+    assert torch.allclose(out.joints, joints + transl, atol=1e-12)

@@ -57,7 +57,10 @@ class LBSModel(nn.Module):
         buf("v_template", data.v_template)
         buf("shapedirs", data.shapedirs)
         buf("exprdirs", data.exprdirs)
-        buf("posedirs", data.posedirs)
+        # Rows of all-zero correctives (e.g. leg joints on the upper body) are dropped: exact.
+        features = lbs.active_pose_features(torch.as_tensor(data.posedirs))
+        buf("pose_feature_ids", features.numpy(), torch.long)
+        buf("posedirs", data.posedirs[features.numpy()])
         buf("weights", data.weights)
         buf("joint_template", data.joint_template)
         buf("joint_shapedirs", data.joint_shapedirs)
@@ -129,7 +132,7 @@ class LBSModel(nn.Module):
 
         def pose_stage() -> tuple[Tensor, Tensor]:
             rot = lbs.rodrigues(full_pose)  # [B, J, 3, 3]
-            return rot, lbs.pose_offsets(rot, self.posedirs)
+            return rot, lbs.pose_offsets(rot, self.posedirs, self.pose_feature_ids)
 
         rot_mats, corrective = self.cache.get("pose", (full_pose,), pose_stage)
 
