@@ -92,7 +92,7 @@ def render_demo(out: Path, *, model_dir: Path | None = None, frames: int = 96, s
         betas, colors = ident["betas"], ident["vertex_colors"][model.vertex_ids]
     rig, clip = _rig(files, model), demo_clip()
     head = data.joint_template[15]
-    camera = look_at(eye=(0.6, head[1] + 0.05, 2.3), target=(0.0, head[1] - 0.36, 0.0),
+    camera = look_at(eye=(0.6, head[1] + 0.05, 2.6), target=(0.0, head[1] - 0.28, 0.0),
                      width=size, height=size, fov_y_deg=32.0)
     faces = model.faces.cpu().numpy()
     images = []
