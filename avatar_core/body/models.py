@@ -17,12 +17,9 @@ from torch import Tensor, nn
 
 from . import lbs
 from .cache import StageCache
-from .errors import ParameterError
 from .model_data import ModelData
 from .params import FLAMEParams, MANOParams, SMPLXParams, normalize_params
 from .skeleton import SMPLX_NUM_BODY_JOINTS
-
-_NO_OFFSETS = None
 
 
 @dataclass
@@ -116,9 +113,6 @@ class LBSModel(nn.Module):
              offsets: Tensor | None = None) -> BodyOutput:
         """Skinning in cached stages. betas [B, S], expression [B, E], full_pose [B, J, 3],
         transl [B, 3], offsets [B, V, 3] or None."""
-        b = full_pose.shape[0]
-        betas = betas.expand(b, -1)
-        expression = expression.expand(b, -1)
         v_shape, j_shape = self._shape_stage(betas, offsets)
 
         def expression_stage() -> tuple[Tensor, Tensor]:
@@ -210,12 +204,12 @@ class SMPLXModel(LBSModel):
         return pose + getattr(self, f"{side}_hand_mean")
 
     def full_pose(self, p: dict[str, Tensor]) -> Tensor:
-        b = max(t.shape[0] for t in p.values())
+        """Full axis-angle pose [B, 55, 3] from normalized (equally batched) parameters."""
         parts = [p["global_orient"][:, None], p["body_pose"], p["jaw_pose"][:, None],
                  p["leye_pose"][:, None], p["reye_pose"][:, None],
                  self.hand_pose_full("left", p["left_hand_pose"]),
                  self.hand_pose_full("right", p["right_hand_pose"])]
-        return torch.cat([t.expand(b, *t.shape[1:]) for t in parts], dim=1)  # [B, 55, 3]
+        return torch.cat(parts, dim=1)
 
     def forward(self, params: SMPLXParams | dict[str, Any] | None = None) -> BodyOutput:
         raw = params.to_dict() if isinstance(params, SMPLXParams) else dict(params or {})
@@ -225,7 +219,7 @@ class SMPLXModel(LBSModel):
             spec.pop("vertex_offsets")
         p = self._normalize(raw, spec, self.family)
         return self.skin(p["betas"], p["expression"], self.full_pose(p), p["transl"],
-                         p["vertex_offsets"] if has_offsets else _NO_OFFSETS)
+                         p["vertex_offsets"] if has_offsets else None)
 
     def contour_chain(self) -> list[int]:
         chain, j = [], 12  # the neck, then its ancestors up to the pelvis
@@ -246,10 +240,8 @@ class FLAMEModel(LBSModel):
 
     def forward(self, params: FLAMEParams | dict[str, Any] | None = None) -> BodyOutput:
         p = self._normalize(params or {}, self.param_spec(), self.family)
-        b = max(t.shape[0] for t in p.values())
         pose = torch.cat([p["rotation"], p["neck_pose"], p["jaw_pose"], p["eyes_pose"]], dim=1)
-        return self.skin(p["shape"], p["expr"], pose.expand(b, -1).reshape(b, 5, 3),
-                         p["translation"].expand(b, -1))
+        return self.skin(p["shape"], p["expr"], pose.reshape(-1, 5, 3), p["translation"])
 
     def contour_chain(self) -> list[int]:
         return [1, 0]
@@ -289,13 +281,7 @@ class MANOModel(LBSModel):
 
     def forward(self, params: MANOParams | dict[str, Any] | None = None) -> BodyOutput:
         p = self._normalize(params or {}, self.param_spec(), self.family)
-        b = max(t.shape[0] for t in p.values())
-        hand = self.hand_pose_full(p["hand_pose"]).expand(b, 15, 3)
-        pose = torch.cat([p["global_orient"].expand(b, 3)[:, None], hand], dim=1)
-        empty = p["betas"].new_zeros(b, 0)
-        return self.skin(p["betas"], empty, pose, p["transl"].expand(b, -1))
+        pose = torch.cat([p["global_orient"][:, None], self.hand_pose_full(p["hand_pose"])], 1)
+        no_expression = p["betas"].new_zeros(p["betas"].shape[0], 0)
+        return self.skin(p["betas"], no_expression, pose, p["transl"])
 
-
-def check_family(data: ModelData, family: str) -> None:
-    if data.family != family:
-        raise ParameterError(f"expected a {family} model, got {data.family} ({data.source})")

@@ -42,6 +42,7 @@ from ..body.skeleton import (
     SMPLX_PART_NAMES,
 )
 from .humanoid import MATERIALS, Humanoid, make_humanoid
+from .mesh_render import vertex_normals
 
 # `smplx.vertex_ids.vertex_ids['smplx']`: vertices the smplx package reads as extra joints.
 SMPLX_SEMANTIC_VERTEX_IDS = {
@@ -168,17 +169,6 @@ def _write_official_pickle(path: Path, data: dict, chumpy_keys: tuple[str, ...] 
 def _kintree(parents: tuple[int, ...]) -> np.ndarray:
     row0 = np.array([ROOT_PARENT if p < 0 else p for p in parents], dtype=np.uint32)
     return np.stack([row0, np.arange(len(parents), dtype=np.uint32)])
-
-
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals. [V, 3], [F, 3] -> [V, 3]."""
-    tri = vertices[faces]  # [F, 3, 3]
-    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    vn = np.zeros_like(vertices)
-    for k in range(3):
-        np.add.at(vn, faces[:, k], fn)
-    norm = np.linalg.norm(vn, axis=1, keepdims=True)
-    return vn / np.maximum(norm, 1e-12)
 
 
 def _pose_correctives(h: Humanoid) -> np.ndarray:
