@@ -1,0 +1,51 @@
+"""What goes into the rasterizer and what comes out: shared by every backend and caller."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from torch import Tensor
+
+OUTPUTS = ("rgb", "alpha", "depth")
+BACKENDS = ("auto", "torch", "cpu", "gsplat")
+
+
+@dataclass
+class GaussianSet:
+    """World-space Gaussians, ready to render (derived from an avatar each frame)."""
+
+    means: Tensor       # [N, 3] world positions
+    quats: Tensor       # [N, 4] (w, x, y, z), normalised inside the rasterizer
+    scales: Tensor      # [N, 3] linear standard deviations (not log)
+    opacities: Tensor   # [N] in [0, 1]
+    sh: Tensor          # [N, K, 3] SH coefficients, K = (degree + 1) ** 2, K in {1, 4, 9, 16}
+
+    @property
+    def num(self) -> int:
+        return self.means.shape[0]
+
+    @property
+    def sh_degree(self) -> int:
+        return int(round(self.sh.shape[1] ** 0.5)) - 1
+
+
+@dataclass(frozen=True)
+class RenderRequest:
+    """The effects a caller asks for; only these are computed."""
+
+    outputs: tuple[str, ...] = ("rgb",)            # any of OUTPUTS
+    width: int | None = None                       # None: the camera's size
+    height: int | None = None
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    sh_degree: int | None = None                   # None: all the Gaussians carry
+    budget: int | float | None = None              # K Gaussians (int) or a fraction (float)
+    antialiased: bool = False                      # opacity compensation (Mip-Splatting)
+    backend: str = "auto"                          # BACKENDS
+
+
+@dataclass
+class RenderOutput:
+    rgb: Tensor | None = None     # [H, W, 3] float32 in [0, 1]
+    alpha: Tensor | None = None   # [H, W]
+    depth: Tensor | None = None   # [H, W] expected camera z (alpha-weighted mean), 0 where empty
+    stats: dict = field(default_factory=dict)  # backend, n_rendered, timings in ms
