@@ -11,6 +11,8 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
+from ..rotations import matrix_to_quaternion
+
 # Below this squared angle Rodrigues switches to its Taylor series, where the closed form
 # divides by ~0 and its gradient is NaN.
 _SMALL_ANGLE_SQ = 1e-6
@@ -200,49 +202,8 @@ def lbs(
 
 
 def rotation_to_axis_angle(rot: Tensor) -> Tensor:
-    """Rotation matrices to axis-angle, stable at 0 and pi. [..., 3, 3] -> [..., 3].
-
-    Goes through the quaternion, picking the best-conditioned of Shepperd's four formulas.
-    """
-    m = rot
-    m00, m11, m22 = m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]
-    q_abs = torch.sqrt(
-        torch.clamp(
-            torch.stack(
-                [
-                    1 + m00 + m11 + m22,
-                    1 + m00 - m11 - m22,
-                    1 - m00 + m11 - m22,
-                    1 - m00 - m11 + m22,
-                ],
-                -1,
-            ),
-            min=0.0,
-        )
-    )  # [..., 4] = 2 |w|, 2 |x|, 2 |y|, 2 |z|
-    d21, d02, d10 = (
-        m[..., 2, 1] - m[..., 1, 2],
-        m[..., 0, 2] - m[..., 2, 0],
-        m[..., 1, 0] - m[..., 0, 1],
-    )
-    s10, s02, s21 = (
-        m[..., 1, 0] + m[..., 0, 1],
-        m[..., 0, 2] + m[..., 2, 0],
-        m[..., 2, 1] + m[..., 1, 2],
-    )
-    cands = torch.stack(
-        [
-            torch.stack([q_abs[..., 0] ** 2, d21, d02, d10], -1),
-            torch.stack([d21, q_abs[..., 1] ** 2, s10, s02], -1),
-            torch.stack([d02, s10, q_abs[..., 2] ** 2, s21], -1),
-            torch.stack([d10, s02, s21, q_abs[..., 3] ** 2], -1),
-        ],
-        -2,
-    )  # [..., 4, 4], row i = quaternion * 2 q_abs[i]
-    cands = cands / (2.0 * q_abs[..., None].clamp(min=0.1))
-    best = q_abs.argmax(-1)[..., None, None].expand(*q_abs.shape[:-1], 1, 4)
-    quat = cands.gather(-2, best)[..., 0, :]  # [..., 4] (w, x, y, z)
-    quat = torch.where(quat[..., :1] < 0, -quat, quat)
+    """Rotation matrices to axis-angle, stable at 0 and pi. [..., 3, 3] -> [..., 3]."""
+    quat = matrix_to_quaternion(rot)  # w >= 0
     w, v = quat[..., 0], quat[..., 1:]
     n = torch.linalg.norm(v, dim=-1)
     small = n < 1e-6

@@ -1,0 +1,1 @@
+"""Gaussians bound to mesh triangles: frames, the avatar, packages, .ply export."""
