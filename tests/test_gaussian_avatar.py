@@ -58,6 +58,21 @@ def test_untrained_avatar_sits_on_the_mesh(synthetic_files):
     assert ((posed.opacities > 0.5) & torch.isfinite(posed.scales).all(1)).all()
 
 
+def test_initial_colours_from_a_texture():
+    texture = np.zeros((2, 2, 3))
+    texture[0, :, 0] = 1.0  # top row red (v = 1), bottom row black
+    uvs = np.array([[0.0, 1.0], [1.0, 1.0], [0.0, 0.0], [1.0, 0.0]])
+    avatar = GaussianAvatar.from_mesh(np.array([[0, 1, 2], [1, 2, 3]]), texture=texture,
+                                      uvs=uvs, face_uvs=np.array([[0, 1, 0], [2, 3, 2]]),
+                                      sh_degree=0)
+    from avatar_core.render.sh import sh0_to_rgb
+
+    rgb = sh0_to_rgb(avatar.sh[:, 0])
+    assert torch.allclose(rgb, torch.tensor([[1.0, 0, 0], [0, 0, 0]]), atol=1e-6)
+    with pytest.raises(ValueError, match="face_uvs"):
+        GaussianAvatar.from_mesh(np.array([[0, 1, 2]]), texture=texture)
+
+
 def test_package_round_trip_dir_and_zip(tmp_path, synthetic_files):
     package, _ = synthetic_package(synthetic_files.root)
     package.metrics = {"psnr": 31.5}

@@ -66,14 +66,23 @@ class GaussianAvatar:
 
     @classmethod
     def from_mesh(cls, faces: np.ndarray | Tensor, vertex_colors: np.ndarray | None = None,
-                  *, sh_degree: int = 3, dtype: torch.dtype = torch.float32) -> GaussianAvatar:
-        """One Gaussian per triangle at its local origin (the centroid), coloured by the mean
-        of its corners' colours (or grey)."""
+                  *, texture: np.ndarray | None = None, uvs: np.ndarray | None = None,
+                  face_uvs: np.ndarray | None = None, sh_degree: int = 3,
+                  dtype: torch.dtype = torch.float32) -> GaussianAvatar:
+        """One Gaussian per triangle at its local origin (the centroid), coloured from the
+        texture at the triangle's mean UV when given (`texture` [H, W, 3] in [0, 1], `uvs`
+        [T, 2] with v up, `face_uvs` [F, 3] as SMPL-X's `vt`/`ft`), else by the mean of its
+        corners' vertex colours, else grey."""
         if not 0 <= sh_degree <= 3:
             raise ValueError(f"sh_degree must be in 0..3, got {sh_degree}")
         faces = torch.as_tensor(np.asarray(faces), dtype=torch.long)
         n = faces.shape[0]
-        if vertex_colors is None:
+        if texture is not None:
+            if uvs is None or face_uvs is None or len(face_uvs) != n:
+                raise ValueError("a texture needs uvs and one face_uvs row per face")
+            rgb = torch.as_tensor(sample_texture(texture, np.asarray(uvs)[np.asarray(face_uvs)]
+                                                 .mean(1)), dtype=dtype)
+        elif vertex_colors is None:
             rgb = torch.tensor(DEFAULT_COLOR, dtype=dtype).expand(n, 3)
         else:
             colors = torch.as_tensor(np.asarray(vertex_colors), dtype=dtype)
@@ -86,6 +95,20 @@ class GaussianAvatar:
                        n, 3).clone(),
                    quats=torch.tensor([1.0, 0, 0, 0], dtype=dtype).expand(n, 4).clone(),
                    opacity_logits=torch.full((n,), logit, dtype=dtype), sh=sh)
+
+
+def sample_texture(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Bilinear texture lookup. texture [H, W, 3], uv [N, 2] in [0, 1] (v up) -> [N, 3]."""
+    h, w = texture.shape[:2]
+    x = np.clip(uv[:, 0], 0, 1) * (w - 1)
+    y = (1 - np.clip(uv[:, 1], 0, 1)) * (h - 1)
+    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    tex = np.asarray(texture, dtype=np.float64)
+    top = tex[y0, x0] * (1 - fx) + tex[y0, x1] * fx
+    bottom = tex[y1, x0] * (1 - fx) + tex[y1, x1] * fx
+    return top * (1 - fy) + bottom * fy
 
 
 def to_world(avatar: GaussianAvatar, rot: Tensor, trans: Tensor, scale: Tensor) -> GaussianSet:
