@@ -29,6 +29,29 @@ def _demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _render(args: argparse.Namespace) -> int:
+    from .pipeline import render_sequence
+    from .render.types import RenderRequest
+
+    request = RenderRequest(backend=args.backend, sh_degree=args.sh_degree, budget=args.budget,
+                            background=tuple(args.background))
+    with tqdm(total=args.frames, desc="rendering", unit="frame") as bar:
+        def progress(i: int, n: int) -> None:
+            bar.total = n
+            bar.update(i - bar.n)
+
+        out = render_sequence(args.avatar, args.motion, args.camera, args.out, size=args.size,
+                              fps=args.fps, frames=args.frames, model_dir=args.models,
+                              request=request, progress=progress)
+    print(f"wrote {out}")
+    return 0
+
+
+def _budget(text: str) -> int | float:
+    value = float(text)
+    return value if "." in text else int(value)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="telesplat", description=__doc__)
     groups = parser.add_subparsers(dest="group", required=True)
@@ -52,6 +75,23 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--fps", type=int, default=24)
     demo.add_argument("--identity", type=int, default=0)
     demo.set_defaults(func=_demo)
+
+    render = groups.add_parser("render", help="render an avatar under a motion")
+    render.add_argument("avatar", help="avatar package (folder or .zip) or synthetic[:IDENTITY]")
+    render.add_argument("--motion", default="demo",
+                        help="built-in clip (demo, rest), or a .json / .npz parameter file")
+    render.add_argument("--camera", default="orbit", help="'orbit' or a JSON camera file")
+    render.add_argument("--out", type=Path, required=True, help="folder of PNGs or FILE.mp4")
+    render.add_argument("--models", type=Path, default=None, help="synthetic model folder")
+    render.add_argument("--size", type=int, default=512)
+    render.add_argument("--fps", type=float, default=25.0)
+    render.add_argument("--frames", type=int, default=None, help="at most this many frames")
+    render.add_argument("--backend", default="auto", choices=["auto", "torch", "cpu", "gsplat"])
+    render.add_argument("--sh-degree", type=int, default=None)
+    render.add_argument("--budget", type=_budget, default=None,
+                        help="render only the K (int) or fraction (float) most important splats")
+    render.add_argument("--background", type=float, nargs=3, default=(1.0, 1.0, 1.0))
+    render.set_defaults(func=_render)
     return parser
 
 

@@ -67,7 +67,8 @@ def demo_clip() -> Clip:
     return chain("body demo", [face, hands])
 
 
-def _rig(files: SyntheticModelFiles, model: UpperBodyModel) -> Rig:
+def model_rig(files: SyntheticModelFiles, model: UpperBodyModel) -> Rig:
+    """Expression names, gestures and hand means of a synthetic model, for pose descriptions."""
     manifest = json.loads(files.manifest.read_text())
     with np.load(files.gestures) as g:
         gestures = {k: g[k] for k in g.files}
@@ -90,7 +91,7 @@ def render_demo(out: Path, *, model_dir: Path | None = None, frames: int = 96, s
                            dtype=torch.float32)
     with np.load(identities[identity]) as ident:
         betas, colors = ident["betas"], ident["vertex_colors"][model.vertex_ids]
-    rig, clip = _rig(files, model), demo_clip()
+    rig, clip = model_rig(files, model), demo_clip()
     head = data.joint_template[15]
     camera = look_at(eye=(0.6, head[1] + 0.05, 2.6), target=(0.0, head[1] - 0.28, 0.0),
                      width=size, height=size, fov_y_deg=32.0)
