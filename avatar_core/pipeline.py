@@ -17,7 +17,7 @@ import torch
 
 from .gaussians.animate import AvatarAnimator, synthetic_package
 from .gaussians.package import AvatarPackage, load_package
-from .render import rasterize
+from .render.rasterize import rasterize
 from .render.camera import Camera, orbit
 from .render.types import RenderRequest
 from .synth.body_demo import demo_clip, ensure_models, model_rig
