@@ -91,7 +91,7 @@ def cameras_for(spec: str, n: int, size: int, target: np.ndarray) -> list[Camera
     """'orbit' (a half-circle sweep around the upper body) or a JSON camera / list of cameras."""
     if spec == "orbit":
         return [orbit(target, yaw_deg=-60.0 + 120.0 * i / max(n - 1, 1), pitch_deg=5.0,
-                      distance=2.4, width=size, height=size, fov_y_deg=30.0) for i in range(n)]
+                      distance=2.7, width=size, height=size, fov_y_deg=30.0) for i in range(n)]
     data = json.loads(Path(spec).read_text())
     cams = [Camera.from_dict(d) for d in (data if isinstance(data, list) else [data])]
     if len(cams) == 1:
@@ -146,7 +146,7 @@ def render_sequence(avatar: str, motion: str, camera: str, out: Path, *, size: i
                     progress: Callable[[int, int], None] | None = None) -> Path:
     loaded = load_avatar(avatar, model_dir)
     params = motion_frames(motion, loaded, fps, frames)
-    target = loaded.animator.body_model.joint_template[12].cpu().numpy() - np.array([0, 0.12, 0])
+    target = loaded.animator.body_model.joint_template[12].cpu().numpy() - np.array([0, 0.2, 0])
     cams = cameras_for(camera, len(params), size, target)
     req = request or RenderRequest()
     return write_frames(render_frames(loaded, params, cams, req), out, fps, len(params), progress)
