@@ -1,0 +1,170 @@
+"""EWA projection of 3D Gaussians to screen-space conics (pure PyTorch, differentiable).
+
+gsplat / 3DGS conventions (``gsplat/cuda/_torch_impl.py: _fully_fused_projection``):
+
+* world -> camera with the 4x4 view matrix; ``depth`` is camera-space z. Gaussians with
+  ``z <= near`` or ``z >= far`` are culled (radius 0).
+* the Jacobian of the pinhole projection is evaluated at the mean with x/z and y/z clamped to
+  the frustum widened by 30% of the half-FOV tangents on each side (``lim = (W - cx) / fx +
+  0.3 * tan_fovx``: 1.3 x the half-FOV tangent for a centred principal point), which keeps
+  off-screen Gaussians from blowing up;
+* ``cov2d = J W Sigma W^T J^T + eps2d * I`` (the 0.3 px low-pass dilation); with
+  ``antialiased`` the opacity is scaled by ``sqrt(det(cov2d - eps2d I) / det(cov2d))``;
+* ``conic = cov2d^-1`` stored as (a, b, c) = (inv[0, 0], inv[0, 1], inv[1, 1]);
+* ``radius = ceil(3 * sqrt(lambda_max))`` pixels; Gaussians with a non-positive determinant
+  or whose radius box misses the image get radius 0.
+
+Culled rows stay finite (means, conics and gradients): divisions use guarded denominators, so
+no NaN leaks through ``torch.where`` in the backward pass.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+__all__ = [
+    "EPS2D",
+    "FAR_PLANE",
+    "NEAR_PLANE",
+    "Projected",
+    "check_finite",
+    "covariance_3d",
+    "project_gaussians",
+    "quat_to_rotmat",
+]
+
+NEAR_PLANE = 0.01
+FAR_PLANE = 1e10
+EPS2D = 0.3  # low-pass dilation added to the 2D covariance, px^2
+_RADIUS_SIGMAS = 3.0
+_QUAT_EPS = 1e-12
+
+
+@dataclass
+class Projected:
+    """Per-Gaussian screen-space quantities (all [N, ...], culled rows have ``radii == 0``)."""
+
+    means2d: Tensor    # [N, 2] pixels, gsplat convention (pixel centres at +0.5)
+    conics: Tensor     # [N, 3] (a, b, c) of the inverse 2D covariance
+    depths: Tensor     # [N] camera-space z
+    radii: Tensor      # [N] int32, 3-sigma radius in pixels, 0 = culled
+    opacities: Tensor  # [N] after the antialiasing compensation (if any)
+    valid: Tensor      # [N] bool, radii > 0
+
+    @property
+    def num_visible(self) -> int:
+        return int(self.valid.sum())
+
+
+def check_finite(**tensors: Tensor) -> None:
+    """Raise ``ValueError`` naming the first input holding NaN or Inf."""
+    for name, t in tensors.items():
+        if t is not None and t.numel() and not bool(torch.isfinite(t).all()):
+            raise ValueError(f"rasterizer input {name!r} contains NaN or Inf values")
+
+
+def quat_to_rotmat(quats: Tensor) -> Tensor:
+    """(w, x, y, z) quaternions [N, 4] -> rotation matrices [N, 3, 3]; normalised here, a zero
+    quaternion gives the identity."""
+    norm = quats.norm(dim=-1, keepdim=True)  # [N, 1]
+    ok = norm > _QUAT_EPS
+    unit = torch.where(ok, quats / norm.clamp_min(_QUAT_EPS), torch.zeros_like(quats))
+    w, x, y, z = unit.unbind(-1)  # zero quaternion -> all zero -> identity below
+    R = torch.stack([
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    ], dim=-1)
+    return R.reshape(quats.shape[:-1] + (3, 3))
+
+
+def covariance_3d(quats: Tensor, scales: Tensor) -> Tensor:
+    """World covariance ``R S S R^T`` [N, 3, 3] from quaternions [N, 4] and scales [N, 3]."""
+    M = quat_to_rotmat(quats) * scales[:, None, :]  # [N, 3, 3] = R @ diag(s)
+    return M @ M.transpose(-1, -2)
+
+
+def project_gaussians(
+    means: Tensor,       # [N, 3]
+    quats: Tensor,       # [N, 4]
+    scales: Tensor,      # [N, 3]
+    opacities: Tensor,   # [N]
+    viewmat: Tensor,     # [4, 4] world -> camera
+    K: Tensor,           # [3, 3]
+    width: int,
+    height: int,
+    near: float = NEAR_PLANE,
+    antialiased: bool = False,
+    *,
+    far: float = FAR_PLANE,
+    eps2d: float = EPS2D,
+    validate: bool = True,
+) -> Projected:
+    """Project Gaussians to the image (see the module docstring for the conventions).
+
+    ``validate`` checks the inputs for NaN/Inf (``ValueError``); :func:`rasterize` checks once
+    itself and passes ``False``.
+    """
+    if validate:
+        check_finite(means=means, quats=quats, scales=scales, opacities=opacities,
+                     viewmat=viewmat, K=K)
+    dtype = means.dtype
+    viewmat = viewmat.to(dtype)
+    K = K.to(dtype)
+    Rw, tw = viewmat[:3, :3], viewmat[:3, 3]
+    means_c = means @ Rw.T + tw  # [N, 3]
+    cov_c = Rw @ covariance_3d(quats, scales) @ Rw.T  # [N, 3, 3]
+
+    tx, ty, tz = means_c.unbind(-1)  # [N]
+    in_depth = (tz > near) & (tz < far)
+    tz_s = torch.where(in_depth, tz, torch.ones_like(tz))  # guarded denominator
+
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    tan_fovx, tan_fovy = 0.5 * width / fx, 0.5 * height / fy
+    lim_x_pos, lim_x_neg = (width - cx) / fx + 0.3 * tan_fovx, cx / fx + 0.3 * tan_fovx
+    lim_y_pos, lim_y_neg = (height - cy) / fy + 0.3 * tan_fovy, cy / fy + 0.3 * tan_fovy
+    u = torch.maximum(torch.minimum(tx / tz_s, lim_x_pos), -lim_x_neg)  # clamped x / z
+    v = torch.maximum(torch.minimum(ty / tz_s, lim_y_pos), -lim_y_neg)
+    zeros = torch.zeros_like(tz)
+    J = torch.stack([fx / tz_s, zeros, -fx * u / tz_s,
+                     zeros, fy / tz_s, -fy * v / tz_s], dim=-1).reshape(-1, 2, 3)  # [N, 2, 3]
+    cov2d = J @ cov_c @ J.transpose(-1, -2)  # [N, 2, 2]
+
+    means2d = (means_c @ K[:2].T) / tz_s[:, None]  # [N, 2] = (K x)[:2] / z
+
+    c00, c01, c11 = cov2d[:, 0, 0], 0.5 * (cov2d[:, 0, 1] + cov2d[:, 1, 0]), cov2d[:, 1, 1]
+    det_orig = c00 * c11 - c01 * c01
+    c00, c11 = c00 + eps2d, c11 + eps2d
+    det = c00 * c11 - c01 * c01
+    valid = in_depth & (det > 0) & torch.isfinite(det)
+    det_s = torch.where(valid, det, torch.ones_like(det))
+    conics = torch.stack([c11 / det_s, -c01 / det_s, c00 / det_s], dim=-1)  # [N, 3]
+    conics = torch.where(valid[:, None], conics, torch.zeros_like(conics))
+
+    if antialiased:
+        comp = torch.sqrt(torch.clamp_min(det_orig / det_s, 0.0))
+        opacities = opacities * torch.where(valid, comp, torch.zeros_like(comp))
+
+    with torch.no_grad():
+        b = 0.5 * (c00 + c11)
+        lam_max = b + torch.sqrt(torch.clamp_min(b * b - det, 0.01))
+        radius = torch.ceil(_RADIUS_SIGMAS * torch.sqrt(lam_max.clamp_min(0.0)))
+        mx, my = means2d[:, 0], means2d[:, 1]
+        inside = (mx + radius > 0) & (mx - radius < width) & (my + radius > 0) \
+            & (my - radius < height)
+        keep = valid & inside & (radius > 0) & torch.isfinite(radius)
+        radius = torch.where(keep, radius, torch.zeros_like(radius))
+        radii = radius.clamp_max(2**30).to(torch.int32)
+
+    return Projected(means2d=means2d, conics=conics, depths=tz, radii=radii,
+                     opacities=opacities, valid=radii > 0)
+
+
+def footprint_area(conics: Tensor) -> Tensor:
+    """Area in px^2 of the 3-sigma ellipse of each conic [N, 3] (``9 pi sqrt(det cov2d)``)."""
+    det_conic = (conics[:, 0] * conics[:, 2] - conics[:, 1] ** 2).clamp_min(1e-30)
+    return 9.0 * math.pi / torch.sqrt(det_conic)

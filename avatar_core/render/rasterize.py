@@ -1,0 +1,171 @@
+"""The one rasterizer entry point: ``rasterize(gaussians, camera, request) -> RenderOutput``.
+
+Stages: validate -> project (torch, differentiable) -> keep the visible Gaussians, or the
+``budget`` most important of them -> colour from SH (only when rgb is asked) -> composite on
+the chosen backend -> expected depth (only when asked). Everything before compositing is
+shared, so the backends differ only in the compositing kernel.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import torch
+from torch import Tensor
+
+from .camera import Camera
+from .projection import NEAR_PLANE, check_finite, footprint_area, project_gaussians
+from .sh import sh_to_rgb
+from .types import BACKENDS, OUTPUTS, GaussianSet, RenderOutput, RenderRequest
+
+__all__ = ["available_backends", "rasterize", "resolve_backend"]
+
+
+def _gsplat_available() -> bool:
+    from . import rasterize_gsplat
+
+    return rasterize_gsplat.available()
+
+
+def available_backends() -> list[str]:
+    """Backends that can run here ("torch" and "cpu" always; "gsplat" with CUDA)."""
+    return ["torch", "cpu"] + (["gsplat"] if _gsplat_available() else [])
+
+
+def resolve_backend(name: str, device: torch.device) -> str:
+    """"auto": gsplat for CUDA tensors when installed, the numba kernels for CPU tensors,
+    else the PyTorch reference."""
+    if name not in BACKENDS:
+        raise ValueError(f"unknown backend {name!r}; expected one of {BACKENDS}")
+    if name != "auto":
+        return name
+    if device.type == "cuda" and _gsplat_available():
+        return "gsplat"
+    return "cpu" if device.type == "cpu" else "torch"
+
+
+def _check_request(request: RenderRequest) -> None:
+    outs = tuple(request.outputs)
+    if not outs or any(o not in OUTPUTS for o in outs):
+        raise ValueError(f"outputs must be a non-empty subset of {OUTPUTS}, got {outs!r}")
+    budget = request.budget
+    if budget is not None:
+        if isinstance(budget, bool) or not isinstance(budget, (int, float)):
+            raise ValueError(f"budget must be an int count or a float fraction, got {budget!r}")
+        if isinstance(budget, int) and budget < 0:
+            raise ValueError(f"budget count must be >= 0, got {budget}")
+        if isinstance(budget, float) and not 0.0 < budget <= 1.0:
+            raise ValueError(f"budget fraction must be in (0, 1], got {budget}")
+    if request.sh_degree is not None and not 0 <= request.sh_degree <= 3:
+        raise ValueError(f"sh_degree must be in 0..3, got {request.sh_degree}")
+    if len(request.background) != 3:
+        raise ValueError(f"background must be an RGB triple, got {request.background!r}")
+
+
+def _check_gaussians(g: GaussianSet) -> None:
+    n = g.means.shape[0] if g.means.ndim == 2 else -1
+    shapes = {"means": (n, 3), "quats": (n, 4), "scales": (n, 3), "opacities": (n,)}
+    for name, shape in shapes.items():
+        t = getattr(g, name)
+        if tuple(t.shape) != shape:
+            raise ValueError(f"gaussians.{name} must have shape {shape}, got {tuple(t.shape)}")
+    if g.sh.ndim != 3 or g.sh.shape[0] != n or g.sh.shape[2] != 3 \
+            or g.sh.shape[1] not in (1, 4, 9, 16):
+        raise ValueError(f"gaussians.sh must be [N, K in (1, 4, 9, 16), 3], got "
+                         f"{tuple(g.sh.shape)}")
+    check_finite(means=g.means, quats=g.quats, scales=g.scales, opacities=g.opacities,
+                 sh=g.sh)
+
+
+def _budget_count(budget: int | float | None, n_visible: int) -> int:
+    if budget is None:
+        return n_visible
+    if isinstance(budget, float):
+        return min(n_visible, math.ceil(budget * n_visible))
+    return min(n_visible, budget)
+
+
+def _ms(t0: float) -> float:
+    return (time.perf_counter() - t0) * 1e3
+
+
+def rasterize(gaussians: GaussianSet, camera: Camera,
+              request: RenderRequest = RenderRequest()) -> RenderOutput:  # noqa: B008
+    """Render ``gaussians`` seen by ``camera`` (see :mod:`avatar_core.render.types`).
+
+    Differentiable with respect to the Gaussians on every backend. Raises ``ValueError`` for
+    NaN/Inf inputs, bad shapes or a bad request.
+    """
+    t_start = time.perf_counter()
+    _check_request(request)
+    _check_gaussians(gaussians)
+    if request.width is not None or request.height is not None:
+        camera = camera.resized(request.width or camera.width, request.height or camera.height)
+    width, height = camera.width, camera.height
+    outputs = set(request.outputs)
+    device, dtype = gaussians.means.device, gaussians.means.dtype
+    backend = resolve_backend(request.backend, device)
+    sh_degree = gaussians.sh_degree if request.sh_degree is None \
+        else min(request.sh_degree, gaussians.sh_degree)
+
+    if backend == "gsplat":
+        from .rasterize_gsplat import rasterize_gsplat
+
+        return rasterize_gsplat(gaussians, camera, request, sh_degree, t_start)
+
+    stats: dict = {"backend": backend, "n_gaussians": gaussians.num}
+    t0 = time.perf_counter()
+    viewmat, K = camera.to_torch(device, dtype)
+    proj = project_gaussians(gaussians.means, gaussians.quats, gaussians.scales,
+                             gaussians.opacities, viewmat, K, width, height, NEAR_PLANE,
+                             request.antialiased, validate=False)
+    sel = torch.nonzero(proj.valid).squeeze(1)  # [V] visible Gaussians
+    stats["n_visible"] = int(sel.numel())
+    keep = _budget_count(request.budget, int(sel.numel()))
+    if keep < sel.numel():  # most important first; ties keep the lower index
+        importance = (proj.opacities * footprint_area(proj.conics))[sel].detach()
+        order = torch.sort(importance, descending=True, stable=True).indices[:keep]
+        sel = torch.sort(sel[order]).values
+    stats["n_rendered"] = int(sel.numel())
+    stats["project_ms"] = _ms(t0)
+
+    bg = torch.tensor(request.background, dtype=dtype, device=device)
+    if sel.numel() == 0:  # nothing to composite: background only
+        stats["color_ms"] = stats["raster_ms"] = 0.0
+        stats["total_ms"] = _ms(t_start)
+        zeros = torch.zeros(height, width, dtype=dtype, device=device)
+        return RenderOutput(
+            rgb=bg.expand(height, width, 3).clone() if "rgb" in outputs else None,
+            alpha=zeros if "alpha" in outputs else None,
+            depth=zeros.clone() if "depth" in outputs else None, stats=stats)
+
+    t0 = time.perf_counter()
+    colors = None
+    if "rgb" in outputs:
+        campos = torch.as_tensor(camera.center, dtype=dtype, device=device)
+        k = (sh_degree + 1) ** 2
+        colors = sh_to_rgb(sh_degree, gaussians.sh[sel, :k], gaussians.means[sel] - campos)
+    stats["color_ms"] = _ms(t0)
+
+    t0 = time.perf_counter()
+    if backend == "cpu":
+        from .rasterize_cpu import rasterize_to_pixels
+    else:
+        from .rasterize_torch import rasterize_to_pixels
+    with_depth = "depth" in outputs
+    rgb, alpha, depth_acc = rasterize_to_pixels(
+        proj.means2d[sel], proj.conics[sel], colors, proj.opacities[sel], proj.depths[sel],
+        proj.radii[sel], width, height, background=bg, with_depth=with_depth)
+    depth = _expected_depth(depth_acc, alpha) if with_depth else None
+    stats["raster_ms"] = _ms(t0)
+    stats["total_ms"] = _ms(t_start)
+    return RenderOutput(rgb=rgb, alpha=alpha if "alpha" in outputs else None, depth=depth,
+                        stats=stats)
+
+
+def _expected_depth(depth_acc: Tensor, alpha: Tensor) -> Tensor:
+    """sum(w z) / alpha, 0 where alpha == 0 (guarded so no NaN reaches the gradients)."""
+    hit = alpha > 0
+    return torch.where(hit, depth_acc / torch.where(hit, alpha, torch.ones_like(alpha)),
+                       torch.zeros_like(alpha))

@@ -1,0 +1,105 @@
+"""Adapter to gsplat's CUDA rasterizer (``gsplat.rasterization``), imported lazily.
+
+Maps a :class:`RenderRequest` onto gsplat's arguments: pinhole camera, near plane 0.01, far
+plane 1e10, eps2d 0.3, 16 px tiles, SH evaluated by gsplat (``colors`` = coefficients with
+``sh_degree``: ``max(SH + 0.5, 0)``, the same convention), ``rasterize_mode="antialiased"``
+for ``antialiased``, ``render_mode`` "RGB" / "RGB+ED" / "ED" (expected depth, 0 where alpha
+is 0) and the background for the colour channels only. A ``budget`` is applied before the
+call, with the shared importance (opacity x 3-sigma footprint area, from our projection).
+
+Known differences from the contract that gsplat itself fixes: it clamps alpha at 0.999
+(3DGS and our other backends: 0.99), and recent releases bound each splat's tiles with an
+opacity-aware, per-axis radius. Pictures agree closely, not to float rounding.
+"""
+
+from __future__ import annotations
+
+import time
+
+import torch
+
+from .camera import Camera
+from .projection import EPS2D, FAR_PLANE, NEAR_PLANE, footprint_area, project_gaussians
+from .rasterize_torch import TILE_SIZE
+from .types import GaussianSet, RenderOutput, RenderRequest
+
+__all__ = ["available", "gsplat_arguments", "rasterize_gsplat"]
+
+
+def available() -> bool:
+    """gsplat importable and a CUDA device present."""
+    try:
+        import gsplat  # noqa: F401
+    except Exception:  # noqa: BLE001 (any import failure means: not available)
+        return False
+    return torch.cuda.is_available()
+
+
+def _render_mode(outputs: set[str]) -> str:
+    if "rgb" in outputs:
+        return "RGB+ED" if "depth" in outputs else "RGB"
+    return "ED"  # alpha and/or depth only: one cheap channel
+
+
+def gsplat_arguments(gaussians: GaussianSet, camera: Camera, request: RenderRequest,
+                     sh_degree: int) -> dict:
+    """Keyword arguments for ``gsplat.rasterization`` (exposed so it can be tested without
+    CUDA)."""
+    device, dtype = gaussians.means.device, gaussians.means.dtype
+    viewmat, K = camera.to_torch(device, dtype)
+    k = (sh_degree + 1) ** 2
+    bg = torch.tensor(request.background, dtype=dtype, device=device)[None]  # [1, 3]
+    mode = _render_mode(set(request.outputs))
+    return dict(
+        means=gaussians.means, quats=gaussians.quats, scales=gaussians.scales,
+        opacities=gaussians.opacities, colors=gaussians.sh[:, :k], sh_degree=sh_degree,
+        viewmats=viewmat[None], Ks=K[None], width=camera.width, height=camera.height,
+        near_plane=NEAR_PLANE, far_plane=FAR_PLANE, eps2d=EPS2D, tile_size=TILE_SIZE,
+        backgrounds=bg if mode != "ED" else None, render_mode=mode,
+        rasterize_mode="antialiased" if request.antialiased else "classic",
+        packed=False,
+    )
+
+
+def _apply_budget(gaussians: GaussianSet, camera: Camera, request: RenderRequest,
+                  keep_count) -> tuple[GaussianSet, int]:
+    viewmat, K = camera.to_torch(gaussians.means.device, gaussians.means.dtype)
+    with torch.no_grad():
+        p = project_gaussians(gaussians.means, gaussians.quats, gaussians.scales,
+                              gaussians.opacities, viewmat, K, camera.width, camera.height,
+                              antialiased=request.antialiased, validate=False)
+        sel = torch.nonzero(p.valid).squeeze(1)
+        keep = keep_count(request.budget, int(sel.numel()))
+        imp = (p.opacities * footprint_area(p.conics))[sel]
+        sel = torch.sort(sel[torch.sort(imp, descending=True, stable=True).indices[:keep]]).values
+    sub = GaussianSet(*(t[sel] for t in (gaussians.means, gaussians.quats, gaussians.scales,
+                                         gaussians.opacities, gaussians.sh)))
+    return sub, int(sel.numel())
+
+
+def rasterize_gsplat(gaussians: GaussianSet, camera: Camera, request: RenderRequest,
+                     sh_degree: int, t_start: float) -> RenderOutput:
+    """Render with gsplat (called by :func:`avatar_core.render.rasterize`)."""
+    from gsplat import rasterization
+
+    from .rasterize import _budget_count
+
+    stats: dict = {"backend": "gsplat", "n_gaussians": gaussians.num}
+    if request.budget is not None:
+        gaussians, stats["n_rendered"] = _apply_budget(gaussians, camera, request,
+                                                       _budget_count)
+    outputs = set(request.outputs)
+    t0 = time.perf_counter()
+    colors, alphas, meta = rasterization(**gsplat_arguments(gaussians, camera, request,
+                                                            sh_degree))
+    colors, alphas = colors[0], alphas[0, ..., 0]  # [H, W, X], [H, W]
+    stats["raster_ms"] = (time.perf_counter() - t0) * 1e3
+    if "n_rendered" not in stats:
+        radii = meta.get("radii")
+        stats["n_rendered"] = int((radii > 0).any(-1).sum()) if radii is not None and \
+            radii.ndim == 3 else int((radii > 0).sum()) if radii is not None else -1
+    stats["total_ms"] = (time.perf_counter() - t_start) * 1e3
+    rgb = colors[..., :3] if "rgb" in outputs else None
+    depth = colors[..., -1] if "depth" in outputs else None
+    return RenderOutput(rgb=rgb, alpha=alphas if "alpha" in outputs else None, depth=depth,
+                        stats=stats)
