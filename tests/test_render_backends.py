@@ -104,3 +104,49 @@ def test_property_cpu_matches_torch(n, w, h, seed, degree, aa, spread, big):
     assert (ref.rgb - out.rgb).abs().max() <= 1e-3
     assert psnr(ref.rgb, out.rgb) >= 50
     assert (ref.alpha - out.alpha).abs().max() <= 1e-4
+
+
+def test_cpu_no_grad_path_matches_the_autograd_path():
+    """Without gradients the cpu backend projects and colours in numba too."""
+    gs = random_scene(300, 8)
+    kw = dict(outputs=ALL, antialiased=True, background=(0.4, 0.4, 0.1), budget=200)
+    fast = render(gs, "cpu", **kw)
+    params = [t.clone().requires_grad_() for t in
+              (gs.means, gs.quats, gs.scales, gs.opacities, gs.sh)]
+    slow = render(GaussianSet(*params), "cpu", **kw)
+    assert fast.stats["n_rendered"] == slow.stats["n_rendered"] == 200
+    assert (fast.rgb - slow.rgb).abs().max() <= 1e-5
+    assert (fast.alpha - slow.alpha).abs().max() <= 1e-5
+    m = slow.alpha > 1e-2
+    assert torch.allclose(fast.depth[m], slow.depth[m], rtol=1e-5)
+
+
+def test_numba_projection_and_sh_match_torch():
+    from avatar_core.render.project_cpu import project_np, sh_rgb_np
+    from avatar_core.render.projection import project_gaussians
+    from avatar_core.render.sh import sh_to_rgb
+
+    gs = random_scene(500, 9, spread=2.0, scale=(1e-4, 0.5))
+    gs.quats[:5] = 0.0  # zero quaternions too
+    viewmat, K = CAM.to_torch()
+    for aa in (False, True):
+        ref = project_gaussians(gs.means, gs.quats, gs.scales, gs.opacities, viewmat, K, 64,
+                                48, antialiased=aa)
+        m2, co, de, rad, op = project_np(*(t.numpy() for t in (gs.means, gs.quats, gs.scales,
+                                                               gs.opacities)),
+                                         CAM.viewmat(), CAM.K, 64, 48, antialiased=aa)
+        v = ref.valid.numpy()
+        assert (rad > 0).sum() == v.sum() > 100
+        assert (abs(rad.astype(int) - ref.radii.numpy()) <= 1).all()  # ceil at rounding
+        assert torch.allclose(torch.from_numpy(m2), ref.means2d, rtol=1e-5, atol=1e-3)
+        assert torch.allclose(torch.from_numpy(de), ref.depths, rtol=1e-6)
+        assert torch.allclose(torch.from_numpy(co)[v], ref.conics[v], rtol=1e-4, atol=1e-7)
+        assert torch.allclose(torch.from_numpy(op)[v], ref.opacities[v], rtol=1e-4)
+    for degree in range(4):
+        out = torch.zeros(500, 4)
+        sh_rgb_np(degree, gs.sh.numpy(), gs.means.numpy(), CAM.center, rad, out.numpy())
+        cp = torch.as_tensor(CAM.center, dtype=torch.float32)
+        ref = sh_to_rgb(degree, gs.sh, gs.means - cp)
+        v = torch.from_numpy(rad > 0)
+        assert torch.allclose(out[v, :3], ref[v], atol=1e-5)
+        assert (out[~v] == 0).all()

@@ -115,9 +115,13 @@ def project_gaussians(
     dtype = means.dtype
     viewmat = viewmat.to(dtype)
     K = K.to(dtype)
+    n = means.shape[0]
     Rw, tw = viewmat[:3, :3], viewmat[:3, 3]
     means_c = means @ Rw.T + tw  # [N, 3]
-    cov_c = Rw @ covariance_3d(quats, scales) @ Rw.T  # [N, 3, 3]
+    # camera-space factor Mc = Rw R S (cov_c = Mc Mc^T), as one [3N, 3] x [3, 3] product;
+    # P[n, k] is column k of Mc[n] (batched 3x3 matmuls are slow on CPU)
+    M = quat_to_rotmat(quats) * scales[:, None, :]  # [N, 3, 3] = R diag(s)
+    P = (M.transpose(1, 2).reshape(-1, 3) @ Rw.T).reshape(n, 3, 3)
 
     tx, ty, tz = means_c.unbind(-1)  # [N]
     in_depth = (tz > near) & (tz < far)
@@ -129,14 +133,15 @@ def project_gaussians(
     lim_y_pos, lim_y_neg = (height - cy) / fy + 0.3 * tan_fovy, cy / fy + 0.3 * tan_fovy
     u = torch.maximum(torch.minimum(tx / tz_s, lim_x_pos), -lim_x_neg)  # clamped x / z
     v = torch.maximum(torch.minimum(ty / tz_s, lim_y_pos), -lim_y_neg)
-    zeros = torch.zeros_like(tz)
-    J = torch.stack([fx / tz_s, zeros, -fx * u / tz_s,
-                     zeros, fy / tz_s, -fy * v / tz_s], dim=-1).reshape(-1, 2, 3)  # [N, 2, 3]
-    cov2d = J @ cov_c @ J.transpose(-1, -2)  # [N, 2, 2]
+    # J = [[fx / z, 0, -fx u / z], [0, fy / z, -fy v / z]]; T = J Mc [N, 2, 3] row by row
+    inv_z = (1.0 / tz_s)[:, None]
+    T0 = (fx * inv_z) * (P[:, :, 0] - u[:, None] * P[:, :, 2])  # [N, 3]
+    T1 = (fy * inv_z) * (P[:, :, 1] - v[:, None] * P[:, :, 2])
+    cov2d_00, cov2d_01, cov2d_11 = (T0 * T0).sum(-1), (T0 * T1).sum(-1), (T1 * T1).sum(-1)
 
     means2d = (means_c @ K[:2].T) / tz_s[:, None]  # [N, 2] = (K x)[:2] / z
 
-    c00, c01, c11 = cov2d[:, 0, 0], 0.5 * (cov2d[:, 0, 1] + cov2d[:, 1, 0]), cov2d[:, 1, 1]
+    c00, c01, c11 = cov2d_00, cov2d_01, cov2d_11
     det_orig = c00 * c11 - c01 * c01
     c00, c11 = c00 + eps2d, c11 + eps2d
     det = c00 * c11 - c01 * c01

@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 import time
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -115,6 +116,8 @@ def rasterize(gaussians: GaussianSet, camera: Camera,
         return rasterize_gsplat(gaussians, camera, request, sh_degree, t_start)
 
     stats: dict = {"backend": backend, "n_gaussians": gaussians.num}
+    if backend == "cpu" and not _needs_grad(gaussians):
+        return _rasterize_cpu_no_grad(gaussians, camera, request, sh_degree, stats, t_start)
     t0 = time.perf_counter()
     viewmat, K = camera.to_torch(device, dtype)
     proj = project_gaussians(gaussians.means, gaussians.quats, gaussians.scales,
@@ -131,14 +134,8 @@ def rasterize(gaussians: GaussianSet, camera: Camera,
     stats["project_ms"] = _ms(t0)
 
     bg = torch.tensor(request.background, dtype=dtype, device=device)
-    if sel.numel() == 0:  # nothing to composite: background only
-        stats["color_ms"] = stats["raster_ms"] = 0.0
-        stats["total_ms"] = _ms(t_start)
-        zeros = torch.zeros(height, width, dtype=dtype, device=device)
-        return RenderOutput(
-            rgb=bg.expand(height, width, 3).clone() if "rgb" in outputs else None,
-            alpha=zeros if "alpha" in outputs else None,
-            depth=zeros.clone() if "depth" in outputs else None, stats=stats)
+    if sel.numel() == 0:
+        return _background_only(request, width, height, dtype, device, stats, t_start)
 
     t0 = time.perf_counter()
     colors = None
@@ -158,6 +155,80 @@ def rasterize(gaussians: GaussianSet, camera: Camera,
         proj.means2d[sel], proj.conics[sel], colors, proj.opacities[sel], proj.depths[sel],
         proj.radii[sel], width, height, background=bg, with_depth=with_depth)
     depth = _expected_depth(depth_acc, alpha) if with_depth else None
+    stats["raster_ms"] = _ms(t0)
+    stats["total_ms"] = _ms(t_start)
+    return RenderOutput(rgb=rgb, alpha=alpha if "alpha" in outputs else None, depth=depth,
+                        stats=stats)
+
+
+def _needs_grad(g: GaussianSet) -> bool:
+    return torch.is_grad_enabled() and any(
+        t.requires_grad for t in (g.means, g.quats, g.scales, g.opacities, g.sh))
+
+
+def _background_only(request, width, height, dtype, device, stats, t_start) -> RenderOutput:
+    """Nothing to composite: the background, alpha 0, depth 0."""
+    stats["color_ms"] = stats["raster_ms"] = 0.0
+    stats["total_ms"] = _ms(t_start)
+    outputs = set(request.outputs)
+    bg = torch.tensor(request.background, dtype=dtype, device=device)
+    zeros = torch.zeros(height, width, dtype=dtype, device=device)
+    return RenderOutput(rgb=bg.expand(height, width, 3).clone() if "rgb" in outputs else None,
+                        alpha=zeros if "alpha" in outputs else None,
+                        depth=zeros.clone() if "depth" in outputs else None, stats=stats)
+
+
+def _np32(t: Tensor) -> np.ndarray:
+    return np.ascontiguousarray(t.detach().to("cpu", torch.float32).numpy())
+
+
+def _rasterize_cpu_no_grad(g: GaussianSet, camera: Camera, request: RenderRequest,
+                           sh_degree: int, stats: dict, t_start: float) -> RenderOutput:
+    """The cpu backend without autograd: projection and colour in numba too (the twins of
+    the torch stages above), no tensor round trips. Same picture as the autograd path."""
+    from .project_cpu import project_np, sh_rgb_np
+    from .rasterize_cpu import composite_np
+
+    width, height = camera.width, camera.height
+    outputs = set(request.outputs)
+    dtype = g.means.dtype
+    t0 = time.perf_counter()
+    means, opac = _np32(g.means), _np32(g.opacities)
+    m2, co, de, rad, op = project_np(means, _np32(g.quats), _np32(g.scales), opac,
+                                     camera.viewmat(), camera.K, width, height, NEAR_PLANE,
+                                     request.antialiased)
+    vis = np.flatnonzero(rad > 0)
+    stats["n_visible"] = int(vis.size)
+    keep = _budget_count(request.budget, int(vis.size))
+    if keep < vis.size:  # drop the least important (same rule as the torch path)
+        c = co[vis]
+        area = 9.0 * np.pi / np.sqrt(np.maximum(c[:, 0] * c[:, 2] - c[:, 1] ** 2, 1e-30))
+        order = np.argsort(-(op[vis] * area), kind="stable")
+        rad[vis[order[keep:]]] = 0
+    stats["n_rendered"] = keep
+    stats["project_ms"] = _ms(t0)
+    if keep == 0:
+        return _background_only(request, width, height, dtype, g.means.device, stats, t_start)
+
+    t0 = time.perf_counter()
+    feats = np.zeros((means.shape[0], 4), np.float32)  # rgb, then depth
+    n_col = 3 if "rgb" in outputs else 0
+    if n_col:
+        sh_rgb_np(sh_degree, _np32(g.sh), means, camera.center, rad, feats)
+    if "depth" in outputs:
+        feats[:, n_col] = de
+    stats["color_ms"] = _ms(t0)
+
+    t0 = time.perf_counter()
+    bg = np.zeros(4)
+    bg[:n_col] = request.background[:n_col]
+    out, T, _ = composite_np(m2, co, op, feats, de, rad, width, height, bg)
+    to = dict(dtype=dtype, device=g.means.device)
+    alpha = torch.from_numpy(1.0 - T).to(**to)
+    rgb = torch.from_numpy(out[..., :3]).to(**to) if n_col else None
+    depth = None
+    if "depth" in outputs:
+        depth = _expected_depth(torch.from_numpy(out[..., n_col]).to(**to), alpha)
     stats["raster_ms"] = _ms(t0)
     stats["total_ms"] = _ms(t_start)
     return RenderOutput(rgb=rgb, alpha=alpha if "alpha" in outputs else None, depth=depth,

@@ -136,17 +136,42 @@ def _sort_by_tile(pair_tile, pair_gid, n_tiles, offsets, ids):
         cursor[t] += 1
 
 
+@njit(cache=True)
+def _depth_order(depths, counts):
+    """Indices of the Gaussians with tile pairs, front to back; ties keep index order. An LSD
+    radix sort (3 x 11 bits) of the float32 bit patterns: depths here are > near > 0, so
+    their bits sort like the values."""
+    keys = depths.view(np.uint32)
+    idx = np.nonzero(counts > 0)[0].astype(np.int32)
+    tmp = np.empty_like(idx)
+    hist = np.zeros(2048, np.int64)
+    for shift in (0, 11, 22):
+        hist[:] = 0
+        for i in idx:
+            hist[(keys[i] >> shift) & 2047] += 1
+        total = 0
+        for d in range(2048):
+            total, hist[d] = total + hist[d], total
+        for i in idx:
+            d = (keys[i] >> shift) & 2047
+            tmp[hist[d]] = i
+            hist[d] += 1
+        idx, tmp = tmp, idx
+    return idx
+
+
 def bin_tiles(means2d: np.ndarray, conics: np.ndarray, opacities: np.ndarray,
               depths: np.ndarray, radii: np.ndarray, width: int, height: int):
     """Per-tile front-to-back lists -> ``(offsets [n_tiles + 1], ids [n_pairs], smax [N])``
-    (int64, int32, float64); only tiles the splat can reach with ``alpha >= 1/255``."""
+    (int64, int32, float64); only tiles the splat can reach with ``alpha >= 1/255``.
+    ``depths`` float32."""
     n = means2d.shape[0]
     n_tiles = ((width + _TS - 1) // _TS) * ((height + _TS - 1) // _TS)
     counts = np.empty(n, np.int64)
     smax = np.empty(n, np.float64)
     _count_pairs(means2d, conics, opacities, radii, width, height, smax, counts)
-    order = np.argsort(depths, kind="stable").astype(np.int32)  # ties: lower index first
-    goff = np.zeros(n + 1, np.int64)
+    order = _depth_order(depths, counts)
+    goff = np.zeros(order.shape[0] + 1, np.int64)
     np.cumsum(counts[order], out=goff[1:])
     n_pairs = int(goff[-1])
     pair_tile = np.empty(n_pairs, np.int32)
@@ -432,6 +457,21 @@ def _np32(t: Tensor) -> np.ndarray:
 _MAX_FEATS = 4  # rgb + depth; the kernels carry four feature channels
 
 
+def composite_np(means2d, conics, opacities, feats, depths, radii, width, height, background):
+    """numpy float32 in (feats [N, 4], background [4]) -> (feats image [H, W, 4] with
+    background, final transmittance [H, W], the state the backward pass needs)."""
+    offsets, ids, smax = bin_tiles(means2d, conics, opacities, depths, radii, width, height)
+    tiles = _tile_order(offsets.shape[0] - 1)
+    out = np.empty((height, width, _MAX_FEATS), np.float32)
+    T = np.empty((height, width), np.float32)
+    stop = np.empty((height, width), np.int32)
+    _forward_kernel(means2d, conics, opacities, feats, smax, offsets, ids, tiles, width, height,
+                    background, out, T, stop)
+    state = (means2d, conics, opacities, feats, smax, offsets, ids, tiles, width, height,
+             background, T, stop)
+    return out, T, state
+
+
 class RasterizeCPU(torch.autograd.Function):
     """(means2d, conics, feats [N, C <= 4], opacities) -> (feats image [H, W, C] incl.
     background [C], alpha [H, W]); depths only order the splats (append them to feats to
@@ -447,14 +487,8 @@ class RasterizeCPU(torch.autograd.Function):
         bg = np.zeros(_MAX_FEATS)
         bg[:nc] = background.detach().cpu().double().numpy()
         rad = np.ascontiguousarray(radii.detach().cpu().numpy().astype(np.int32))
-        offsets, ids, smax = bin_tiles(m2, co, op, _np32(depths), rad, width, height)
-        tiles = _tile_order(offsets.shape[0] - 1)
-        out = np.empty((height, width, _MAX_FEATS), np.float32)
-        T = np.empty((height, width), np.float32)
-        stop = np.empty((height, width), np.int32)
-        _forward_kernel(m2, co, op, fe, smax, offsets, ids, tiles, width, height, bg, out, T,
-                        stop)
-        ctx.state = (m2, co, op, fe, smax, offsets, ids, tiles, width, height, bg, T, stop)
+        out, T, state = composite_np(m2, co, op, fe, _np32(depths), rad, width, height, bg)
+        ctx.state = state
         ctx.dtype = dtype = means2d.dtype
         ctx.nc = nc
         return torch.from_numpy(out[..., :nc]).to(dtype), torch.from_numpy(1.0 - T).to(dtype)
