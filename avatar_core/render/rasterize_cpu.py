@@ -1,26 +1,29 @@
 """Fast CPU rasterizer: numba kernels for tile binning, compositing and its backward pass.
 
-Renders exactly the picture of :mod:`avatar_core.render.rasterize_torch` (same tile lists,
-same order, same per-pixel rules), so the two agree to float rounding. What makes it fast:
+Renders the picture of :mod:`avatar_core.render.rasterize_torch` (same tile lists, same
+order, same per-pixel rules), so the two agree to float rounding. What makes it fast:
 
 * **Binning** keeps gsplat's tile range (the radius box) but drops the tiles in which the
   splat cannot reach ``alpha >= 1/255`` at any pixel centre: ``sigma`` is minimised exactly
   over the tile's rectangle of pixel centres and compared with the splat's cut-off
   ``sigma_max = log(255 * opacity)``. Those tiles would composite nothing from that splat, so
-  the picture is unchanged while the lists shrink. Lists come from one stable depth sort and
-  a stable counting sort by tile.
-* **Splat-major compositing** inside a tile: splats are visited front to back, and for each
-  one only the pixels inside its ``sigma <= sigma_max`` ellipse (solved per row) are touched.
-  Each pixel still sees its splats in depth order, so the result equals the per-pixel loop;
-  a tile stops when all its pixels are done (``T`` would fall to ``1e-4``).
-* **Backward** replays each pixel back to front from its final transmittance and last
-  contributing splat (gsplat's ``rasterize_to_pixels`` backward), with the same loop
-  interchange. Each (tile, splat) pair owns one gradient row, so threads never collide; a
-  final pass sums the rows per Gaussian.
+  the picture is unchanged while the lists shrink. Lists come from one stable radix sort by
+  depth and a stable counting sort by tile.
+* **Splat-major, SIMD compositing** inside a tile: splats are visited front to back; for
+  each, only the rows its ``sigma <= sigma_max`` ellipse reaches are visited, and a row (16
+  pixels, or the 8 the ellipse's x-extent needs) is one branch-free, vectorized pass with a
+  polynomial ``exp``. Each pixel still sees its splats in depth order, so the result equals
+  gsplat's per-pixel loop; finished rows are skipped and a tile stops when all its pixels
+  are done (``T`` would fall to ``1e-4``).
+* **Backward** replays each pixel back to front from its final transmittance, skipping the
+  splats at and after the one that ended it (gsplat's ``rasterize_to_pixels`` backward), with
+  the same loop interchange. Each (tile, splat) pair owns one gradient row, so threads never
+  collide; a final pass sums the rows per Gaussian.
 
 Kernels run in parallel over tiles (``prange``), interleaved so both cores get a mix of busy
-and empty tiles. ``RasterizeCPU`` wraps them in a ``torch.autograd.Function``; projection and
-colour stay in torch, and autograd chains through.
+and empty tiles. :class:`RasterizeCPU` wraps them in a ``torch.autograd.Function`` so that
+projection and colour stay in torch and autograd chains through; without gradients,
+:func:`composite_np` is called directly on numpy arrays (see ``rasterize``).
 """
 
 from __future__ import annotations
@@ -35,7 +38,7 @@ from torch import Tensor
 
 from .rasterize_torch import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE_SIZE
 
-__all__ = ["bin_tiles", "rasterize_to_pixels"]
+__all__ = ["RasterizeCPU", "bin_tiles", "composite_np", "rasterize_to_pixels"]
 
 _TS = TILE_SIZE
 _SMAX_REL = 1e-4  # widen the sigma cut-off used for culling / spans: never drops a pixel
