@@ -139,3 +139,14 @@ def test_non_finite_input_raises(bad):
                           K, 64, 48)
     with pytest.raises(ValueError, match="opacities"):
         check_finite(opacities=torch.tensor([0.5, bad]))
+
+
+def test_finite_check_is_not_fooled_by_overflowing_sums():
+    big = torch.full((4,), 3e38)  # finite values whose float32 sum overflows
+    check_finite(big=big)
+    big[2] = float("-inf")
+    with pytest.raises(ValueError, match="big"):
+        check_finite(big=big)
+    mixed = torch.tensor([float("inf"), float("-inf"), 1.0])  # sums to NaN
+    with pytest.raises(ValueError):
+        check_finite(mixed=mixed)

@@ -8,7 +8,7 @@ order, same per-pixel rules), so the two agree to float rounding. What makes it 
   over the tile's rectangle of pixel centres and compared with the splat's cut-off
   ``sigma_max = log(255 * opacity)``. Those tiles would composite nothing from that splat, so
   the picture is unchanged while the lists shrink. Lists come from one stable radix sort by
-  depth and a stable counting sort by tile.
+  depth and a stable, parallel counting sort by tile.
 * **Splat-major, SIMD compositing** inside a tile: splats are visited front to back; for
   each, only the rows its ``sigma <= sigma_max`` ellipse reaches are visited, and a row (16
   pixels, or the 8 the ellipse's x-extent needs) is one branch-free, vectorized pass with a
@@ -80,8 +80,14 @@ def _tile_box(mx, my, r, tw, th):
     return x0, x1, y0, y1
 
 
+_MASK_TILES = 64  # tile boxes up to this size keep their hits in a bit mask
+
+
 @njit(parallel=True, cache=True)
-def _count_pairs(means2d, conics, opacities, radii, width, height, smax, counts):
+def _find_hits(means2d, conics, opacities, radii, width, height, smax, boxes, masks, counts):
+    """Per Gaussian: sigma cut-off, tile box, and which tiles of the box it reaches (bit
+    ``(ty - y0) * box_width + (tx - x0)`` of ``masks``; boxes of more than 64 tiles are
+    re-tested when the lists are built)."""
     tw, th = (width + _TS - 1) // _TS, (height + _TS - 1) // _TS
     for g in prange(means2d.shape[0]):
         counts[g] = 0
@@ -95,48 +101,71 @@ def _count_pairs(means2d, conics, opacities, radii, width, height, smax, counts)
         mx, my = float(means2d[g, 0]), float(means2d[g, 1])
         a, b, c = float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2])
         x0, x1, y0, y1 = _tile_box(mx, my, float(radii[g]), tw, th)
+        boxes[g, 0], boxes[g, 1], boxes[g, 2], boxes[g, 3] = x0, x1, y0, y1
+        bits = np.uint64(0)
         n = 0
+        bit = 0
         for ty in range(y0, y1):
             for tx in range(x0, x1):
                 if _tile_reaches(tx, ty, mx, my, a, b, c, s, width, height):
                     n += 1
+                    if bit < _MASK_TILES:
+                        bits |= np.uint64(1) << np.uint64(bit)
+                bit += 1
+        masks[g] = bits
         counts[g] = n
 
 
+@njit(cache=True, inline="always")
+def _reaches(g, bit, tx, ty, boxes, masks, means2d, conics, smax, width, height):
+    """Tile (tx, ty), bit ``bit`` of g's box: from the mask, or re-tested for big boxes."""
+    if (boxes[g, 1] - boxes[g, 0]) * (boxes[g, 3] - boxes[g, 2]) <= _MASK_TILES:
+        return (masks[g] >> np.uint64(bit)) & np.uint64(1) != 0
+    return _tile_reaches(tx, ty, float(means2d[g, 0]), float(means2d[g, 1]),
+                         float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2]),
+                         smax[g], width, height)
+
+
 @njit(parallel=True, cache=True)
-def _fill_pairs(means2d, conics, radii, width, height, smax, order, goff, pair_tile,
-                pair_gid):
-    tw, th = (width + _TS - 1) // _TS, (height + _TS - 1) // _TS
-    for k in prange(order.shape[0]):
-        g = order[k]
-        s = smax[g]
-        if s < 0.0:
-            continue
-        mx, my = float(means2d[g, 0]), float(means2d[g, 1])
-        a, b, c = float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2])
-        x0, x1, y0, y1 = _tile_box(mx, my, float(radii[g]), tw, th)
-        p = goff[k]
-        for ty in range(y0, y1):
-            for tx in range(x0, x1):
-                if _tile_reaches(tx, ty, mx, my, a, b, c, s, width, height):
-                    pair_tile[p] = ty * tw + tx
-                    pair_gid[p] = g
-                    p += 1
-
-
-@njit(cache=True)
-def _sort_by_tile(pair_tile, pair_gid, n_tiles, offsets, ids):
-    """Stable counting sort of the pairs (already in depth order) by tile."""
-    offsets[:] = 0
-    for p in range(pair_tile.shape[0]):
-        offsets[pair_tile[p] + 1] += 1
-    for t in range(n_tiles):
-        offsets[t + 1] += offsets[t]
-    cursor = offsets[:-1].copy()
-    for p in range(pair_tile.shape[0]):
-        t = pair_tile[p]
-        ids[cursor[t]] = pair_gid[p]
-        cursor[t] += 1
+def _fill_lists(order, boxes, masks, means2d, conics, smax, width, height, n_blocks, offsets,
+                ids):
+    """Stable parallel counting sort of the (tile, Gaussian) pairs by tile, Gaussians taken
+    in depth ``order``: each block of the order counts its pairs per tile, a prefix sum over
+    (tile, block) gives each block its slots, then each block writes its pairs."""
+    tw = (width + _TS - 1) // _TS
+    n_tiles = offsets.shape[0] - 1
+    hist = np.zeros((n_blocks, n_tiles), np.int64)
+    n = order.shape[0]
+    for blk in prange(n_blocks):
+        for k in range(blk * n // n_blocks, (blk + 1) * n // n_blocks):
+            g = order[k]
+            x0, x1, y0, y1 = boxes[g, 0], boxes[g, 1], boxes[g, 2], boxes[g, 3]
+            bit = 0
+            for ty in range(y0, y1):
+                for tx in range(x0, x1):
+                    if _reaches(g, bit, tx, ty, boxes, masks, means2d, conics, smax, width,
+                                height):
+                        hist[blk, ty * tw + tx] += 1
+                    bit += 1
+    total = 0
+    offsets[0] = 0
+    for t in range(n_tiles):  # hist becomes each block's first slot in each tile
+        for blk in range(n_blocks):
+            total, hist[blk, t] = total + hist[blk, t], total
+        offsets[t + 1] = total
+    for blk in prange(n_blocks):
+        for k in range(blk * n // n_blocks, (blk + 1) * n // n_blocks):
+            g = order[k]
+            x0, x1, y0, y1 = boxes[g, 0], boxes[g, 1], boxes[g, 2], boxes[g, 3]
+            bit = 0
+            for ty in range(y0, y1):
+                for tx in range(x0, x1):
+                    if _reaches(g, bit, tx, ty, boxes, masks, means2d, conics, smax, width,
+                                height):
+                        t = ty * tw + tx
+                        ids[hist[blk, t]] = g
+                        hist[blk, t] += 1
+                    bit += 1
 
 
 @njit(cache=True)
@@ -172,17 +201,15 @@ def bin_tiles(means2d: np.ndarray, conics: np.ndarray, opacities: np.ndarray,
     n_tiles = ((width + _TS - 1) // _TS) * ((height + _TS - 1) // _TS)
     counts = np.empty(n, np.int64)
     smax = np.empty(n, np.float64)
-    _count_pairs(means2d, conics, opacities, radii, width, height, smax, counts)
+    boxes = np.empty((n, 4), np.int32)
+    masks = np.empty(n, np.uint64)
+    _find_hits(means2d, conics, opacities, radii, width, height, smax, boxes, masks, counts)
     order = _depth_order(depths, counts)
-    goff = np.zeros(order.shape[0] + 1, np.int64)
-    np.cumsum(counts[order], out=goff[1:])
-    n_pairs = int(goff[-1])
-    pair_tile = np.empty(n_pairs, np.int32)
-    pair_gid = np.empty(n_pairs, np.int32)
-    _fill_pairs(means2d, conics, radii, width, height, smax, order, goff, pair_tile, pair_gid)
     offsets = np.empty(n_tiles + 1, np.int64)
-    ids = np.empty(n_pairs, np.int32)
-    _sort_by_tile(pair_tile, pair_gid, n_tiles, offsets, ids)
+    ids = np.empty(int(counts.sum()), np.int32)
+    n_blocks = 4 * max(1, numba.get_num_threads())
+    _fill_lists(order, boxes, masks, means2d, conics, smax, width, height, n_blocks, offsets,
+                ids)
     return offsets, ids, smax
 
 
