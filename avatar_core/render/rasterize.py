@@ -137,12 +137,15 @@ def rasterize(gaussians: GaussianSet, camera: Camera,
     if sel.numel() == 0:
         return _background_only(request, width, height, dtype, device, stats, t_start)
 
+    # all kept (the common case): slices instead of gathers, which cost ~5 ms at 20k
+    # Gaussians with their backward (scatters into zeros)
+    take = slice(None) if sel.numel() == gaussians.num else sel
     t0 = time.perf_counter()
     colors = None
     if "rgb" in outputs:
         campos = torch.as_tensor(camera.center, dtype=dtype, device=device)
         k = (sh_degree + 1) ** 2
-        colors = sh_to_rgb(sh_degree, gaussians.sh[sel, :k], gaussians.means[sel] - campos)
+        colors = sh_to_rgb(sh_degree, gaussians.sh[take, :k], gaussians.means[take] - campos)
     stats["color_ms"] = _ms(t0)
 
     t0 = time.perf_counter()
@@ -152,8 +155,8 @@ def rasterize(gaussians: GaussianSet, camera: Camera,
         from .rasterize_torch import rasterize_to_pixels
     with_depth = "depth" in outputs
     rgb, alpha, depth_acc = rasterize_to_pixels(
-        proj.means2d[sel], proj.conics[sel], colors, proj.opacities[sel], proj.depths[sel],
-        proj.radii[sel], width, height, background=bg, with_depth=with_depth)
+        proj.means2d[take], proj.conics[take], colors, proj.opacities[take], proj.depths[take],
+        proj.radii[take], width, height, background=bg, with_depth=with_depth)
     depth = _expected_depth(depth_acc, alpha) if with_depth else None
     stats["raster_ms"] = _ms(t0)
     stats["total_ms"] = _ms(t_start)
