@@ -209,3 +209,28 @@ def test_auto_backend_and_bad_requests():
     with pytest.raises(ValueError, match="sh"):
         rasterize(GaussianSet(gs.means, gs.quats, gs.scales, gs.opacities,
                               torch.zeros(3, 5, 3)), CAM)
+
+
+def test_sh_degree_above_the_available_is_clamped():
+    gs = random_scene(40, 8, sh_degree=1)
+    assert torch.equal(render(gs, "cpu", sh_degree=3).rgb, render(gs, "cpu").rgb)
+
+
+def test_torch_reference_chunking_does_not_change_the_picture(monkeypatch):
+    import avatar_core.render.rasterize_torch as rt
+
+    gs = random_scene(150, 9)
+    params = [t.clone().requires_grad_() for t in
+              (gs.means, gs.quats, gs.scales, gs.opacities, gs.sh)]
+    one = render(GaussianSet(*params), "torch", outputs=ALL)
+    (one.rgb.sum() + one.depth.sum()).backward()
+    g_one = [p.grad.clone() for p in params]
+    monkeypatch.setattr(rt, "_CHUNK_ELEMS", 256 * 16)  # about one tile per chunk
+    for p in params:
+        p.grad = None
+    many = render(GaussianSet(*params), "torch", outputs=ALL)
+    (many.rgb.sum() + many.depth.sum()).backward()
+    for name in ALL:
+        assert torch.allclose(getattr(one, name), getattr(many, name), atol=1e-6)
+    for a, p in zip(g_one, params, strict=True):
+        assert torch.allclose(a, p.grad, rtol=1e-4, atol=1e-6)

@@ -49,3 +49,15 @@ def test_gsplat_matches_the_reference():  # pragma: no cover (needs CUDA)
     mse = ((out.rgb.cpu() - ref.rgb) ** 2).mean()
     assert -10 * torch.log10(mse) >= 35  # gsplat clamps alpha at 0.999, not 0.99
     assert (out.alpha.cpu() - ref.alpha).abs().mean() < 1e-2
+
+
+def test_budget_subset_uses_the_shared_rule():
+    from avatar_core.render.rasterize_gsplat import _apply_budget
+
+    gs = random_scene(60, 2)
+    sub, n = _apply_budget(gs, CAM, RenderRequest(budget=7))
+    assert n == 7 and sub.means.shape == (7, 3) and sub.sh.shape == (7, 16, 3)
+    # the same Gaussians the cpu backend renders under that budget
+    ref = rasterize(gs, CAM, RenderRequest(backend="cpu", budget=7, outputs=ALL))
+    out = rasterize(sub, CAM, RenderRequest(backend="cpu", outputs=ALL))
+    assert torch.allclose(ref.rgb, out.rgb, atol=1e-6)

@@ -3,7 +3,9 @@
 Stages: validate -> project (torch, differentiable) -> keep the visible Gaussians, or the
 ``budget`` most important of them -> colour from SH (only when rgb is asked) -> composite on
 the chosen backend -> expected depth (only when asked). Everything before compositing is
-shared, so the backends differ only in the compositing kernel.
+shared, so the torch and cpu backends differ only in the compositing kernel. When nothing
+needs gradients, the cpu backend runs projection and colour with their numba twins
+(:mod:`project_cpu`) as well: same stages, same picture, no per-op tensor overhead.
 """
 
 from __future__ import annotations
@@ -16,11 +18,17 @@ import torch
 from torch import Tensor
 
 from .camera import Camera
-from .projection import NEAR_PLANE, check_finite, footprint_area, project_gaussians
+from .projection import (
+    NEAR_PLANE,
+    Projected,
+    check_finite,
+    footprint_area,
+    project_gaussians,
+)
 from .sh import sh_to_rgb
 from .types import BACKENDS, OUTPUTS, GaussianSet, RenderOutput, RenderRequest
 
-__all__ = ["available_backends", "rasterize", "resolve_backend"]
+__all__ = ["available_backends", "rasterize", "resolve_backend", "select_rendered"]
 
 
 def _gsplat_available() -> bool:
@@ -87,6 +95,20 @@ def _budget_count(budget: int | float | None, n_visible: int) -> int:
     return min(n_visible, budget)
 
 
+def select_rendered(proj: Projected, budget: int | float | None) -> tuple[Tensor, int]:
+    """Indices [K] (ascending) of the Gaussians to composite, and the number visible: all
+    visible ones, or the ``budget`` most important (opacity x 3-sigma footprint area; ties
+    keep the lower index)."""
+    sel = torch.nonzero(proj.valid).squeeze(1)  # [V]
+    n_visible = int(sel.numel())
+    keep = _budget_count(budget, n_visible)
+    if keep < n_visible:
+        importance = (proj.opacities * footprint_area(proj.conics))[sel].detach()
+        order = torch.sort(importance, descending=True, stable=True).indices[:keep]
+        sel = torch.sort(sel[order]).values
+    return sel, n_visible
+
+
 def _ms(t0: float) -> float:
     return (time.perf_counter() - t0) * 1e3
 
@@ -123,13 +145,7 @@ def rasterize(gaussians: GaussianSet, camera: Camera,
     proj = project_gaussians(gaussians.means, gaussians.quats, gaussians.scales,
                              gaussians.opacities, viewmat, K, width, height, NEAR_PLANE,
                              request.antialiased, validate=False)
-    sel = torch.nonzero(proj.valid).squeeze(1)  # [V] visible Gaussians
-    stats["n_visible"] = int(sel.numel())
-    keep = _budget_count(request.budget, int(sel.numel()))
-    if keep < sel.numel():  # most important first; ties keep the lower index
-        importance = (proj.opacities * footprint_area(proj.conics))[sel].detach()
-        order = torch.sort(importance, descending=True, stable=True).indices[:keep]
-        sel = torch.sort(sel[order]).values
+    sel, stats["n_visible"] = select_rendered(proj, request.budget)
     stats["n_rendered"] = int(sel.numel())
     stats["project_ms"] = _ms(t0)
 

@@ -19,7 +19,7 @@ import time
 import torch
 
 from .camera import Camera
-from .projection import EPS2D, FAR_PLANE, NEAR_PLANE, footprint_area, project_gaussians
+from .projection import EPS2D, FAR_PLANE, NEAR_PLANE, project_gaussians
 from .rasterize_torch import TILE_SIZE
 from .types import GaussianSet, RenderOutput, RenderRequest
 
@@ -61,17 +61,17 @@ def gsplat_arguments(gaussians: GaussianSet, camera: Camera, request: RenderRequ
     )
 
 
-def _apply_budget(gaussians: GaussianSet, camera: Camera, request: RenderRequest,
-                  keep_count) -> tuple[GaussianSet, int]:
+def _apply_budget(gaussians: GaussianSet, camera: Camera,
+                  request: RenderRequest) -> tuple[GaussianSet, int]:
+    """The subset that ``request.budget`` keeps (the shared importance rule)."""
+    from .rasterize import select_rendered
+
     viewmat, K = camera.to_torch(gaussians.means.device, gaussians.means.dtype)
     with torch.no_grad():
         p = project_gaussians(gaussians.means, gaussians.quats, gaussians.scales,
                               gaussians.opacities, viewmat, K, camera.width, camera.height,
                               antialiased=request.antialiased, validate=False)
-        sel = torch.nonzero(p.valid).squeeze(1)
-        keep = keep_count(request.budget, int(sel.numel()))
-        imp = (p.opacities * footprint_area(p.conics))[sel]
-        sel = torch.sort(sel[torch.sort(imp, descending=True, stable=True).indices[:keep]]).values
+        sel, _ = select_rendered(p, request.budget)
     sub = GaussianSet(*(t[sel] for t in (gaussians.means, gaussians.quats, gaussians.scales,
                                          gaussians.opacities, gaussians.sh)))
     return sub, int(sel.numel())
@@ -82,12 +82,9 @@ def rasterize_gsplat(gaussians: GaussianSet, camera: Camera, request: RenderRequ
     """Render with gsplat (called by :func:`avatar_core.render.rasterize`)."""
     from gsplat import rasterization
 
-    from .rasterize import _budget_count
-
     stats: dict = {"backend": "gsplat", "n_gaussians": gaussians.num}
     if request.budget is not None:
-        gaussians, stats["n_rendered"] = _apply_budget(gaussians, camera, request,
-                                                       _budget_count)
+        gaussians, stats["n_rendered"] = _apply_budget(gaussians, camera, request)
     outputs = set(request.outputs)
     t0 = time.perf_counter()
     colors, alphas, meta = rasterization(**gsplat_arguments(gaussians, camera, request,
