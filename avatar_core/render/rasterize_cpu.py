@@ -304,6 +304,14 @@ def _forward_kernel(means2d, conics, opacities, feats, smax, offsets, ids, tiles
         t = tiles[k]
         tx0, ty0 = (t % tw) * _TS, (t // tw) * _TS
         tx1, ty1 = min(tx0 + _TS, width), min(ty0 + _TS, height)
+        if offsets[t] == offsets[t + 1]:  # empty tile: background, no scratch arrays
+            for py in range(ty0, ty1):
+                for px in range(tx0, tx1):
+                    for ch in range(4):
+                        out_feats[py, px, ch] = background[ch]
+                    out_T[py, px] = 1.0
+                    out_stop[py, px] = _LIVE
+            continue
         T = np.ones(tp, np.float32)
         stop = np.full(tp, -1, np.int32)  # -1: outside the image, never composited
         for r in range(ty1 - ty0):
