@@ -17,8 +17,8 @@ import torch
 
 from .gaussians.animate import AvatarAnimator, synthetic_package
 from .gaussians.package import AvatarPackage, load_package
-from .render.rasterize import rasterize
 from .render.camera import Camera, orbit
+from .render.rasterize import rasterize
 from .render.types import RenderRequest
 from .synth.body_demo import demo_clip, ensure_models, model_rig
 from .synth.model_files import SyntheticModelFiles

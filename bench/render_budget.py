@@ -23,8 +23,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from avatar_core.gaussians.animate import AvatarAnimator, synthetic_package  # noqa: E402
 from avatar_core.gaussians.avatar import GaussianAvatar  # noqa: E402
-from avatar_core.render.rasterize import rasterize  # noqa: E402
 from avatar_core.render.camera import look_at  # noqa: E402
+from avatar_core.render.rasterize import rasterize  # noqa: E402
 from avatar_core.render.types import RenderRequest  # noqa: E402
 from avatar_core.synth.body_demo import ensure_models  # noqa: E402
 

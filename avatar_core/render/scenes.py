@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from ..rotations import matrix_to_quaternion
 from .camera import Camera, look_at
 from .sh import rgb_to_sh0
 from .types import GaussianSet
@@ -30,32 +31,6 @@ _BODY = [
     ((-0.28, -0.35, 0.07), (0.035, 0.06, 0.02)),   # hands
     ((0.28, -0.35, 0.07), (0.035, 0.06, 0.02)),
 ]
-
-
-def _matrix_to_quat(R: np.ndarray) -> np.ndarray:
-    """Rotation matrices [N, 3, 3] -> (w, x, y, z) [N, 4] (Shepperd's method)."""
-    n = R.shape[0]
-    q = np.empty((n, 4))
-    tr = R[:, 0, 0] + R[:, 1, 1] + R[:, 2, 2]
-    for i in range(n):
-        m = R[i]
-        if tr[i] > 0:
-            s = 2.0 * np.sqrt(tr[i] + 1.0)
-            q[i] = (0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s,
-                    (m[1, 0] - m[0, 1]) / s)
-        elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
-            s = 2.0 * np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
-            q[i] = ((m[2, 1] - m[1, 2]) / s, 0.25 * s, (m[0, 1] + m[1, 0]) / s,
-                    (m[0, 2] + m[2, 0]) / s)
-        elif m[1, 1] > m[2, 2]:
-            s = 2.0 * np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
-            q[i] = ((m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, 0.25 * s,
-                    (m[1, 2] + m[2, 1]) / s)
-        else:
-            s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
-            q[i] = ((m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s,
-                    (m[1, 2] + m[2, 1]) / s, 0.25 * s)
-    return q
 
 
 def avatar_like_scene(n: int, seed: int = 0, sh_degree: int = 3,
@@ -77,7 +52,8 @@ def avatar_like_scene(n: int, seed: int = 0, sh_degree: int = 3,
     t1 = np.cross(normal, rng.normal(size=(n, 3)))
     t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
     t2 = np.cross(normal, t1)
-    quats = _matrix_to_quat(np.stack([t1, t2, normal], axis=-1))  # local z = normal
+    frames = torch.as_tensor(np.stack([t1, t2, normal], axis=-1))
+    quats = matrix_to_quaternion(frames).numpy()  # local z = normal
     size = np.exp(rng.uniform(np.log(0.003), np.log(0.02), size=(n, 1)))  # 3 mm .. 2 cm
     scales = size * np.concatenate([rng.uniform(0.6, 1.0, (n, 2)), rng.uniform(0.1, 0.3, (n, 1))],
                                    axis=1)

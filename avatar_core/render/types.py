@@ -38,14 +38,16 @@ class RenderRequest:
     height: int | None = None
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     sh_degree: int | None = None                   # None: all the Gaussians carry
-    budget: int | float | None = None              # K Gaussians (int) or a fraction (float)
+    # K most important Gaussians (int), or a fraction (float in (0, 1]) of the visible ones.
+    budget: int | float | None = None
     antialiased: bool = False                      # opacity compensation (Mip-Splatting)
     backend: str = "auto"                          # BACKENDS
 
 
 @dataclass
 class RenderOutput:
-    rgb: Tensor | None = None     # [H, W, 3] float32 in [0, 1]
+    # [H, W, 3] float32; SH colours are clamped at 0 only (as in 3DGS), so clamp for display.
+    rgb: Tensor | None = None
     alpha: Tensor | None = None   # [H, W]
     depth: Tensor | None = None   # [H, W] expected camera z (alpha-weighted mean), 0 where empty
     stats: dict = field(default_factory=dict)  # backend, n_rendered, timings in ms
