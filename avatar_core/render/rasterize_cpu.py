@@ -36,7 +36,7 @@ import torch
 from numba import njit, prange
 from torch import Tensor
 
-from .rasterize_torch import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE_SIZE
+from .rasterize_torch import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE_SIZE, pack_features
 
 __all__ = ["RasterizeCPU", "bin_tiles", "composite_np", "rasterize_to_pixels"]
 
@@ -564,11 +564,7 @@ def rasterize_to_pixels(
     """Same contract as :func:`avatar_core.render.rasterize_torch.rasterize_to_pixels`
     (float32 inside; outputs and gradients in the inputs' dtype)."""
     n = means2d.shape[0]
-    feats = [] if colors is None else [colors]
-    if with_depth:
-        feats.append(depths[:, None])
-    n_col = 0 if colors is None else colors.shape[1]
-    feats = torch.cat(feats, dim=1) if feats else means2d.new_zeros(n, 0)  # [N, C']
+    feats, n_col = pack_features(colors, depths, with_depth, n, means2d)  # [N, C']
     if feats.shape[1] > _MAX_FEATS:
         raise ValueError(f"the cpu backend carries at most {_MAX_FEATS} channels (colour + "
                          f"depth), got {feats.shape[1]}")

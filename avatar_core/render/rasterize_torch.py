@@ -102,6 +102,19 @@ def _composite(pix: Tensor, pmask: Tensor, ids: Tensor, lmask: Tensor, means2d: 
     return out, T_final
 
 
+def pack_features(colors: Tensor | None, depths: Tensor, with_depth: bool, n: int,
+                  like: Tensor) -> tuple[Tensor, int]:
+    """Colours and (when asked) depth as one per-Gaussian feature block, composited together.
+
+    -> features [N, C'], the number of colour channels C.
+    """
+    feats = [] if colors is None else [colors]
+    if with_depth:
+        feats.append(depths[:, None])
+    n_col = 0 if colors is None else colors.shape[1]
+    return (torch.cat(feats, dim=1) if feats else like.new_zeros(n, 0)), n_col
+
+
 def rasterize_to_pixels(
     means2d: Tensor,     # [N, 2]
     conics: Tensor,      # [N, 3]
@@ -120,11 +133,7 @@ def rasterize_to_pixels(
     expected depth)."""
     device, dtype = means2d.device, means2d.dtype
     n = means2d.shape[0]
-    feats = [] if colors is None else [colors]
-    if with_depth:
-        feats.append(depths[:, None])
-    n_col = 0 if colors is None else colors.shape[1]
-    feats = torch.cat(feats, dim=1) if feats else means2d.new_zeros(n, 0)  # [N, C']
+    feats, n_col = pack_features(colors, depths, with_depth, n, means2d)  # [N, C']
     offsets, ids = isect_tiles(means2d, radii, depths, width, height, tile_size)
 
     tw, th = -(-width // tile_size), -(-height // tile_size)
