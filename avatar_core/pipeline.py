@@ -22,6 +22,7 @@ from .render.rasterize import rasterize
 from .render.types import RenderRequest
 from .synth.body_demo import demo_clip, ensure_models, model_rig
 from .synth.model_files import SyntheticModelFiles
+from .synth.video import Mp4Writer
 
 
 @dataclass
@@ -113,30 +114,18 @@ def render_frames(loaded: LoadedAvatar, params: list[dict], cameras: list[Camera
 
 def write_frames(frames: Iterator[np.ndarray], out: Path, fps: float, total: int,
                  progress: Callable[[int, int], None] | None = None) -> Path:
-    """PNG frames into a folder, or an .mp4."""
-    writer = None
-    if out.suffix.lower() == ".mp4":
-        out.parent.mkdir(parents=True, exist_ok=True)
-    else:
+    """uint8 RGB frames as PNGs into a folder, or as an .mp4."""
+    as_video = out.suffix.lower() == ".mp4"
+    if not as_video:
         out.mkdir(parents=True, exist_ok=True)
-    try:
+    with Mp4Writer(out, fps) as video:
         for i, frame in enumerate(frames):
-            bgr = frame[..., ::-1]
-            if out.suffix.lower() == ".mp4":
-                if writer is None:
-                    h, w = frame.shape[:2]
-                    writer = cv2.VideoWriter(str(out), cv2.VideoWriter_fourcc(*"mp4v"), fps,
-                                             (w, h))
-                    if not writer.isOpened():
-                        raise OSError(f"no MP4 encoder available to write {out}")
-                writer.write(np.ascontiguousarray(bgr))
-            elif not cv2.imwrite(str(out / f"frame_{i:05d}.png"), bgr):
+            if as_video:
+                video.write(frame)
+            elif not cv2.imwrite(str(out / f"frame_{i:05d}.png"), frame[..., ::-1]):
                 raise OSError(f"could not write {out / f'frame_{i:05d}.png'}")
             if progress:
                 progress(i + 1, total)
-    finally:
-        if writer is not None:
-            writer.release()
     return out
 
 

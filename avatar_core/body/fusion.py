@@ -84,6 +84,15 @@ def _local_from_world(p: dict[str, Tensor], model: SMPLXModel, joint: int,
     return lbs.rotation_to_axis_angle(parent_world.transpose(-1, -2) @ lbs.rodrigues(world_aa))
 
 
+def _split_body(body: SMPLXParams | dict[str, Any], model: SMPLXModel
+                ) -> tuple[dict[str, Tensor], Any]:
+    """Normalised pose and shape tensors, and the vertex offsets (passed through untouched)."""
+    raw = body.to_dict() if isinstance(body, SMPLXParams) else dict(body)
+    offsets = raw.pop("vertex_offsets", None)
+    spec = {k: v for k, v in model.param_spec().items() if k != "vertex_offsets"}
+    return model._normalize(raw, spec, model.family), offsets
+
+
 def _broadcast(p: dict[str, Tensor], batch: int) -> dict[str, Tensor]:
     return {k: v.expand(batch, *v.shape[1:]).clone() for k, v in p.items()}
 
@@ -108,10 +117,7 @@ def fuse_flame(body: SMPLXParams | dict[str, Any], flame: FLAMEParams | dict[str
                head_rotation: str = "world") -> SMPLXParams:
     """SMPL-X parameters with the face driven by FLAME parameters (see the module docstring)."""
     _check_mode("head_rotation", head_rotation)
-    raw = body.to_dict() if isinstance(body, SMPLXParams) else dict(body)
-    offsets = raw.pop("vertex_offsets", None)
-    p = model._normalize(raw, {k: v for k, v in model.param_spec().items()
-                               if k != "vertex_offsets"}, model.family)
+    p, offsets = _split_body(body, model)
     fspec = (flame_model.param_spec() if flame_model is not None else
              {"shape": (0,), "expr": (model.num_expression,), "rotation": (3,), "neck_pose": (3,),
               "jaw_pose": (3,), "eyes_pose": (6,), "translation": (3,)})
@@ -135,9 +141,7 @@ def fuse_flame(body: SMPLXParams | dict[str, Any], flame: FLAMEParams | dict[str
     p["body_pose"][:, _body_index(JOINT["head"])] = f["neck_pose"]
     _set_rotation(p, model, JOINT["neck"], f["rotation"], head_rotation)
 
-    out = {k: v for k, v in p.items()}
-    if offsets is not None:
-        out["vertex_offsets"] = offsets
+    out = {**p, "vertex_offsets": offsets}
     if flame_model is not None and f["shape"].shape[1] and f["shape"].abs().max() > 0:
         if correspondence is None:
             raise ParameterError("fusing a FLAME shape needs the FLAME -> SMPL-X correspondence")
@@ -191,10 +195,7 @@ def fuse_mano(body: SMPLXParams | dict[str, Any], hand: MANOParams | dict[str, A
     if model.hand_pca:
         raise ParameterError("fusion writes full hand poses: use an SMPL-X model with "
                              "hand_pca=None")
-    raw = body.to_dict() if isinstance(body, SMPLXParams) else dict(body)
-    offsets = raw.pop("vertex_offsets", None)
-    p = model._normalize(raw, {k: v for k, v in model.param_spec().items()
-                               if k != "vertex_offsets"}, model.family)
+    p, offsets = _split_body(body, model)
     spec = (mano_model.param_spec() if mano_model is not None else
             {"betas": (10,), "global_orient": (3,), "hand_pose": (15, 3), "transl": (3,)})
     h = model._normalize(hand, spec, "MANO")
@@ -206,10 +207,7 @@ def fuse_mano(body: SMPLXParams | dict[str, Any], hand: MANOParams | dict[str, A
         full, orient = mirror_axis_angle(full), mirror_axis_angle(orient)
     p[f"{side}_hand_pose"] = full - getattr(model, f"{side}_hand_mean")
     _set_rotation(p, model, JOINT[f"{side}_wrist"], orient, wrist)
-    out = dict(p)
-    if offsets is not None:
-        out["vertex_offsets"] = offsets
-    return SMPLXParams.from_dict(out)
+    return SMPLXParams.from_dict({**p, "vertex_offsets": offsets})
 
 
 def fuse(body: SMPLXParams | dict[str, Any], model: SMPLXModel, *,

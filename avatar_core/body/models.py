@@ -166,6 +166,26 @@ class LBSModel(nn.Module):
         raise NotImplementedError(f"{type(self).__name__} has no face contour")
 
 
+def _register_hand(module: nn.Module, prefix: str, comps: np.ndarray, mean: np.ndarray,
+                   hand_pca: int | None, flat_hand_mean: bool) -> None:
+    """Buffers `{prefix}hand_components` [n, 45] and `{prefix}hand_mean` [15, 3] for a hand."""
+    if hand_pca is not None and not 1 <= hand_pca <= comps.shape[0]:
+        raise ValueError(f"hand_pca must be in [1, {comps.shape[0]}], got {hand_pca}")
+    dt, dev = module.v_template.dtype, module.v_template.device
+    module.register_buffer(f"{prefix}hand_components", torch.as_tensor(
+        comps[: hand_pca or comps.shape[0]], dtype=dt, device=dev), False)
+    mean = np.zeros(45) if flat_hand_mean else mean
+    module.register_buffer(f"{prefix}hand_mean",
+                           torch.as_tensor(mean, dtype=dt, device=dev).reshape(15, 3), False)
+
+
+def _full_hand_pose(pose: Tensor, components: Tensor, mean: Tensor, pca: bool) -> Tensor:
+    """Absolute axis-angle finger pose [B, 15, 3] from PCA coefficients or a relative pose."""
+    if pca:
+        pose = (pose @ components).reshape(-1, 15, 3)
+    return pose + mean
+
+
 class SMPLXModel(LBSModel):
     """SMPL-X. Options follow `smplx.SMPLX`: `hand_pca` (number of PCA coefficients per hand,
     None for the full 45-D pose) and `flat_hand_mean` (False adds the relaxed mean hand)."""
@@ -177,17 +197,9 @@ class SMPLXModel(LBSModel):
         super().__init__(data, **kwargs)
         self.hand_pca = hand_pca
         self.flat_hand_mean = flat_hand_mean
-        dt, dev = self.dtype, self.device
         for side in ("left", "right"):
-            comps = data.hand_components[side]
-            if hand_pca is not None and not 1 <= hand_pca <= comps.shape[0]:
-                raise ValueError(f"hand_pca must be in [1, {comps.shape[0]}], got {hand_pca}")
-            n = hand_pca or comps.shape[0]
-            self.register_buffer(f"{side}_hand_components",
-                                 torch.as_tensor(comps[:n], dtype=dt, device=dev), False)
-            mean = np.zeros(45) if flat_hand_mean else data.hand_mean[side]
-            self.register_buffer(f"{side}_hand_mean",
-                                 torch.as_tensor(mean, dtype=dt, device=dev).reshape(15, 3), False)
+            _register_hand(self, f"{side}_", data.hand_components[side], data.hand_mean[side],
+                           hand_pca, flat_hand_mean)
 
     def param_spec(self) -> dict[str, tuple[int, ...]]:
         hand = (self.hand_pca,) if self.hand_pca else (15, 3)
@@ -199,9 +211,8 @@ class SMPLXModel(LBSModel):
 
     def hand_pose_full(self, side: str, pose: Tensor) -> Tensor:
         """Absolute axis-angle finger pose [B, 15, 3] from this model's hand parameters."""
-        if self.hand_pca:
-            pose = (pose @ getattr(self, f"{side}_hand_components")).reshape(-1, 15, 3)
-        return pose + getattr(self, f"{side}_hand_mean")
+        return _full_hand_pose(pose, getattr(self, f"{side}_hand_components"),
+                               getattr(self, f"{side}_hand_mean"), bool(self.hand_pca))
 
     def full_pose(self, p: dict[str, Tensor]) -> Tensor:
         """Full axis-angle pose [B, 55, 3] from normalized (equally batched) parameters."""
@@ -256,17 +267,10 @@ class MANOModel(LBSModel):
                  flat_hand_mean: bool = False, **kwargs: Any) -> None:
         super().__init__(data, **kwargs)
         (self.side,) = data.hand_components
-        comps = data.hand_components[self.side]
-        if hand_pca is not None and not 1 <= hand_pca <= comps.shape[0]:
-            raise ValueError(f"hand_pca must be in [1, {comps.shape[0]}], got {hand_pca}")
         self.hand_pca = hand_pca
         self.flat_hand_mean = flat_hand_mean
-        dt, dev = self.dtype, self.device
-        self.register_buffer("hand_components", torch.as_tensor(
-            comps[: hand_pca or comps.shape[0]], dtype=dt, device=dev), False)
-        mean = np.zeros(45) if flat_hand_mean else data.hand_mean[self.side]
-        self.register_buffer("hand_mean",
-                             torch.as_tensor(mean, dtype=dt, device=dev).reshape(15, 3), False)
+        _register_hand(self, "", data.hand_components[self.side], data.hand_mean[self.side],
+                       hand_pca, flat_hand_mean)
 
     def param_spec(self) -> dict[str, tuple[int, ...]]:
         hand = (self.hand_pca,) if self.hand_pca else (15, 3)
@@ -275,9 +279,7 @@ class MANOModel(LBSModel):
 
     def hand_pose_full(self, pose: Tensor) -> Tensor:
         """Absolute axis-angle finger pose [B, 15, 3] from this model's hand parameters."""
-        if self.hand_pca:
-            pose = (pose @ self.hand_components).reshape(-1, 15, 3)
-        return pose + self.hand_mean
+        return _full_hand_pose(pose, self.hand_components, self.hand_mean, bool(self.hand_pca))
 
     def forward(self, params: MANOParams | dict[str, Any] | None = None) -> BodyOutput:
         p = self._normalize(params or {}, self.param_spec(), self.family)

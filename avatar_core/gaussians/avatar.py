@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..render.sh import rgb_to_sh0
+from ..render.sh import rgb_to_sh0, sh_degree_from_bases
 from ..render.types import GaussianSet
 from ..rotations import matrix_to_quaternion, quaternion_multiply
 from .frames import triangle_frames
@@ -53,7 +53,7 @@ class GaussianAvatar:
 
     @property
     def sh_degree(self) -> int:
-        return int(round(self.sh.shape[1] ** 0.5)) - 1
+        return sh_degree_from_bases(self.sh.shape[1])
 
     def tensors(self) -> dict[str, Tensor]:
         return {f.name: getattr(self, f.name) for f in fields(self)}

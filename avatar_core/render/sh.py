@@ -26,6 +26,11 @@ def num_sh_bases(degree: int) -> int:
     return (degree + 1) ** 2
 
 
+def sh_degree_from_bases(num_bases: int) -> int:
+    """The SH degree whose basis has `num_bases` coefficients (1, 4, 9, 16 -> 0..3)."""
+    return int(round(num_bases**0.5)) - 1
+
+
 def _sh_bases(degree: int, dirs: Tensor) -> list[Tensor]:
     """The (degree + 1)^2 basis values at unit ``dirs [N, 3]``, each [N]."""
     x, y, z = dirs.unbind(-1)

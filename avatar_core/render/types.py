@@ -6,6 +6,8 @@ from dataclasses import dataclass, field
 
 from torch import Tensor
 
+from .sh import sh_degree_from_bases
+
 OUTPUTS = ("rgb", "alpha", "depth")
 BACKENDS = ("auto", "torch", "cpu", "gsplat")
 
@@ -26,7 +28,7 @@ class GaussianSet:
 
     @property
     def sh_degree(self) -> int:
-        return int(round(self.sh.shape[1] ** 0.5)) - 1
+        return sh_degree_from_bases(self.sh.shape[1])
 
 
 @dataclass(frozen=True)

@@ -21,6 +21,7 @@ from ..render.camera import look_at
 from .mesh_render import render_mesh
 from .model_files import SyntheticModelFiles, write_synthetic_models
 from .motion import Clip, Pose, Rig, chain
+from .video import Mp4Writer
 
 
 def default_model_dir(seed: int = 0) -> Path:
@@ -105,27 +106,24 @@ def render_demo(out: Path, *, model_dir: Path | None = None, frames: int = 96, s
             verts = model(params).vertices[0].cpu().numpy()
             rgb = render_mesh(verts, faces, camera, vertex_colors=colors,
                               background=(0.93, 0.94, 0.96)).rgb
-            images.append((np.clip(rgb, 0, 1) * 255).astype(np.uint8)[..., ::-1])  # BGR
+            images.append((np.clip(rgb, 0, 1) * 255).astype(np.uint8))  # RGB
             if progress:
                 progress(i + 1, frames)
     return _write(out, images, fps)
 
 
 def _write(out: Path, images: list[np.ndarray], fps: int) -> Path:
+    """An .mp4 of all frames, or a .png strip of up to 8 of them. images: uint8 RGB."""
     out.parent.mkdir(parents=True, exist_ok=True)
     if out.suffix.lower() == ".png":
         step = max(1, len(images) // 8)
         strip = np.concatenate(images[::step][:8], axis=1)
-        if not cv2.imwrite(str(out), strip):
+        if not cv2.imwrite(str(out), strip[..., ::-1]):
             raise OSError(f"could not write {out}")
         return out
     if out.suffix.lower() != ".mp4":
         raise ValueError(f"output must be .mp4 or .png, got {out.suffix}")
-    h, w = images[0].shape[:2]
-    writer = cv2.VideoWriter(str(out), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
-    if not writer.isOpened():
-        raise OSError(f"no MP4 encoder available to write {out}; ask for a .png strip instead")
-    for img in images:
-        writer.write(img)
-    writer.release()
+    with Mp4Writer(out, fps) as writer:
+        for img in images:
+            writer.write(img)
     return out
