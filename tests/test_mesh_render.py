@@ -11,7 +11,7 @@ from avatar_core.synth.mesh_render import (
 )
 
 BACKENDS = ["reference"] + (["numba"] if numba_available() else [])
-FIELDS = ("rgb", "alpha", "depth", "face_id")
+FIELDS = ("rgb", "alpha", "depth", "face_id", "bary")
 
 
 def _pinhole(f: float, width: int, height: int, cx: float = 0.0, cy: float = 0.0) -> Camera:
@@ -63,8 +63,10 @@ def _raycast(vertices, faces, camera, near=0.01):
     return depth.reshape(H, W), fid.reshape(H, W), bary.reshape(H, W, 3)
 
 
-def _assert_same(a: MeshRenderOutput, b: MeshRenderOutput, atol: float = 1e-5):
+def _assert_same(a: MeshRenderOutput, b: MeshRenderOutput, atol: float = 1e-5, bary=True):
     np.testing.assert_array_equal(a.face_id, b.face_id)
+    if bary:  # off when the faces list their vertices in another order
+        np.testing.assert_allclose(a.bary, b.bary, rtol=0, atol=atol)
     np.testing.assert_array_equal(a.alpha, b.alpha)
     np.testing.assert_array_equal(np.isinf(a.depth), np.isinf(b.depth))
     fin = np.isfinite(a.depth)
@@ -91,7 +93,8 @@ def test_single_triangle_covers_expected_pixels(backend):
     np.testing.assert_array_equal(out.rgb[~expected], 1.0)  # white background
     # Reversed winding (a back face) covers exactly the same pixels.
     back = render_mesh(_TRI, [[0, 2, 1]], cam, backend=backend)
-    _assert_same(out, back, atol=0)
+    _assert_same(out, back, atol=0, bary=False)
+    np.testing.assert_array_equal(back.bary, out.bary[..., [0, 2, 1]])
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
@@ -203,6 +206,34 @@ def test_colours_interpolate_perspective_correctly(backend):
     assert inside.sum() > 50
     np.testing.assert_allclose(out.rgb[inside], bary[inside], atol=1e-5)
     np.testing.assert_allclose(out.rgb[out.alpha > 0].sum(-1), 1.0, atol=1e-5)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_barycentrics_of_the_original_face(backend):
+    # Perspective-correct barycentrics against the ray caster, on whole faces and on pieces
+    # of faces clipped by the near plane (which must report the original face's weights).
+    v, f = _uv_sphere(8, 12)
+    cam = orbit((0.0, 0.0, 0.0), 17.0, 11.0, 1.9, width=41, height=33, fov_y_deg=35.0)
+    straddle = np.array([[-1.0, -1.0, 2.0], [1.0, -1.0, 2.0], [0.0, 1.0, -1.0]])
+    for verts, faces, camera, near in (
+        (v, f, cam, 0.01),
+        (straddle, [[0, 1, 2]], _pinhole(10.0, 24, 24, 12.0, 12.0), 0.5),
+    ):
+        out = render_mesh(verts, faces, camera, near=near, backend=backend)
+        _, fid, bary = _raycast(verts, faces, camera, near=near)
+        assert out.bary.shape == (camera.height, camera.width, 3)
+        assert out.bary.dtype == np.float32
+        same = (out.face_id == fid) & (fid >= 0)
+        assert same.sum() > 50
+        np.testing.assert_allclose(out.bary[same], bary[same], atol=1e-5)
+        hit = out.face_id >= 0
+        np.testing.assert_allclose(out.bary[hit].sum(-1), 1.0, atol=1e-5)
+        assert out.bary[hit].min() > -1e-5
+        np.testing.assert_array_equal(out.bary[~hit], 0.0)
+        # Interpolating vertex positions with them gives the surface point at that depth.
+        vc = camera.world_to_camera(np.asarray(verts, dtype=np.float64))
+        p = np.einsum("nk,nkc->nc", out.bary[hit], vc[np.asarray(faces)[out.face_id[hit]]])
+        np.testing.assert_allclose(p[:, 2], out.depth[hit], rtol=1e-5)
 
 
 @pytest.mark.parametrize("backend", BACKENDS)

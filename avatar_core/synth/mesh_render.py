@@ -22,7 +22,9 @@ Pipeline
 4. Deferred shading on covered pixels: vertex colours and area-weighted smooth vertex
    normals are interpolated with the perspective-correct barycentrics; colour is
    ``albedo * (ambient + (1 - ambient) * |n . l|)`` (two-sided Lambert) with a directional
-   light given in camera space. Empty pixels get ``background``.
+   light given in camera space. Empty pixels get ``background``. The face id and the
+   original-face barycentrics of every pixel are returned as well, so callers can shade or
+   texture the surface themselves.
 
 Steps 3 and 4 each have two implementations: numba ``@njit`` kernels (a per-triangle
 bounding-box loop and a per-pixel shading loop; single-threaded, deterministic, release the
@@ -73,6 +75,9 @@ class MeshRenderOutput:
     face_id: [H, W] int32 index into ``faces``, -1 where empty.
     labels: [H, W] int32 ``face_labels[face_id]`` (``-1`` where empty) when ``face_labels``
         was given, else None.
+    bary: [H, W, 3] float32 perspective-correct barycentrics of the pixel centre with respect
+        to the three vertices of the original face ``faces[face_id]`` (also for pieces of
+        near-clipped faces), 0 where empty; for texturing and attribute lookups.
     """
 
     rgb: np.ndarray
@@ -80,6 +85,7 @@ class MeshRenderOutput:
     depth: np.ndarray
     face_id: np.ndarray
     labels: np.ndarray | None = None
+    bary: np.ndarray | None = None
 
 
 def face_label_image(face_id: np.ndarray, face_labels: Any, empty: int = -1) -> np.ndarray:
@@ -313,6 +319,7 @@ def _shade_kernel(
     bg,
     rgb,
     face_id,
+    face_bary,
 ):  # pragma: no cover
     """Per pixel: original-face barycentrics, albedo, smooth normal, two-sided Lambert."""
     H, W = tri.shape
@@ -334,6 +341,9 @@ def _shade_kernel(
                 c1 = b0 * m[0, 1] + b1 * m[1, 1] + b2 * m[2, 1]
                 c2 = b0 * m[0, 2] + b1 * m[1, 2] + b2 * m[2, 2]
                 b0, b1, b2 = c0, c1, c2
+            face_bary[i, j, 0] = b0
+            face_bary[i, j, 1] = b1
+            face_bary[i, j, 2] = b2
             va = faces[f, 0]
             vb = faces[f, 1]
             vv = faces[f, 2]
@@ -383,6 +393,7 @@ def _shade_reference(
     bg,
     rgb,
     face_id,
+    face_bary,
 ) -> None:
     """Pure-numpy twin of :func:`_shade_kernel`."""
     hit = tri >= 0
@@ -396,6 +407,7 @@ def _shade_reference(
     clip = tri_clipped[t_hit]
     if clip.any():  # barycentrics of clipped pieces -> those of the original face
         b[clip] = np.einsum("nk,nkc->nc", b[clip], tri_bary[t_hit[clip]])
+    face_bary[hit] = b
     fv = faces[f_hit]  # [N, 3]
     n = _interpolate(b, vn, fv)
     n_len = np.linalg.norm(n, axis=1)
@@ -550,15 +562,17 @@ def render_mesh(
 
     rgb = np.empty((H, W, 3), dtype=np.float32)
     face_id = np.full((H, W), -1, dtype=np.int32)
+    face_bary = np.zeros((H, W, 3), dtype=np.float32)
     shade(
         tri, bary, tris.face, tris.bary, tris.clipped, F, colors, vertex_normals(vc, F), vc,
-        light, ambient, bg, rgb, face_id,
+        light, ambient, bg, rgb, face_id, face_bary,
     )  # fmt: skip
     out = MeshRenderOutput(
         rgb=rgb,
         alpha=(tri >= 0).astype(np.float32),
         depth=depth.astype(np.float32),
         face_id=face_id,
+        bary=face_bary,
     )
     if labels_arr is not None:
         out.labels = face_label_image(face_id, labels_arr)
