@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
@@ -19,8 +20,8 @@ from ..body.model_data import load_smplx
 from ..body.upper_body import UpperBodyModel, load_segmentation
 from ..render.camera import look_at
 from .mesh_render import render_mesh
-from .model_files import SyntheticModelFiles, write_synthetic_models
-from .motion import Clip, Pose, Rig, chain
+from .model_files import GENERATOR_VERSION, SyntheticModelFiles, write_synthetic_models
+from .motion import Clip, Pose, Rig, Track, chain
 from .video import Mp4Writer
 
 
@@ -30,14 +31,38 @@ def default_model_dir(seed: int = 0) -> Path:
 
 
 def ensure_models(model_dir: Path | None = None, seed: int = 0) -> SyntheticModelFiles:
-    """The synthetic model files in `model_dir`, written first if they are not there yet."""
+    """The synthetic model files in `model_dir`, written first if they are not there yet or
+    were written by another generator version (an old cache lacks newer gestures)."""
     files = SyntheticModelFiles(model_dir or default_model_dir(seed))
-    if not files.manifest.is_file():
-        files = write_synthetic_models(files.root, seed=seed)
+    if generator_version(files) != GENERATOR_VERSION:
+        _rewrite(files.root, seed)
     return files
 
 
-def demo_clip() -> Clip:
+def generator_version(files: SyntheticModelFiles) -> int | None:
+    """The generator version a folder's manifest records; None without a readable manifest."""
+    try:
+        version = json.loads(files.manifest.read_text()).get("generator_version")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return version if isinstance(version, int) else None
+
+
+def _rewrite(root: Path, seed: int) -> None:
+    """Write the family into a scratch folder inside `root`, then move each file into place
+    (atomic per file, the manifest last): a process reading the cache meanwhile never sees a
+    half-written file, and other files in `root` are left alone."""
+    root.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix=".writing-", dir=root) as scratch:
+        write_synthetic_models(scratch, seed=seed)
+        names = sorted(p.relative_to(scratch) for p in Path(scratch).rglob("*") if p.is_file())
+        names.sort(key=lambda rel: rel.name == "manifest.json")  # stable: the manifest last
+        for rel in names:
+            (root / rel).parent.mkdir(parents=True, exist_ok=True)
+            os.replace(Path(scratch) / rel, root / rel)
+
+
+def demo_clip() -> Track:
     """Gestures and expressions, about eleven seconds long."""
     look = {"neck": (0.0, 0.0, 0.0)}
     wave_up = {"left_shoulder": (0.0, 0.0, 0.35), "left_elbow": (0.0, -0.3, 1.6)}

@@ -1168,6 +1168,41 @@ def _hand_poses(joints: np.ndarray, tips: np.ndarray) -> dict[str, np.ndarray]:
     pinch = fingers([(0.85, 0.9, 0.45), (0.40, 0.70, 0.35), (0.55, 0.85, 0.45),
                      (0.48, 0.78, 0.40)])
     out["pinch"] = fit_thumb(pinch, lambda pj, pt: pt[0])
+    out.update(_more_poses(rest, tips, fingers, thumb, fit_thumb, fist_c))
+    return out
+
+
+def _more_poses(rest, tips, fingers, thumb, fit_thumb, fist_c) -> dict[str, np.ndarray]:
+    """Counting gestures (three, four, L) and the halves of two-hand gestures (heart_half,
+    cupped). `fingers`, `thumb` and `fit_thumb` are `_hand_poses`' builders for the right hand,
+    whose fingers point along -x (`along`), thumb side +z (`side`), palm toward -y (`palm`)."""
+    along = _unit(rest[4] - rest[0])  # wrist -> middle knuckle
+    side, palm = np.array([0.0, 0.0, 1.0]), np.array([0.0, -1.0, 0.0])
+    t_len = float(np.linalg.norm(np.diff([*rest[13:16], tips[4]], axis=0), axis=1).sum())
+    straight = (0.0, 0.0, 0.0)
+    out = {}
+    # Index, middle and ring up; the thumb holds the curled pinky down.
+    three = fingers([straight, straight, fist_c[2], straight], (0.14, 0.0, 0.0, -0.12))
+    out["three"] = fit_thumb(three, lambda pj, pt: pj[8] + 0.016 * palm)
+    # Four fingers up and spread a little; the thumb folded across the palm toward the ring
+    # finger's knuckle (as far as it reaches: it stops about 1 cm off the palm).
+    four = fingers([straight] * 4, (0.14, 0.0, -0.22, -0.10))
+    out["four"] = fit_thumb(four, lambda pj, pt: pj[10] + 0.012 * palm, x0=(1.0, 0.6, 0.3))
+    # Thumb abducted in the palm plane, about a right angle from the straight index.
+    out["L"] = thumb(fingers([straight] + fist_c[1:], (0.05, 0.0, 0.0, 0.0)), -0.85, -0.05, 0.0)
+    # Fingers together and hooked toward the palm (the heart's upper lobe); the thumb straight
+    # and raised off the palm so its tip closes the heart at the bottom.
+    heart = fingers([(0.55, 0.85, 0.5), (0.55, 0.85, 0.5), (0.6, 0.85, 0.5), (0.58, 0.85, 0.5)],
+                    (-0.06, 0.0, 0.12, 0.06))
+    out["heart_half"] = fit_thumb(
+        heart, lambda pj, pt: pj[13] + t_len * _unit(palm + 0.5 * side - 0.2 * along),
+        x0=(0.2, 0.8, 0.0))
+    # Slightly curved and together; the thumb tip beside the index tip, equally deep below the
+    # palm, so that all five tips lie near one plane and can press against the other hand's.
+    cupped = fingers([(0.22, 0.30, 0.15), (0.22, 0.30, 0.15), (0.26, 0.32, 0.16),
+                      (0.24, 0.31, 0.15)], (-0.05, 0.0, 0.10, 0.05))
+    out["cupped"] = fit_thumb(cupped, lambda pj, pt: pt[0] + 0.025 * side - 0.035 * along,
+                              x0=(0.3, 0.5, 0.2))
     return out
 
 

@@ -57,6 +57,9 @@ NUM_CONTOUR_ROWS = 79  # head-yaw bins of the face-contour look-up table
 ROOT_PARENT = np.uint32(2**32 - 1)  # how official kintree tables mark the root
 # Pose-corrective bulge at a bent joint, metres per unit of (3 - trace R).
 CORRECTIVE_BULGE = 0.006
+# Bumped whenever the written files change (2: gestures three, four, L, heart_half, cupped), so
+# that caches written by an older generator are rewritten (`body_demo.ensure_models`).
+GENERATOR_VERSION = 2
 
 PALETTES = (
     {"name": "ada", "skin": (0.87, 0.68, 0.56), "hair": (0.23, 0.14, 0.08),
@@ -358,7 +361,8 @@ def write_synthetic_models(out_dir: str | Path, *, seed: int = 0, resolution: fl
     np.savez(files.gestures, **{k: np.asarray(p, dtype=np.float64).reshape(15, 3)
                                 for k, p in h.hand_poses.items()})
     files.manifest.write_text(json.dumps({
-        "generator": "telesplat.synth.model_files", "synthetic": True, "seed": seed,
+        "generator": "telesplat.synth.model_files", "generator_version": GENERATOR_VERSION,
+        "synthetic": True, "seed": seed,
         "resolution": resolution, "smplx_vertices": v, "smplx_faces": int(len(faces)),
         "flame_vertices": int(len(flame_ids)), "mano_vertices": int(len(hand_ids["right"])),
         "shape_names": list(h.shape_names), "expression_names": list(h.expression_names),
