@@ -237,6 +237,51 @@ def test_barycentrics_of_the_original_face(backend):
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
+def test_shading_off_keeps_geometry(backend):
+    v, f = _uv_sphere(8, 12)
+    cam = orbit((0.0, 0.0, 0.0), 17.0, 11.0, 1.9, width=41, height=33, fov_y_deg=35.0)
+    full = render_mesh(v, f, cam, backend=backend)
+    bare = render_mesh(v, f, cam, backend=backend, shading=False, background=(0.2, 0.3, 0.4))
+    for k in ("alpha", "depth", "face_id", "bary"):
+        np.testing.assert_array_equal(getattr(bare, k), getattr(full, k))
+    np.testing.assert_allclose(bare.rgb, np.broadcast_to([0.2, 0.3, 0.4], bare.rgb.shape),
+                               atol=1e-7)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_back_face_culling_on_a_closed_mesh(backend):
+    v, f = _uv_sphere(10, 16)
+    cam = orbit((0.0, 0.0, 0.0), 17.0, 11.0, 1.9, width=41, height=33, fov_y_deg=35.0)
+    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    facing = (n * v[f].mean(axis=1)).sum(-1)
+    assert np.all(facing[np.linalg.norm(n, axis=1) > 1e-12] > 0)  # counter-clockwise outward
+    both = render_mesh(v, f, cam, backend=backend)
+    culled = render_mesh(v, f, cam, backend=backend, cull_back_faces=True)
+    _assert_same(both, culled, atol=0)  # from outside only front faces are ever visible
+    inverted = render_mesh(v, f[:, ::-1], cam, backend=backend, cull_back_faces=True)
+    assert inverted.alpha.sum() > 0  # now the far inner half shows through
+    assert np.all(inverted.depth[inverted.alpha > 0] > both.depth[inverted.alpha > 0])
+    # Straddling the near plane: the face is culled or kept as a whole, pieces included.
+    tri = np.array([[-1.0, -1.0, 2.0], [1.0, -1.0, 2.0], [0.0, 1.0, -1.0]])
+    pin = _pinhole(10.0, 24, 24, 12.0, 12.0)
+    kept = [render_mesh(tri, [order], pin, backend=backend, near=0.5, cull_back_faces=True)
+            for order in ([0, 1, 2], [0, 2, 1])]
+    assert sorted(k.alpha.sum() > 0 for k in kept) == [False, True]
+    # A mask culls only the marked faces (here the upper half of the inverted sphere): there
+    # the far side shows, elsewhere the near side as without culling.
+    mask = v[f].mean(axis=1)[:, 1] > 0.0
+    part = render_mesh(v, f[:, ::-1], cam, backend=backend, cull_back_faces=mask)
+    none = render_mesh(v, f[:, ::-1], cam, backend=backend)
+    np.testing.assert_array_equal(part.alpha, none.alpha)
+    hit = part.alpha > 0
+    farther = part.depth[hit] > none.depth[hit]
+    assert farther.any() and (part.depth[hit] == none.depth[hit]).any()
+    assert np.all(mask[none.face_id[hit][farther]])
+    with pytest.raises(ValueError, match="cull_back_faces"):
+        render_mesh(v, f, cam, backend=backend, cull_back_faces=mask[:-1])
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
 def test_two_sided_lambert(backend):
     cam = _pinhole(8.0, 10, 10)
     light = (0.0, 0.0, -1.0)  # headlight; the face normal is +-z

@@ -13,8 +13,9 @@ Pipeline
 3. Rasterization in gsplat's pixel convention (see :mod:`avatar_core.render.camera`): the
    sample of pixel ``(col j, row i)`` is the point ``(j + 0.5, i + 0.5)``. A pixel is
    covered when its centre is inside or *on the boundary* of the projected triangle
-   (inclusive edge test, so meshes have no cracks); both windings are drawn (no backface
-   culling, meshes may be open). The depth test keeps the smallest camera ``z``; on exact
+   (inclusive edge test, so meshes have no cracks); both windings are drawn (meshes may be
+   open) unless ``cull_back_faces`` asks to skip faces turned away from the camera (decided
+   in camera space before clipping). The depth test keeps the smallest camera ``z``; on exact
    ties the lower face index wins (triangles are drawn in face order with a strict ``<``).
    Depth and barycentrics are perspective-correct: ``1/z`` is interpolated linearly in
    screen space. Projected triangles with twice their signed area ``<= 1e-9`` pixel^2 in
@@ -129,14 +130,20 @@ class _Triangles:
     clipped: np.ndarray  # [T] bool: piece of a clipped face (bary is not the identity)
 
 
-def _setup_triangles(vc: np.ndarray, faces: np.ndarray, K: np.ndarray, near: float) -> _Triangles:
-    """Clip camera-space faces against z = near and project them (see module docstring)."""
+def _setup_triangles(vc: np.ndarray, faces: np.ndarray, K: np.ndarray, near: float,
+                     cull: np.ndarray | bool = False) -> _Triangles:
+    """Clip camera-space faces against z = near and project them (see module docstring).
+    cull: drop faces (all, or those marked in a [F] mask) whose counter-clockwise normal
+    points away from the camera."""
     P = vc[faces]  # [F, 3, 3]
     e1 = P[:, 1] - P[:, 0]
     e2 = P[:, 2] - P[:, 0]
-    cross_n = np.linalg.norm(np.cross(e1, e2), axis=1)
+    cross = np.cross(e1, e2)
+    cross_n = np.linalg.norm(cross, axis=1)
     scale = np.einsum("ij,ij->i", e1, e1) + np.einsum("ij,ij->i", e2, e2)
     valid = cross_n > _DEGENERATE_REL * scale
+    if np.any(cull):  # front faces see the camera centre (the origin) on their positive side
+        valid &= ~cull | (np.einsum("ij,ij->i", cross, P[:, 0]) < 0.0)
     behind = P[:, :, 2] < near
     nb = behind.sum(axis=1)
     eye = np.eye(3)
@@ -195,12 +202,15 @@ def _setup_triangles(vc: np.ndarray, faces: np.ndarray, K: np.ndarray, near: flo
     fid_a = np.concatenate(fid).astype(np.int64)
     sub_a = np.concatenate(sub)
     clipped = np.arange(len(fid_a)) >= n_whole
-    order = np.lexsort((sub_a, fid_a))  # draw in face order: deterministic tie-breaking
-    pos_a, bary_a, fid_a, clipped = pos_a[order], bary_a[order], fid_a[order], clipped[order]
+    if n_whole < len(fid_a):  # whole faces come sorted; pieces must join them in face order
+        order = np.lexsort((sub_a, fid_a))  # draw in face order: deterministic tie-breaking
+        pos_a, bary_a, fid_a, clipped = pos_a[order], bary_a[order], fid_a[order], clipped[order]
 
     z = np.ascontiguousarray(pos_a[:, :, 2])
-    uvw = pos_a @ K.T
-    uv = np.ascontiguousarray(uvw[:, :, :2] / z[:, :, None])
+    x, y = pos_a[:, :, 0], pos_a[:, :, 1]
+    uv = np.empty(z.shape + (2,))
+    uv[:, :, 0] = (K[0, 0] * x + K[0, 1] * y + K[0, 2] * z) / z  # (K @ p)[:2] / z, elementwise
+    uv[:, :, 1] = (K[1, 0] * x + K[1, 1] * y + K[1, 2] * z) / z
     return _Triangles(uv=uv, z=z, bary=np.ascontiguousarray(bary_a), face=fid_a, clipped=clipped)
 
 
@@ -320,6 +330,7 @@ def _shade_kernel(
     rgb,
     face_id,
     face_bary,
+    do_color,
 ):  # pragma: no cover
     """Per pixel: original-face barycentrics, albedo, smooth normal, two-sided Lambert."""
     H, W = tri.shape
@@ -327,8 +338,9 @@ def _shade_kernel(
         for j in range(W):
             t = tri[i, j]
             if t < 0:
-                for c in range(3):
-                    rgb[i, j, c] = min(max(bg[c], 0.0), 1.0)
+                if do_color:
+                    for c in range(3):
+                        rgb[i, j, c] = min(max(bg[c], 0.0), 1.0)
                 continue
             f = tri_face[t]
             face_id[i, j] = f
@@ -344,6 +356,8 @@ def _shade_kernel(
             face_bary[i, j, 0] = b0
             face_bary[i, j, 1] = b1
             face_bary[i, j, 2] = b2
+            if not do_color:
+                continue
             va = faces[f, 0]
             vb = faces[f, 1]
             vv = faces[f, 2]
@@ -394,10 +408,12 @@ def _shade_reference(
     rgb,
     face_id,
     face_bary,
+    do_color,
 ) -> None:
     """Pure-numpy twin of :func:`_shade_kernel`."""
     hit = tri >= 0
-    rgb[...] = np.clip(bg, 0.0, 1.0)
+    if do_color:
+        rgb[...] = np.clip(bg, 0.0, 1.0)
     if not hit.any():
         return
     t_hit = tri[hit]
@@ -408,6 +424,8 @@ def _shade_reference(
     if clip.any():  # barycentrics of clipped pieces -> those of the original face
         b[clip] = np.einsum("nk,nkc->nc", b[clip], tri_bary[t_hit[clip]])
     face_bary[hit] = b
+    if not do_color:
+        return
     fv = faces[f_hit]  # [N, 3]
     n = _interpolate(b, vn, fv)
     n_len = np.linalg.norm(n, axis=1)
@@ -475,6 +493,8 @@ def render_mesh(
     ambient: float = 0.35,
     near: float = 0.01,
     backend: str = "auto",
+    shading: bool = True,
+    cull_back_faces: bool = False,
 ) -> MeshRenderOutput:
     """Render a triangle mesh with a z-buffer (see the module docstring for the exact rules).
 
@@ -492,6 +512,12 @@ def render_mesh(
         near: near-plane depth (> 0); geometry at ``z < near`` is clipped away.
         backend: ``"numba"``, ``"reference"`` (pure numpy, slow) or ``"auto"`` (numba when
             importable, else the reference with a warning).
+        shading: False skips normals and colours for callers that shade the surface
+            themselves from ``face_id`` and ``bary``; ``rgb`` is then a read-only view of
+            ``background`` everywhere.
+        cull_back_faces: skip faces whose counter-clockwise (right-hand) normal points away
+            from the camera: True for all faces, or a [F] bool mask of the faces it applies
+            to. Right for closed, outward-oriented meshes; about halves the rasterization.
     """
     if not isinstance(camera, Camera):
         raise TypeError(f"camera must be a Camera, got {type(camera).__name__}")
@@ -531,6 +557,9 @@ def render_mesh(
     near = float(near)
     if not (near > 0.0 and math.isfinite(near)):
         raise ValueError(f"near must be positive, got {near}")
+    cull = np.asarray(cull_back_faces)
+    if cull.dtype != bool or cull.shape not in ((), (len(F),)):
+        raise ValueError(f"cull_back_faces must be a bool or a [{len(F)}] bool mask")
 
     if backend == "auto":
         kernels = _numba_kernels()
@@ -554,19 +583,22 @@ def render_mesh(
     W, H = camera.width, camera.height
     depth = np.full((H, W), np.inf, dtype=np.float64)
     tri = np.full((H, W), -1, dtype=np.int64)
-    bary = np.zeros((H, W, 3), dtype=np.float64)
+    bary = np.empty((H, W, 3), dtype=np.float64)  # read only where tri >= 0
     vc = camera.world_to_camera(V)
-    tris = _setup_triangles(vc, F, camera.K, near)
+    tris = _setup_triangles(vc, F, camera.K, near, cull=cull)
     if len(tris.face):
         raster(tris.uv, tris.z, W, H, _AREA_EPS, depth, tri, bary)
 
-    rgb = np.empty((H, W, 3), dtype=np.float32)
+    rgb = np.empty((H, W, 3) if shading else (0, 0, 3), dtype=np.float32)
     face_id = np.full((H, W), -1, dtype=np.int32)
     face_bary = np.zeros((H, W, 3), dtype=np.float32)
+    normals = vertex_normals(vc, F) if shading else np.zeros_like(vc)
     shade(
-        tri, bary, tris.face, tris.bary, tris.clipped, F, colors, vertex_normals(vc, F), vc,
-        light, ambient, bg, rgb, face_id, face_bary,
+        tri, bary, tris.face, tris.bary, tris.clipped, F, colors, normals, vc,
+        light, ambient, bg, rgb, face_id, face_bary, bool(shading),
     )  # fmt: skip
+    if not shading:
+        rgb = np.broadcast_to(np.clip(bg, 0.0, 1.0).astype(np.float32), (H, W, 3))
     out = MeshRenderOutput(
         rgb=rgb,
         alpha=(tri >= 0).astype(np.float32),
