@@ -7,7 +7,9 @@ import pytest
 from avatar_core.body.skeleton import LOWER_BODY_PARTS, SMPLX_PART_NAMES
 from avatar_core.render.camera import Camera, look_at, orbit
 from avatar_core.synth.actor import Actor, _majority
+from avatar_core.synth.appearance import MATERIAL_GROUP
 from avatar_core.synth.body_demo import model_rig
+from avatar_core.synth.humanoid import MATERIALS
 from avatar_core.synth.motion import Pose, pose_to_params
 
 PART = {name: i for i, name in enumerate(SMPLX_PART_NAMES)}
@@ -58,6 +60,7 @@ def test_load_structure(actors):
     np.testing.assert_array_equal(a.face_parts[a.num_body_faces:][hair], PART["head"])
     np.testing.assert_array_equal(a.face_parts[a.num_body_faces:][~hair], PART["neck"])
     np.testing.assert_allclose(a.group_weights.sum(1), 1.0, atol=1e-5)
+    assert len(MATERIAL_GROUP) == len(MATERIALS)
 
 
 def test_render_is_deterministic_and_thread_safe(actors, rig, synthetic_files):
@@ -106,6 +109,22 @@ def test_alpha_parts_and_rgb_agree(actors, rig):
     np.testing.assert_allclose(nine.alpha * 9, np.round(nine.alpha * 9), atol=1e-5)
     np.testing.assert_array_equal(nine.parts == -1, nine.alpha == 0)
     assert abs(nine.alpha.sum() - view.alpha.sum()) < 0.02 * view.alpha.sum()
+
+
+def test_numpy_twins_of_the_sample_kernels(actors, rig, monkeypatch):
+    from avatar_core.synth import actor as actor_module
+
+    a = actors[0]
+    posed = a.pose(_params(rig, {"head": (0.0, 0.4, 0.0)}))
+    cam = _head_camera(size=96)
+    compiled = a.render(posed, cam, background=BG)
+    twins = {"gather": actor_module._gather_reference,
+             "accumulate": actor_module._accumulate_reference}
+    monkeypatch.setattr(actor_module, "_kernel", twins.__getitem__)
+    reference = a.render(posed, cam, background=BG)
+    np.testing.assert_array_equal(reference.alpha, compiled.alpha)
+    np.testing.assert_array_equal(reference.parts, compiled.parts)
+    np.testing.assert_allclose(reference.rgb, compiled.rgb, atol=1e-5)
 
 
 def test_majority_part_label():

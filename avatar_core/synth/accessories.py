@@ -114,6 +114,7 @@ def place_bound(binding: Binding, vertices: np.ndarray, faces: np.ndarray) -> np
 
 
 def mesh_adjacency(faces: np.ndarray, n: int) -> scipy.sparse.csr_matrix:
+    """Vertex adjacency [n, n] (1 where two vertices share an edge) of a triangle mesh."""
     i = faces[:, [0, 1, 2, 1, 2, 0]].reshape(-1)
     j = faces[:, [1, 2, 0, 0, 1, 2]].reshape(-1)
     a = scipy.sparse.csr_matrix((np.ones(len(i)), (i, j)), shape=(n, n))
@@ -121,7 +122,8 @@ def mesh_adjacency(faces: np.ndarray, n: int) -> scipy.sparse.csr_matrix:
     return a
 
 
-def smooth_vertex_field(adj: scipy.sparse.csr_matrix, x: np.ndarray, iterations: int) -> np.ndarray:
+def smooth_vertex_field(adj: scipy.sparse.csr_matrix, x: np.ndarray, iterations: int
+                        ) -> np.ndarray:
     """Half-step umbrella smoothing of a per-vertex field [n, ...] over a mesh graph."""
     deg = np.asarray(adj.sum(axis=1)).reshape(-1, *([1] * (x.ndim - 1)))
     for _ in range(iterations):

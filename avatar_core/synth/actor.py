@@ -6,7 +6,8 @@ everything needed to render ground-truth images of it:
 - the full SMPL-X model (legs included: a real camera sees them; the part mask lets trainers
   drop them), faces and a part label per face (index into `SMPLX_PART_NAMES`);
 - accessories the parametric mesh lacks, bound to body triangles (`accessories`): a hair
-  volume (labelled head) and a shirt collar (labelled by its triangles: neck or spine2);
+  volume over the scalp and a shirt collar round the neck, labelled with the part of the
+  triangle they are bound to (head, neck);
 - a procedural solid-texture appearance evaluated at canonical positions (`appearance`).
 
 `pose(params)` runs once per frame and gives a `PosedActor` (world vertices and normals);
@@ -40,6 +41,7 @@ from . import appearance as app
 from .accessories import (
     HAIR_STYLES,
     Binding,
+    HairStyle,
     bind_points,
     collar,
     concat_bindings,
@@ -119,47 +121,25 @@ class Actor:
         data = load_smplx(files.smplx_npz)
         model = SMPLXModel(data, dtype=torch.float64)
         materials = _materials(files, data.v_template)
-        parts = _vertex_parts(files, data.num_vertices)
         faces = np.asarray(data.faces, dtype=np.int64)
+        face_parts = _face_parts(_vertex_parts(files, data.num_vertices), faces)
         with torch.no_grad():
             rest_out = model({"betas": betas})
-        rest = rest_out.vertices[0].numpy()
-        joints = rest_out.joints[0].numpy()
-        seed = int(json.loads(files.manifest.read_text()).get("seed", 0))
-        hair_v, hair_f, scalp = hair_shell(rest, faces, materials == MATERIALS.index("hair"),
-                                           HAIR_STYLES[identity % len(HAIR_STYLES)],
-                                           seed * 1000 + identity)
-        face_parts = _face_parts(parts, faces)
-        part_id = {p: i for i, p in enumerate(SMPLX_PART_NAMES)}
-        neck = np.flatnonzero(face_parts == part_id["neck"])
-        torso = np.flatnonzero(np.isin(face_parts, [part_id[p] for p in _TORSO_PARTS])
-                               & (materials[faces] == MATERIALS.index("shirt")).all(axis=1))
-        col_v, col_f = collar(rest, faces, neck, torso, joints[JOINT["neck"]])
-        acc_v = np.concatenate([hair_v, col_v])
-        binding = concat_bindings(bind_points(hair_v, rest, faces, scalp),
-                                  bind_points(col_v, rest, faces, neck))
-        acc_f = np.concatenate([hair_f, col_f + len(hair_v)])
-        # An accessory face takes the part of the triangle its first corner is bound to.
-        acc_parts = face_parts[binding.face[acc_f[:, 0]]]
-        v = len(rest)
-        groups = np.zeros((len(acc_v), len(app.GROUPS)), dtype=np.float32)
-        groups[: len(hair_v), app.GROUPS.index("hair")] = 1.0
-        groups[len(hair_v):, app.GROUPS.index("shirt")] = 1.0
-        weights = np.concatenate([_group_weights(materials, faces), groups])
-        all_faces = np.concatenate([faces, acc_f + v])
+        rest, joints = rest_out.vertices[0].numpy(), rest_out.joints[0].numpy()
+        seed = int(json.loads(files.manifest.read_text()).get("seed", 0)) * 1000 + identity
+        acc = _accessories(rest, faces, materials, face_parts, joints,
+                           HAIR_STYLES[identity % len(HAIR_STYLES)], seed)
+        weights = np.concatenate([_group_weights(materials, faces), acc.groups])
+        all_faces = np.concatenate([faces, acc.faces + len(rest)])
+        body_closed = ~np.isin(face_parts, [SMPLX_PART_NAMES.index(p) for p in _OPEN_PARTS])
         return cls(
-            name=name, identity=identity, betas=betas, model=model,
-            faces=all_faces,
-            face_parts=np.concatenate([face_parts, acc_parts]).astype(np.int16),
-            num_body_faces=len(faces), binding=binding,
-            hair_vertices=np.arange(len(acc_v)) < len(hair_v),
-            canonical=np.concatenate([rest, acc_v]).astype(np.float32),
+            name=name, identity=identity, betas=betas, model=model, faces=all_faces,
+            face_parts=np.concatenate([face_parts, acc.parts]).astype(np.int16),
+            num_body_faces=len(faces), binding=acc.binding, hair_vertices=acc.hair,
+            canonical=np.concatenate([rest, acc.vertices]).astype(np.float32),
             group_weights=weights, face_groups=_face_groups(weights, all_faces),
-            closed=np.concatenate([~np.isin(face_parts, [part_id[p] for p in _OPEN_PARTS]),
-                                   np.zeros(len(hair_f), dtype=bool),
-                                   np.ones(len(col_f), dtype=bool)]),
-            appearance=app.make_appearance(palette, identity, rest, materials, joints,
-                                           seed * 1000 + identity))
+            closed=np.concatenate([body_closed, acc.closed]),
+            appearance=app.make_appearance(palette, identity, rest, materials, joints, seed))
 
     def pose(self, params: dict[str, Any]) -> PosedActor:
         """World geometry for unbatched SMPL-X params (`motion.pose_to_params`); the actor's
@@ -199,7 +179,10 @@ class Actor:
                            cull_back_faces=self.closed)
         face_id = mesh.face_id.reshape(-1)
         hit = np.flatnonzero(face_id >= 0)
-        color = self._shade(posed, hit, face_id, mesh.bary.reshape(-1, 3))
+        group = self.face_groups[face_id[hit]]
+        order = np.argsort(group, kind="stable")  # one texture group = one slice of samples
+        hit, group = hit[order], group[order]
+        color = self._shade(posed, hit, group, face_id, mesh.bary.reshape(-1, 3))
         labels = np.full(cam.height * cam.width, -1, dtype=np.int16)
         labels[hit] = self.face_parts[face_id[hit]]
         acc = np.zeros((4, camera.height * camera.width))
@@ -207,37 +190,73 @@ class Actor:
         inv = 1.0 / (ss * ss)
         alpha = acc[0] * inv  # exact multiples of 1 / ss^2
         rgb = np.empty((camera.height * camera.width, 3), dtype=np.float32)
+        rgb[:] = bg  # exactly the background where nothing is covered
+        seen = np.flatnonzero(alpha > 0.0)
         for c in range(3):  # premultiplied object colour over the background
-            rgb[:, c] = acc[1 + c] * inv + (1.0 - alpha) * bg[c]
+            rgb[seen, c] = acc[1 + c, seen] * inv + (1.0 - alpha[seen]) * bg[c]
         shape = (camera.height, camera.width)
         return ActorView(rgb=np.clip(rgb, 0.0, 1.0).reshape(*shape, 3),
                          alpha=alpha.astype(np.float32).reshape(shape),
                          parts=_majority(labels.reshape(cam.height, cam.width), ss))
 
-    def _shade(self, posed: PosedActor, hit: np.ndarray, face_id: np.ndarray,
-               bary: np.ndarray) -> np.ndarray:
+    def _shade(self, posed: PosedActor, hit: np.ndarray, group: np.ndarray,
+               face_id: np.ndarray, bary: np.ndarray) -> np.ndarray:
         """Lit colour [3, N] of the covered samples `hit` (flat indices into face_id [S] and
-        bary [S, 3])."""
+        bary [S, 3]), sorted by their face's texture group `group` [N] (-1: blended)."""
         gather = _kernel("gather")
         table = np.concatenate([self.canonical, posed.normals], axis=1)
         attr = np.empty((6, len(hit)), dtype=np.float32)
         gather(hit, face_id, bary, self.faces, table, attr)
         canon, normal = attr[:3], attr[3:]
         normal /= np.maximum(np.sqrt((normal * normal).sum(axis=0)), np.float32(1e-12))
-        group = self.face_groups[face_id[hit]]
-        mixed = np.flatnonzero(group < 0)
-        w = np.empty((len(app.GROUPS), len(mixed)), dtype=np.float32)
-        gather(hit[mixed], face_id, bary, self.faces, self.group_weights, w)
+        mixed = int(np.searchsorted(group, 0))  # the first samples blend texture groups
+        w = np.empty((len(app.GROUPS), mixed), dtype=np.float32)
+        gather(hit[:mixed], face_id, bary, self.faces, self.group_weights, w)
         w = np.maximum(w, 0.0)
         w = (w * w * w) ** 2  # sharpen: crisp but anti-aliased material borders
         w /= np.maximum(w.sum(axis=0), np.float32(1e-30))
         w[w < 1e-3] = 0.0  # skip textures with negligible weight
         w /= np.maximum(w.sum(axis=0), np.float32(1e-30))
-        albedo = app.albedo(self.appearance, canon, group, mixed, w)
-        return app.shade_albedo(albedo, normal)
+        return app.shade_albedo(app.albedo(self.appearance, canon, group, w), normal)
 
 
 # ------------------------------------------------------------------------------- helpers
+
+
+@dataclass(frozen=True)
+class _Accessories:
+    vertices: np.ndarray  # [A, 3] rest pose: hair, then collar
+    faces: np.ndarray  # [Fa, 3] into vertices
+    binding: Binding
+    hair: np.ndarray  # [A] bool
+    parts: np.ndarray  # [Fa] part of the triangle each face's first corner is bound to
+    closed: np.ndarray  # [Fa] bool: the collar is closed; rays can slip under the hair's edge
+    groups: np.ndarray  # [A, len(GROUPS)] texture groups: hair, shirt
+
+
+def _accessories(rest: np.ndarray, faces: np.ndarray, materials: np.ndarray,
+                 face_parts: np.ndarray, joints: np.ndarray, style: HairStyle,
+                 seed: int) -> _Accessories:
+    """Hair shell bound to the scalp, collar bound to the neck, from the rest mesh."""
+    hair_v, hair_f, scalp = hair_shell(rest, faces, materials == MATERIALS.index("hair"),
+                                       style, seed)
+    part = {p: i for i, p in enumerate(SMPLX_PART_NAMES)}
+    neck = np.flatnonzero(face_parts == part["neck"])
+    torso = np.flatnonzero(np.isin(face_parts, [part[p] for p in _TORSO_PARTS])
+                           & (materials[faces] == MATERIALS.index("shirt")).all(axis=1))
+    col_v, col_f = collar(rest, faces, neck, torso, joints[JOINT["neck"]])
+    binding = concat_bindings(bind_points(hair_v, rest, faces, scalp),
+                              bind_points(col_v, rest, faces, neck))
+    acc_f = np.concatenate([hair_f, col_f + len(hair_v)])
+    hair = np.arange(len(hair_v) + len(col_v)) < len(hair_v)
+    groups = np.zeros((len(hair), len(app.GROUPS)), dtype=np.float32)
+    groups[hair, app.GROUPS.index("hair")] = 1.0
+    groups[~hair, app.GROUPS.index("shirt")] = 1.0
+    return _Accessories(
+        vertices=np.concatenate([hair_v, col_v]), faces=acc_f, binding=binding, hair=hair,
+        parts=face_parts[binding.face[acc_f[:, 0]]],
+        closed=np.concatenate([np.zeros(len(hair_f), bool), np.ones(len(col_f), bool)]),
+        groups=groups)
 
 
 def _gather_kernel(hit, face_id, bary, faces, table, out):  # pragma: no cover
@@ -332,7 +351,7 @@ def _group_weights(materials: np.ndarray, faces: np.ndarray) -> np.ndarray:
     borders become smooth curves instead of triangle staircases."""
     onehot = np.eye(len(app.GROUPS), dtype=np.float64)[np.asarray(app.MATERIAL_GROUP)[materials]]
     adj = mesh_adjacency(faces, len(materials))
-    return smooth_vertex_field(adj, onehot, 2).astype(np.float32)
+    return smooth_vertex_field(adj, onehot, 5).astype(np.float32)
 
 
 def _face_groups(weights: np.ndarray, faces: np.ndarray) -> np.ndarray:

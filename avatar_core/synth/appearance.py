@@ -31,7 +31,6 @@ _G = {g: i for i, g in enumerate(GROUPS)}
 MATERIAL_GROUP = tuple(_G[g] for g in (
     "skin", "hair", "skin", "skin", "eye", "eye", "eye", "mouth", "teeth", "shirt", "trousers",
     "shoes"))  # aligned with humanoid.MATERIALS
-assert len(MATERIAL_GROUP) == len(MATERIALS)
 
 # World-space studio lights: (direction toward the light, intensity). The subject faces +z and
 # its left is +x; the key comes from front-left and above, the fill from front-right, a back
@@ -117,10 +116,11 @@ def _mix(a: np.ndarray, b: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 
 def _band(u: np.ndarray, period: float, width: float, offset: float = 0.0) -> np.ndarray:
-    """1 inside stripes of `width` repeating every `period` along u, soft 2 mm edges."""
+    """1 inside stripes of `width` repeating every `period` along u, with soft 4 mm edges
+    (a splat-friendly transition, still a crisp line at capture resolution)."""
     f = (u - np.float32(offset)) * np.float32(1.0 / period)
     d = np.abs(f - np.floor(f) - 0.5) * np.float32(period)  # distance to the stripe centre
-    return _smooth(width / 2 + 0.001, width / 2 - 0.001, d)
+    return _smooth(width / 2 + 0.002, width / 2 - 0.002, d)
 
 
 # ---------------------------------------------------------------------------- construction
@@ -145,8 +145,8 @@ def _face_layout(v: np.ndarray, materials: np.ndarray, joints: np.ndarray) -> Fa
     mouth = np.array([np.median(lips[:, 1]), half_w, 0.34 * half_w, 0.38 * half_w])
     return FaceLayout(
         eyes=eyes.astype(np.float32),
-        pupil_cos=float((pupil.min() + iris.max()) / 2), iris_cos=float((iris.min() + white.max())
-                                                                        / 2),
+        pupil_cos=float(pupil.min() + iris.max()) / 2,  # halfway between the vertex rings
+        iris_cos=float(iris.min() + white.max()) / 2,
         brow=coeff.astype(np.float32), brow_x=(float(ax.min()), float(ax.max())),
         mouth=mouth.astype(np.float32), front_z=float(eyes[0, 2] - 0.02 * scale),
         hair_center=(joints[15] + scale * np.array([0.0, 0.075, 0.0])).astype(np.float32),
@@ -220,7 +220,7 @@ def _face_paint(a: Appearance, p: np.ndarray, skin: np.ndarray) -> np.ndarray:
     x, y, z = p
     front = _smooth(f.front_z - 0.01, f.front_z, z)
     cheek_d2 = (np.abs(x) - 0.047 * f.scale) ** 2 + (y - (f.eyes[0, 1] - 0.03 * f.scale)) ** 2
-    blush = 0.07 * np.exp(cheek_d2 * np.float32(-1 / (2 * 0.016**2))) * front
+    blush = 0.05 * np.exp(cheek_d2 * np.float32(-1 / (2 * 0.016**2))) * front
     out = skin * (1.0 + blush * np.float32([[0.5], [-0.4], [-0.4]]))
     out = _mix(out, _lips(a, p, out), _lip_mask(f, x, y) * front)
     return _mix(out, a.colors["hair"] * 0.85, 0.9 * _brow_mask(f, x, y) * front)
@@ -279,7 +279,7 @@ def _eye(a: Appearance, p: np.ndarray) -> np.ndarray:
     e = 0.004
     iris = _smooth(f.iris_cos - e, f.iris_cos + e, cos)
     pupil = _smooth(f.pupil_cos - e, f.pupil_cos + e, cos)
-    fibres = np.sin(23.0 * np.arctan2(d[1], d[0]))
+    fibres = np.sin(9.0 * np.arctan2(d[1], d[0]))
     limbal = _smooth(f.iris_cos + 6 * e, f.iris_cos, cos)
     inner = _smooth(f.pupil_cos - 8 * e, f.pupil_cos, cos)
     gain = (0.85 + 0.12 * fibres) * (1.0 - 0.5 * limbal) * (1.0 + 0.3 * inner)
@@ -295,7 +295,8 @@ def _cloth_coords(a: Appearance, p: np.ndarray, period: float
     x, y, z = p
     sx, sy, sz = (float(t) for t in a.shoulder)
     ax = np.abs(x)
-    sleeve = ax > sx
+    # Past the seam and near the arm's axis; the torso's flanks below the arm stay torso.
+    sleeve = (ax > sx) & ((y - sy) ** 2 + (z - sz) ** 2 < np.float32(0.075**2))
 
     def around(s: np.ndarray, t: np.ndarray, radius: float) -> np.ndarray:
         turns = max(round(2 * np.pi * radius / period), 1)
@@ -351,26 +352,21 @@ def _teeth(a: Appearance, p: np.ndarray) -> np.ndarray:
 _TEXTURES = (_skin, _hair, _eye, _mouth, _teeth, _shirt, _trousers, _shoes)  # GROUPS order
 
 
-def albedo(a: Appearance, p: np.ndarray, group: np.ndarray, mixed: np.ndarray,
-           weights: np.ndarray) -> np.ndarray:
-    """Albedo [3, N] at canonical points p [3, N] (float32). group [N]: each sample's only
-    texture group, or -1 for the samples `mixed` [M] that blend groups with weights
-    [len(GROUPS), M] (columns sum to 1). Each texture runs only where it is needed."""
-    order = np.argsort(group, kind="stable")  # samples of one group become one slice
-    bounds = np.searchsorted(group[order], np.arange(-1, len(_TEXTURES) + 1))
-    sorted_p = p[:, order]
-    out_sorted = np.zeros(p.shape, dtype=np.float32)
+def albedo(a: Appearance, p: np.ndarray, group: np.ndarray, weights: np.ndarray
+           ) -> np.ndarray:
+    """Albedo [3, N] at canonical points p [3, N] (float32). group [N], sorted: each
+    sample's only texture group, or -1 for the first M samples, which blend the groups with
+    weights [len(GROUPS), M] (columns sum to 1). Each texture runs only where it is needed,
+    on contiguous slices."""
+    bounds = np.searchsorted(group, np.arange(len(_TEXTURES) + 1))
+    out = np.zeros(p.shape, dtype=np.float32)
     for g, texture in enumerate(_TEXTURES):
-        lo, hi = bounds[g + 1], bounds[g + 2]
+        lo, hi = bounds[g], bounds[g + 1]
         if hi > lo:
-            out_sorted[:, lo:hi] = texture(a, sorted_p[:, lo:hi])
-    out = np.empty_like(out_sorted)
-    out[:, order] = out_sorted
-    for g, texture in enumerate(_TEXTURES):
+            out[:, lo:hi] = texture(a, p[:, lo:hi])
         part = np.flatnonzero(weights[g] > 0.0)
         if len(part):
-            idx = mixed[part]
-            out[:, idx] += weights[g, part] * texture(a, p[:, idx])
+            out[:, part] += weights[g, part] * texture(a, p[:, part])
     return out
 
 
