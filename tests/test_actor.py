@@ -6,7 +6,7 @@ import pytest
 
 from avatar_core.body.skeleton import LOWER_BODY_PARTS, SMPLX_PART_NAMES
 from avatar_core.render.camera import Camera, look_at, orbit
-from avatar_core.synth.actor import Actor, _majority
+from avatar_core.synth.actor import Actor, _majority, render_actor_preview
 from avatar_core.synth.appearance import MATERIAL_GROUP
 from avatar_core.synth.body_demo import model_rig
 from avatar_core.synth.humanoid import MATERIALS
@@ -256,3 +256,12 @@ def test_invalid_input_raises(actors, rig, synthetic_files):
         actors[1].render(dataclasses.replace(posed, vertices=posed.vertices[:-1]), cam)
     with pytest.raises(ValueError, match="identity"):
         Actor.load(synthetic_files, 5)
+
+
+def test_preview_png(synthetic_files, tmp_path):
+    import cv2
+
+    out = render_actor_preview(synthetic_files, 1, tmp_path / "preview" / "actor.png", size=48)
+    image = cv2.imread(str(out))
+    assert image.shape == (96, 144, 3)
+    assert (image.std(axis=(0, 1)) > 10).all()  # the actor, not an empty background

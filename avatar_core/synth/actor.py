@@ -27,16 +27,18 @@ import json
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import torch
 
 from ..body.model_data import load_smplx
 from ..body.models import SMPLXModel
-from ..body.skeleton import JOINT, SMPLX_PART_NAMES
+from ..body.skeleton import JOINT, SMPLX_NUM_BODY_JOINTS, SMPLX_PART_NAMES
 from ..body.upper_body import load_segmentation
-from ..render.camera import Camera
+from ..render.camera import Camera, orbit
 from . import appearance as app
 from .accessories import (
     HAIR_STYLES,
@@ -53,8 +55,9 @@ from .accessories import (
 from .humanoid import MATERIALS, make_humanoid
 from .mesh_render import numba_available, render_mesh, vertex_normals
 from .model_files import PALETTES, SyntheticModelFiles, _vertex_order
+from .motion import RELAXED_ARMS
 
-__all__ = ["Actor", "ActorView", "PosedActor"]
+__all__ = ["Actor", "ActorView", "PosedActor", "render_actor_preview"]
 
 _TORSO_PARTS = ("spine1", "spine2", "leftShoulder", "rightShoulder")
 # The head surface has slits (mouth, eyes) through which its inside can be seen, and grazing
@@ -220,6 +223,30 @@ class Actor:
         return app.shade_albedo(app.albedo(self.appearance, canon, group, w), normal)
 
 
+def render_actor_preview(files: SyntheticModelFiles, identity: int, out_png: str | Path, *,
+                         size: int = 384) -> Path:
+    """A PNG for a person to look at: the actor in its relaxed stance, full body and head,
+    from the front, the side and the back (two rows of three views)."""
+    actor = Actor.load(files, identity)
+    body_pose = np.zeros((SMPLX_NUM_BODY_JOINTS, 3))
+    for name, aa in RELAXED_ARMS.items():
+        body_pose[JOINT[name] - 1] = aa
+    posed = actor.pose({"body_pose": body_pose})
+    head = posed.joints[JOINT["head"]]
+    rows = []
+    for target, distance in (((0.0, -0.1, 0.0), 3.0), (head + [0.0, 0.06, 0.0], 0.9)):
+        views = [actor.render(posed, orbit(target, yaw, 5.0, distance, width=size,
+                                           height=size, fov_y_deg=35.0),
+                              background=(0.93, 0.94, 0.96)).rgb for yaw in (0.0, 90.0, 180.0)]
+        rows.append(np.concatenate(views, axis=1))
+    image = (np.concatenate(rows, axis=0) * 255.0 + 0.5).astype(np.uint8)
+    out = Path(out_png)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(out), image[..., ::-1]):
+        raise OSError(f"could not write {out}")
+    return out
+
+
 # ------------------------------------------------------------------------------- helpers
 
 
@@ -355,9 +382,11 @@ def _group_weights(materials: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 
 def _face_groups(weights: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """The texture group of faces whose corners all belong to one group only, else -1."""
-    solo = (weights >= 1.0 - 1e-6).argmax(axis=1)  # [V]
-    pure = (weights >= 1.0 - 1e-6).any(axis=1)
+    """The texture group of faces that render with one group only, else -1. That holds when
+    one group has weight >= 0.76 at all three corners: inside the face the others stay
+    <= 0.24, and `_shade`'s sharpening (power 6) leaves them below its 1e-3 cut-off."""
+    solo = weights.argmax(axis=1)  # [V]
+    pure = weights.max(axis=1) >= 0.76
     g = np.where(pure, solo, -1)[faces]  # [F, 3]
     same = (g[:, 0] >= 0) & (g[:, 0] == g[:, 1]) & (g[:, 0] == g[:, 2])
     return np.where(same, g[:, 0], -1).astype(np.int8)
