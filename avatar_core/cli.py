@@ -8,6 +8,8 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+DEFAULT_CAPTURE_MOTIONS = "smile+grin+mouth_open,thumbs_up+peace+talk_calm,sad+angry+clapping"
+
 
 def _make_synthetic(args: argparse.Namespace) -> int:
     from .synth.model_files import write_synthetic_models
@@ -47,6 +49,41 @@ def _render(args: argparse.Namespace) -> int:
     return 0
 
 
+def _capture(args: argparse.Namespace) -> int:
+    from .synth.capture import CaptureSpec, capture, count_views, parse_sequences
+
+    cross = args.cross_identity
+    if cross is None:
+        cross = 1 if args.identity == 0 else 0  # the other of the two stock identities
+    cross = None if cross < 0 else cross
+    spec = CaptureSpec(
+        sequences=parse_sequences(args.motions), identity=args.identity,
+        num_cameras=args.cameras, resolution=args.resolution, max_frames=args.max_frames,
+        holdout_cameras=tuple(args.holdout_cameras.split(",")) if args.holdout_cameras else None,
+        holdout_sequences=args.holdout_sequences, cross_identity=cross,
+        supersample=args.supersample, workers=args.workers, seed=args.seed)
+    with tqdm(total=count_views(spec), desc="capturing", unit="view") as bar:
+        out = capture(args.out, spec, model_dir=args.models,
+                      progress=lambda i, n: bar.update(i - bar.n))
+    print(f"wrote dataset {out}")
+    return 0
+
+
+def _motion_strip(args: argparse.Namespace) -> int:
+    from .dataset.preview import write_png
+    from .synth.motions import motion_names
+    from .synth.preview import motion_strip
+
+    names = args.motions.split(",") if args.motions else [
+        *motion_names("expressions"), *motion_names("gestures")]
+    with tqdm(total=len(names), desc="posing", unit="motion") as bar:
+        img = motion_strip(names, identity=args.identity, camera=args.camera, size=args.size,
+                           columns=args.columns, model_dir=args.models,
+                           progress=lambda i, n: bar.update(i - bar.n))
+    print(f"wrote {write_png(args.out, img)}")
+    return 0
+
+
 def _budget(text: str) -> int | float:
     value = float(text)
     return value if "." in text else int(value)
@@ -75,6 +112,44 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--fps", type=int, default=24)
     demo.add_argument("--identity", type=int, default=0)
     demo.set_defaults(func=_demo)
+
+    synth = groups.add_parser("synth", help="the software capture studio")
+    synth_cmds = synth.add_subparsers(dest="command", required=True)
+    cap = synth_cmds.add_parser("capture", help="film the synthetic actor into a dataset")
+    cap.add_argument("--out", type=Path, required=True, help="dataset folder to create")
+    cap.add_argument("--identity", type=int, default=0)
+    cap.add_argument("--motions", default=DEFAULT_CAPTURE_MOTIONS,
+                     help="sequences separated by ',', motions within one joined by '+'")
+    cap.add_argument("--cameras", type=int, default=17)
+    cap.add_argument("--resolution", type=int, default=512)
+    cap.add_argument("--max-frames", type=int, default=None, help="per sequence")
+    cap.add_argument("--holdout-cameras", default=None,
+                     help="comma-separated camera names (default: the centre front camera)")
+    cap.add_argument("--holdout-sequences", type=int, default=1,
+                     help="the last N sequences are held out for self-reenactment")
+    cap.add_argument("--cross-identity", type=int, default=None,
+                     help="identity that performs the held-out motions (default: another "
+                          "one; -1: none)")
+    cap.add_argument("--supersample", type=int, default=2)
+    cap.add_argument("--workers", type=int, default=2)
+    cap.add_argument("--seed", type=int, default=0)
+    cap.add_argument("--models", type=Path, default=None, help="synthetic model folder")
+    cap.set_defaults(func=_capture)
+
+    strip = synth_cmds.add_parser("preview", help="library motions at their peak, one camera")
+    strip.add_argument("--out", type=Path, required=True, help="PNG to write")
+    strip.add_argument("--motions", default=None,
+                       help="comma-separated (default: every expression and gesture)")
+    strip.add_argument("--identity", type=int, default=0)
+    strip.add_argument("--camera", default=None, help="default: the centre front camera")
+    strip.add_argument("--size", type=int, default=256)
+    strip.add_argument("--columns", type=int, default=8)
+    strip.add_argument("--models", type=Path, default=None, help="synthetic model folder")
+    strip.set_defaults(func=_motion_strip)
+
+    from .dataset.cli import register as register_dataset
+
+    register_dataset(groups)
 
     render = groups.add_parser("render", help="render an avatar under a motion")
     render.add_argument("avatar", help="avatar package (folder or .zip) or synthetic[:IDENTITY]")

@@ -28,6 +28,18 @@ def _validate(args: argparse.Namespace) -> int:
     return 1 if errors or (args.strict and warnings) else 0
 
 
+def _preview(args: argparse.Namespace) -> int:
+    from .loader import load_dataset
+    from .preview import contact_sheet, write_png
+
+    ds = load_dataset(args.dataset)
+    sequence = args.sequence or next(iter(ds.sequences))
+    out = write_png(args.out, contact_sheet(ds, sequence, args.frame, columns=args.columns,
+                                            size=args.size))
+    print(f"wrote {out}")
+    return 0
+
+
 def _progress(bar: tqdm):
     def update(done: int, total: int) -> None:
         bar.total = total
@@ -60,7 +72,7 @@ def _import_easymocap(args: argparse.Namespace) -> int:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add `dataset validate` and `dataset import {vhap,easymocap}`."""
+    """Add `dataset validate`, `dataset preview` and `dataset import {vhap,easymocap}`."""
     group = subparsers.add_parser("dataset", help="multi-view capture datasets")
     cmds = group.add_subparsers(dest="command", required=True)
 
@@ -70,6 +82,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                      help="decode every image (part values, empty masks); slower")
     val.add_argument("--strict", action="store_true", help="warnings fail too")
     val.set_defaults(func=_validate)
+
+    pre = cmds.add_parser("preview", help="contact sheet of one frame across all cameras")
+    pre.add_argument("dataset", type=Path)
+    pre.add_argument("--out", type=Path, required=True, help="PNG to write")
+    pre.add_argument("--sequence", default=None, help="default: the first sequence")
+    pre.add_argument("--frame", type=int, default=0)
+    pre.add_argument("--columns", type=int, default=6)
+    pre.add_argument("--size", type=int, default=256, help="tile size in pixels")
+    pre.set_defaults(func=_preview)
 
     imp = cmds.add_parser("import", help="convert another tool's capture layout")
     kinds = imp.add_subparsers(dest="layout", required=True)

@@ -35,7 +35,7 @@ class StudioConfig:
     num_cameras: int = 17
     arc_deg: float = 150.0
     radius: float = 1.5
-    target: tuple[float, float, float] = (0.0, 0.38, 0.0)  # mid chest of the synthetic body
+    target: tuple[float, float, float] = (0.0, 0.40, 0.0)  # upper chest of the synthetic body
     head_height: float = 0.62
     chest_height: float = 0.32
     rear_azimuth_deg: float = 155.0  # rear cameras at +-this azimuth
