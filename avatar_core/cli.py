@@ -78,7 +78,7 @@ def _motion_strip(args: argparse.Namespace) -> int:
         *motion_names("expressions"), *motion_names("gestures")]
     with tqdm(total=len(names), desc="posing", unit="motion") as bar:
         img = motion_strip(names, identity=args.identity, camera=args.camera, size=args.size,
-                           columns=args.columns, model_dir=args.models,
+                           columns=args.columns, focus=args.focus, model_dir=args.models,
                            progress=lambda i, n: bar.update(i - bar.n))
     print(f"wrote {write_png(args.out, img)}")
     return 0
@@ -144,6 +144,7 @@ def build_parser() -> argparse.ArgumentParser:
     strip.add_argument("--camera", default=None, help="default: the centre front camera")
     strip.add_argument("--size", type=int, default=256)
     strip.add_argument("--columns", type=int, default=8)
+    strip.add_argument("--focus", choices=["body", "face"], default="body")
     strip.add_argument("--models", type=Path, default=None, help="synthetic model folder")
     strip.set_defaults(func=_motion_strip)
 

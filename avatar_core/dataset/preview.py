@@ -25,8 +25,10 @@ def tile(rgb: np.ndarray, label: str, size: int) -> np.ndarray:
     y0, x0 = (size - small.shape[0]) // 2, (size - small.shape[1]) // 2
     tile[y0:y0 + small.shape[0], x0:x0 + small.shape[1]] = small
     font_scale = max(0.3, size / 400)
-    cv2.putText(tile, label, (4, int(16 * font_scale / 0.5)), cv2.FONT_HERSHEY_SIMPLEX,
-                font_scale, (20, 20, 20), 1, cv2.LINE_AA)
+    (tw, th), base = cv2.getTextSize(label, cv2.FONT_HERSHEY_SIMPLEX, font_scale, 1)
+    cv2.rectangle(tile, (0, 0), (tw + 6, th + base + 4), (255, 255, 255), -1)  # legible caption
+    cv2.putText(tile, label, (3, th + 2), cv2.FONT_HERSHEY_SIMPLEX, font_scale, (20, 20, 20), 1,
+                cv2.LINE_AA)
     return tile
 
 

@@ -120,7 +120,8 @@ def _envelope(t: float, duration: float, ramp: float = 0.5) -> float:
 
 def _neutral() -> Clip:
     blink = Pose(expression={"blink_left": 1.0, "blink_right": 1.0})
-    return Clip("neutral", ((0.0, Pose()), (0.7, Pose()), (0.8, blink), (0.92, Pose()),
+    # One blink, late in the clip: its middle (where previews look) is the plain face.
+    return Clip("neutral", ((0.0, Pose()), (1.0, Pose()), (1.1, blink), (1.22, Pose()),
                             (1.6, Pose())))
 
 
