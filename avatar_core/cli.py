@@ -61,7 +61,8 @@ def _capture(args: argparse.Namespace) -> int:
         num_cameras=args.cameras, resolution=args.resolution, max_frames=args.max_frames,
         holdout_cameras=tuple(args.holdout_cameras.split(",")) if args.holdout_cameras else None,
         holdout_sequences=args.holdout_sequences, cross_identity=cross,
-        supersample=args.supersample, workers=args.workers, seed=args.seed)
+        supersample=args.supersample, workers=args.workers, seed=args.seed,
+        trackers=args.trackers)
     with tqdm(total=count_views(spec), desc="capturing", unit="view") as bar:
         out = capture(args.out, spec, model_dir=args.models,
                       progress=lambda i, n: bar.update(i - bar.n))
@@ -130,6 +131,9 @@ def build_parser() -> argparse.ArgumentParser:
     cap.add_argument("--cross-identity", type=int, default=None,
                      help="identity that performs the held-out motions (default: another "
                           "one; -1: none)")
+    cap.add_argument("--trackers", choices=["simulated", "exact"], default="simulated",
+                     help="simulated: body-tracker SMPL-X + exact FLAME/MANO (as a real "
+                          "studio); exact: the true SMPL-X only")
     cap.add_argument("--supersample", type=int, default=2)
     cap.add_argument("--workers", type=int, default=2)
     cap.add_argument("--seed", type=int, default=0)

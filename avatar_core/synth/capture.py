@@ -9,6 +9,10 @@ PNG encoding release the GIL). The splits follow the paper's protocol:
 - ``self_reenactment``: the held-out sequences, all cameras;
 - ``cross_identity``: the held-out motions performed by another identity (its own betas and
   images), for driving this subject's avatar with someone else's motion.
+
+The parameters written are what a real studio's trackers would report (see
+:mod:`.trackers`): a body tracker's SMPL-X plus exact FLAME face and MANO hand parameters,
+which fusion turns back into the truth. ``trackers="exact"`` writes the true SMPL-X only.
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ from .body_demo import ensure_models, model_rig
 from .model_files import SyntheticModelFiles
 from .motions import motion_sequence
 from .studio import RigCamera, StudioConfig, studio_rig
+from .trackers import simulate_trackers
 
 __all__ = ["CaptureSpec", "capture", "parse_sequences"]
 
@@ -49,6 +54,7 @@ class CaptureSpec:
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
     supersample: int = 2
     workers: int = 2
+    trackers: str = "simulated"  # "simulated": body/face/hand tracker split; "exact": truth
     seed: int = 0
     studio: StudioConfig = field(default_factory=StudioConfig)
 
@@ -62,6 +68,8 @@ class CaptureSpec:
                 len(self.sequences) > 1 and self.holdout_sequences >= len(self.sequences)):
             raise ValueError(f"cannot hold out {self.holdout_sequences} of "
                              f"{len(self.sequences)} sequences: keep one for training")
+        if self.trackers not in ("simulated", "exact"):
+            raise ValueError(f"trackers must be 'simulated' or 'exact', got {self.trackers!r}")
         if self.workers < 1 or self.supersample < 1:
             raise ValueError("workers and supersample must be at least 1")
 
@@ -138,6 +146,9 @@ def _film(actor: Actor, motions: Sequence[str], seq: str, spec: CaptureSpec,
         per_frame.append(params)
     stacked = {k: np.stack([p[k] for p in per_frame]) for k in per_frame[0] if k != "betas"}
     stacked["betas"] = np.asarray(actor.betas, dtype=np.float64)
+    if spec.trackers == "simulated":
+        rng = np.random.default_rng([spec.seed, 2024, *seq.encode()])
+        stacked = simulate_trackers(stacked, actor.model.data.hand_components, rng=rng)
     writer.write_params(seq, stacked)
 
 
@@ -181,7 +192,8 @@ def capture(out: str | Path, spec: CaptureSpec, *, model_dir: Path | None = None
                  "betas": np.asarray(actor.betas).tolist()},
         body_model={"type": "smplx", "num_betas": int(len(actor.betas)),
                     "num_expression": int(actor.model.num_expression),
-                    "source": f"synthetic-seed{spec.seed}"},
+                    "source": f"synthetic-seed{spec.seed}", "hand_pca": None,
+                    "flat_hand_mean": False, "trackers": spec.trackers},
         synthetic=True)
     total, done = count_views(spec), 0
 
