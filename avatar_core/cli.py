@@ -85,6 +85,25 @@ def _motion_strip(args: argparse.Namespace) -> int:
     return 0
 
 
+def _eval(args: argparse.Namespace) -> int:
+    from .metrics.evaluate import evaluate
+    from .metrics.report import result_markdown
+
+    with tqdm(desc=f"evaluating {args.protocol}", unit="view") as bar:
+        def progress(i: int, n: int) -> None:
+            bar.total = n
+            bar.update(i - bar.n)
+
+        result = evaluate(args.avatar, args.dataset, args.protocol, fusion=not args.no_fusion,
+                          max_views=args.max_views, frame_stride=args.frame_stride,
+                          out_dir=args.out, size=args.size, model_dir=args.models,
+                          progress=progress)
+    print(result_markdown(result).split("\n## ")[0].rstrip())  # the headline table
+    if args.out:
+        print(f"wrote {args.out / 'metrics.json'}, {args.out / 'metrics.md'}")
+    return 0
+
+
 def _budget(text: str) -> int | float:
     value = float(text)
     return value if "." in text else int(value)
@@ -172,6 +191,21 @@ def build_parser() -> argparse.ArgumentParser:
                         help="render only the K (int) or fraction (float) most important splats")
     render.add_argument("--background", type=float, nargs=3, default=(1.0, 1.0, 1.0))
     render.set_defaults(func=_render)
+
+    ev = groups.add_parser("eval", help="evaluate an avatar on a dataset split")
+    ev.add_argument("avatar", help="avatar package (folder or .zip) or synthetic[:IDENTITY]")
+    ev.add_argument("dataset", type=Path, help="dataset folder")
+    ev.add_argument("--protocol", required=True,
+                    choices=["self-reenactment", "novel-view", "cross-identity"])
+    ev.add_argument("--out", type=Path, default=None,
+                    help="folder for metrics.json, metrics.md and images/")
+    ev.add_argument("--no-fusion", action="store_true",
+                    help="drive with the body tracker's SMPL-X alone (the ablation)")
+    ev.add_argument("--max-views", type=int, default=None, help="the first N views")
+    ev.add_argument("--frame-stride", type=int, default=1, help="every K-th frame")
+    ev.add_argument("--size", type=int, default=None, help="render width (default: dataset's)")
+    ev.add_argument("--models", type=Path, default=None, help="synthetic model folder")
+    ev.set_defaults(func=_eval)
     return parser
 
 
