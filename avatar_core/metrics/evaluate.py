@@ -386,13 +386,6 @@ def _score_view(run: _Run, key: ViewKey, posed: Any, data: _SequenceData,
     return _Scored(rec, gt, render, keep)
 
 
-def _load(avatar: str | Path | LoadedAvatar, dataset: str | Path | Dataset,
-          model_dir: Path | None) -> tuple[LoadedAvatar, Dataset]:
-    ds = dataset if isinstance(dataset, Dataset) else load_dataset(dataset)
-    loaded = avatar if isinstance(avatar, LoadedAvatar) else load_avatar(str(avatar), model_dir)
-    return loaded, ds
-
-
 def evaluate(avatar: str | Path | LoadedAvatar, dataset: str | Path | Dataset, protocol: str,
              *, fusion: bool = True, max_views: int | None = None, frame_stride: int = 1,
              out_dir: str | Path | None = None, size: int | None = None,
@@ -405,14 +398,15 @@ def evaluate(avatar: str | Path | LoadedAvatar, dataset: str | Path | Dataset, p
     ``metrics.json``, ``metrics.md`` and ``images/*.png`` (at most ``max_images``)."""
     if frame_stride < 1 or (max_views is not None and max_views < 1) or max_images < 0:
         raise ValueError("frame_stride and max_views must be at least 1, max_images >= 0")
-    protocol_split(protocol)  # an unknown protocol fails before anything is loaded
-    loaded, ds = _load(avatar, dataset, model_dir)
+    protocol_split(protocol)  # the cheap checks first: before anything is loaded
+    ds = dataset if isinstance(dataset, Dataset) else load_dataset(dataset)
     split = protocol_split(protocol, ds)
     _check_body_model(ds.meta["body_model"])
     cross = protocol == "cross-identity"
     keys = [k for k in ds.views(split) if k.frame % frame_stride == 0][:max_views]
     if not keys:
         raise ValueError(f"split {split!r} of {ds.root} has no views to evaluate")
+    loaded = avatar if isinstance(avatar, LoadedAvatar) else load_avatar(str(avatar), model_dir)
     if cross and not loaded.package.body.betas:
         raise ValueError("the avatar package records no betas to drive cross-identity with")
 
