@@ -104,6 +104,39 @@ def _eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def _train(args: argparse.Namespace) -> int:
+    import logging
+
+    from .train.config import load_config
+    from .train.trainer import Trainer
+
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    if args.resume:
+        trainer = Trainer.resume(args.out, args.dataset, body_model=args.body_model,
+                                 iterations=args.iterations, device=args.device)
+    else:
+        from dataclasses import replace
+
+        from .train.config import TrainConfig
+
+        config = load_config(args.config) if args.config else TrainConfig()
+        overrides = {"iterations": args.iterations, "device": args.device}
+        config = replace(config, **{k: v for k, v in overrides.items() if v is not None})
+        trainer = Trainer(args.dataset, config, args.out, body_model=args.body_model)
+    with tqdm(total=trainer.config.iterations, initial=trainer.iteration, desc="training",
+              unit="it") as bar:
+        def progress(event: dict) -> None:
+            bar.update(event["iteration"] - bar.n)
+            if event["type"] == "progress" and event["loss"] is not None:
+                bar.set_postfix(loss=f"{event['loss']:.4f}", psnr=event["psnr"] and
+                                f"{event['psnr']:.2f}", gaussians=event["num_gaussians"])
+
+        trainer.progress = progress
+        out = trainer.train()
+    print(f"wrote avatar {out}")
+    return 0
+
+
 def _budget(text: str) -> int | float:
     value = float(text)
     return value if "." in text else int(value)
@@ -191,6 +224,18 @@ def build_parser() -> argparse.ArgumentParser:
                         help="render only the K (int) or fraction (float) most important splats")
     render.add_argument("--background", type=float, nargs=3, default=(1.0, 1.0, 1.0))
     render.set_defaults(func=_render)
+
+    train = groups.add_parser("train", help="train an avatar on a dataset")
+    train.add_argument("dataset", type=Path, help="dataset folder (Format v1)")
+    train.add_argument("--out", type=Path, required=True,
+                       help="output folder: checkpoints/, avatar/ (the package)")
+    train.add_argument("--config", type=Path, default=None, help=".json or .toml config")
+    train.add_argument("--resume", action="store_true", help="continue from OUT's checkpoint")
+    train.add_argument("--iterations", type=int, default=None, help="total iterations")
+    train.add_argument("--device", default=None, help="auto, cpu, cuda[:N]")
+    train.add_argument("--body-model", type=Path, default=None,
+                       help="body-model folder (default: the dataset's synthetic family)")
+    train.set_defaults(func=_train)
 
     ev = groups.add_parser("eval", help="evaluate an avatar on a dataset split")
     ev.add_argument("avatar", help="avatar package (folder or .zip) or synthetic[:IDENTITY]")

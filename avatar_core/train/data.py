@@ -1,0 +1,237 @@
+"""Training views and per-frame parameters.
+
+A training view is the dataset's image made ready for the loss, once, then kept in a small
+LRU cache (decoding three PNGs costs as much as a training step at 512 x 512):
+
+- scaled to the training size (``DataConfig.scale`` or ``target_size``; area filter for RGB
+  and alpha, nearest for part labels, the camera resized to match);
+- the ground truth composited on the training background with its alpha,
+  ``rgb * alpha + bg * (1 - alpha)`` (GaussianAvatars' ``gt_image * alpha + bg * (1 - alpha)``);
+- a loss weight map: 1 on upper-body pixels and on background, 0 on the lower body (part
+  labels not in ``upper_body_parts``), grown by one pixel so the anti-aliased edge of a leg
+  does not leak into the loss. The avatar has no legs: those pixels are not its to explain.
+  Without part labels every pixel counts.
+- with ``crop_to_subject``, the box of the pixels that are both foreground (alpha > 0) and
+  weighted (i.e. the upper body; the masked legs are left out), plus ``crop_margin`` px,
+  clipped to the image. Only this window is rendered (``Camera.cropped``) and scored, which
+  is the main lever for throughput (about half the pixels of a full-body 512 x 512 view, a
+  quarter or less of the whole image). Outside it the ground truth is background or masked
+  legs; the render is background too, up to Gaussians that stray out of the box, which the
+  position/scaling regularisers keep within about a triangle of the surface, so the margin
+  covers them. A view with no weighted foreground is used whole.
+
+Per-frame parameters are the SMPL-X keys of ``params.npz``. With ``fusion`` and FLAME/MANO
+keys present, each sequence is fused once up front (:func:`avatar_core.body.fusion.fuse` on a
+float64 copy of the model: the body tracker's face and hands replaced by the face and hand
+trackers'), else the SMPL-X keys are used as they are.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import OrderedDict
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..body.fusion import fuse
+from ..body.models import FLAMEModel, MANOModel, SMPLXModel
+from ..dataset.loader import Dataset, View, ViewKey
+from ..dataset.params import frame_slice
+from ..render.camera import Camera
+from .config import DataConfig
+
+__all__ = ["FusionModels", "TrainView", "TrainingViews", "composite", "loss_weights",
+           "per_frame", "prepare_view", "sequence_params", "split_tracker_keys", "subject_box",
+           "training_size"]
+
+log = logging.getLogger(__name__)
+
+SMPLX_KEYS = ("betas", "expression", "global_orient", "body_pose", "jaw_pose", "leye_pose",
+              "reye_pose", "left_hand_pose", "right_hand_pose", "transl", "vertex_offsets")
+
+
+# -- one view -----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class TrainView:
+    """A view as the loss sees it (on the training device)."""
+
+    key: ViewKey
+    camera: Camera        # as rendered: scaled, then cropped
+    target: Tensor        # [h, w, 3] ground truth on the training background
+    weight: Tensor        # [h, w] float loss weights (0 on the lower body)
+    weight_sum: float     # 0: nothing to learn from this view
+    crop: tuple[int, int, int, int] | None  # (x0, y0, w, h) in the scaled image
+
+
+def training_size(width: int, height: int, config: DataConfig) -> tuple[int, int]:
+    """(w, h) of a ``width x height`` image at training resolution."""
+    s = config.scale if config.target_size is None else \
+        min(1.0, config.target_size / max(width, height))
+    return max(1, round(width * s)), max(1, round(height * s))
+
+
+def composite(rgb: np.ndarray, alpha: np.ndarray | None,
+              background: tuple[float, float, float]) -> np.ndarray:
+    """[H, W, 3] float32: ``rgb * alpha + bg * (1 - alpha)``; rgb as is without alpha."""
+    if alpha is None:
+        return np.asarray(rgb, dtype=np.float32)
+    a = alpha[..., None].astype(np.float32)
+    bg = np.asarray(background, dtype=np.float32)
+    return (rgb * a + bg * (1.0 - a)).astype(np.float32)
+
+
+def loss_weights(parts: np.ndarray | None, upper_ids: tuple[int, ...], shape: tuple[int, int],
+                 grow: int = 1) -> np.ndarray:
+    """[H, W] float32: 1 on upper-body parts and background (-1), 0 on the other parts,
+    whose region is grown by ``grow`` px. All ones without part labels."""
+    if parts is None:
+        return np.ones(shape, np.float32)
+    lower = (parts >= 0) & ~np.isin(parts, np.asarray(upper_ids, dtype=parts.dtype))
+    if grow > 0 and lower.any():
+        kernel = np.ones((2 * grow + 1, 2 * grow + 1), np.uint8)
+        lower = cv2.dilate(lower.astype(np.uint8), kernel) > 0
+    return (~lower).astype(np.float32)
+
+
+def subject_box(alpha: np.ndarray | None, weight: np.ndarray, margin: int
+                ) -> tuple[int, int, int, int] | None:
+    """(x0, y0, w, h) around the weighted foreground (alpha > 0 and weight > 0) plus
+    ``margin``, clipped to the image; None when there is no such pixel (or no alpha)."""
+    if alpha is None:
+        return None
+    ys, xs = np.nonzero((alpha > 0) & (weight > 0))
+    if ys.size == 0:
+        return None
+    h, w = weight.shape
+    x0, y0 = max(int(xs.min()) - margin, 0), max(int(ys.min()) - margin, 0)
+    x1, y1 = min(int(xs.max()) + margin + 1, w), min(int(ys.max()) + margin + 1, h)
+    return x0, y0, x1 - x0, y1 - y0
+
+
+def _scaled(view: View, size: tuple[int, int]
+            ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, Camera]:
+    """rgb, alpha, parts and camera at ``size`` (w, h)."""
+    w, h = size
+    if (w, h) == (view.camera.width, view.camera.height):
+        return view.rgb, view.alpha, view.parts, view.camera
+    rgb = cv2.resize(view.rgb, (w, h), interpolation=cv2.INTER_AREA)
+    alpha = None if view.alpha is None else cv2.resize(view.alpha, (w, h),
+                                                       interpolation=cv2.INTER_AREA)
+    parts = None if view.parts is None else cv2.resize(
+        view.parts, (w, h), interpolation=cv2.INTER_NEAREST)
+    return rgb, alpha, parts, view.camera.resized(w, h)
+
+
+def prepare_view(view: View, config: DataConfig, device: torch.device | str) -> TrainView:
+    """Scale, composite, weight and (optionally) crop one dataset view."""
+    size = training_size(view.camera.width, view.camera.height, config)
+    rgb, alpha, parts, camera = _scaled(view, size)
+    target = composite(rgb, alpha, config.background)            # [H, W, 3]
+    weight = loss_weights(parts, view.upper_body_ids, target.shape[:2])  # [H, W]
+    box = subject_box(alpha, weight, config.crop_margin) if config.crop_to_subject else None
+    if box is not None:
+        x0, y0, w, h = box
+        camera = camera.cropped(x0, y0, w, h)
+        target, weight = target[y0:y0 + h, x0:x0 + w], weight[y0:y0 + h, x0:x0 + w]
+    return TrainView(key=view.key, camera=camera,
+                     target=torch.from_numpy(np.ascontiguousarray(target)).to(device),
+                     weight=torch.from_numpy(np.ascontiguousarray(weight)).to(device),
+                     weight_sum=float(weight.sum()), crop=box)
+
+
+class TrainingViews:
+    """The views of a split, decoded and prepared on first use; the last ``cache_views``
+    prepared ones are kept (LRU)."""
+
+    def __init__(self, dataset: Dataset, config: DataConfig,
+                 device: torch.device | str = "cpu") -> None:
+        self.dataset, self.config, self.device = dataset, config, torch.device(device)
+        self.keys = dataset.views(config.split)
+        if not self.keys:
+            raise ValueError(f"split {config.split!r} of {dataset.root} has no views")
+        self._cache: OrderedDict[ViewKey, TrainView] = OrderedDict()
+        self.hits = self.misses = 0
+
+    def __len__(self) -> int:
+        return len(self.keys)
+
+    def get(self, index: int) -> TrainView:
+        key = self.keys[index]
+        hit = self._cache.get(key)
+        if hit is not None:
+            self._cache.move_to_end(key)
+            self.hits += 1
+            return hit
+        self.misses += 1
+        view = prepare_view(self.dataset.view(*key), self.config, self.device)
+        self._cache[key] = view
+        while len(self._cache) > self.config.cache_views:
+            self._cache.popitem(last=False)
+        return view
+
+
+# -- per-frame parameters -----------------------------------------------------------------
+
+
+@dataclass
+class FusionModels:
+    """What fusion needs: the SMPL-X model (full hand poses: ``hand_pca=None``; float64 for
+    accuracy), the MANO models per side and, for a FLAME shape, FLAME and its SMPL-X vertex
+    correspondence."""
+
+    smplx: SMPLXModel
+    mano: dict[str, MANOModel]
+    flame: FLAMEModel | None = None
+    correspondence: np.ndarray | None = None
+
+
+def split_tracker_keys(params: Mapping[str, np.ndarray]
+                       ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray],
+                                  dict[str, dict[str, np.ndarray]]]:
+    """(SMPL-X keys, FLAME keys without ``flame_``, {side: MANO keys without
+    ``mano_<side>_``}); other keys are dropped."""
+    body = {k: v for k, v in params.items() if k in SMPLX_KEYS}
+    flame = {k[len("flame_"):]: v for k, v in params.items() if k.startswith("flame_")}
+    hands = {s: {k[len(f"mano_{s}_"):]: v for k, v in params.items()
+                 if k.startswith(f"mano_{s}_")} for s in ("left", "right")}
+    return body, flame, hands
+
+
+# FLAME keys fusion uses; static/dynamic offsets (VHAP) have no SMPL-X counterpart here.
+_FLAME_FUSED = ("shape", "expr", "rotation", "neck_pose", "jaw_pose", "eyes_pose",
+                "translation")
+
+
+def per_frame(params: Mapping[str, np.ndarray], num_frames: int) -> dict[str, np.ndarray]:
+    """Every array [T, ...]: shared ones (betas [B], offsets [V, 3]) repeated per frame."""
+    frames = [frame_slice(params, f) for f in range(num_frames)]
+    return {k: np.stack([np.asarray(fr[k]) for fr in frames]) for k in params}
+
+
+def sequence_params(params: Mapping[str, np.ndarray], num_frames: int, *,
+                    fusion: FusionModels | None = None) -> dict[str, np.ndarray]:
+    """float64 SMPL-X arrays [T, ...] of one sequence, fused with its FLAME/MANO keys when
+    ``fusion`` is given and they exist; other keys are dropped."""
+    body, flame, hands = split_tracker_keys(per_frame(params, num_frames))
+    flame = {k: v for k, v in flame.items() if k in _FLAME_FUSED}
+    if fusion is not None and (flame or any(hands.values())):
+        if "shape" in flame and fusion.flame is None:
+            log.warning("fusion: no FLAME model given, the FLAME shape is ignored")
+            flame.pop("shape")
+        with torch.no_grad():
+            fused = fuse(body, fusion.smplx, flame=flame or None, flame_model=fusion.flame,
+                         correspondence=fusion.correspondence,
+                         left_hand=hands["left"] or None, right_hand=hands["right"] or None,
+                         mano_models=fusion.mano)
+        body = {k: v.detach().cpu().numpy() if isinstance(v, Tensor) else np.asarray(v)
+                for k, v in fused.to_dict().items()}
+    return {k: np.array(np.broadcast_to(np.asarray(v, dtype=np.float64),
+                                        (num_frames, *np.shape(v)[1:])))
+            for k, v in body.items()}

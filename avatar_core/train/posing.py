@@ -1,0 +1,224 @@
+"""The body the avatar is trained on: model files, per-frame parameters on the device,
+fine-tuned deltas, posing, and the initial colour of each triangle.
+
+The model files are resolved from the dataset's ``body_model.source``: ``synthetic-seedN``
+uses the synthetic family of that seed (generated into the cache if missing, or read from
+``body_model_dir``); any other source needs ``body_model_dir`` with the official file names
+(``SMPLX_NEUTRAL.npz``, ``smplx_vert_segmentation.json``, optionally ``MANO_{LEFT,RIGHT}.pkl``
+for hand fusion and ``FLAME_NEUTRAL.pkl`` + ``SMPL-X__FLAME_vertex_ids.npy`` for a FLAME shape).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..body.model_data import ModelData, load_flame, load_mano, load_smplx
+from ..body.models import FLAMEModel, MANOModel
+from ..body.upper_body import UpperBodyModel, load_segmentation
+from ..dataset.loader import View
+from ..gaussians.frames import triangle_frames
+from ..render.types import GaussianSet
+from ..rotations import matrix_to_quaternion, quaternion_multiply
+from ..synth.model_files import SyntheticModelFiles
+from .data import FusionModels
+
+__all__ = ["BodySetup", "FaceFrames", "face_part_ids", "face_quaternions", "fine_tune_deltas",
+           "frame_inputs", "fusion_models", "project_face_colors", "resolve_body",
+           "world_gaussians"]
+
+log = logging.getLogger(__name__)
+
+SYNTHETIC_PREFIX = "synthetic-seed"
+FINE_TUNED = ("transl", "expression", "body_pose")
+
+
+@dataclass
+class BodySetup:
+    files: SyntheticModelFiles          # official file names, whichever family
+    reference: str                      # BodyReference.model: "synthetic:seed0" or a file name
+    data: ModelData                     # the full SMPL-X model data
+    segmentation: dict[str, np.ndarray]  # part name -> SMPL-X vertex ids
+    model: UpperBodyModel               # on the training device, float32
+    hand_pca: int | None
+    flat_hand_mean: bool
+
+
+def resolve_body(meta_body: Mapping[str, Any], body_model_dir: str | Path | None,
+                 device: torch.device) -> BodySetup:
+    """The upper-body model a dataset's parameters drive (see the module docstring)."""
+    from ..synth.body_demo import ensure_models
+
+    if meta_body.get("type", "smplx") != "smplx":
+        raise ValueError(f"training needs SMPL-X parameters, the dataset has "
+                         f"{meta_body.get('type')!r}")
+    if meta_body.get("root", "smplx") != "smplx":
+        raise ValueError(f"body_model.root {meta_body.get('root')!r}: training supports "
+                         "'smplx' (rotation about the pelvis) only; re-import with the model")
+    source = str(meta_body.get("source", ""))
+    if source.startswith(SYNTHETIC_PREFIX):
+        seed = int(source.removeprefix(SYNTHETIC_PREFIX))
+        files = (SyntheticModelFiles(Path(body_model_dir)) if body_model_dir is not None
+                 else ensure_models(seed=seed))
+        reference = f"synthetic:seed{seed}"
+    elif body_model_dir is None:
+        raise ValueError(f"the dataset's parameters come from {source!r}: give the SMPL-X "
+                         "model folder (--body-model DIR)")
+    else:
+        files = SyntheticModelFiles(Path(body_model_dir))
+        reference = files.smplx_npz.name
+    for path in (files.smplx_npz, files.segmentation):
+        if not path.is_file():
+            raise ValueError(f"body model folder {files.root} lacks {path.name}")
+    data = load_smplx(files.smplx_npz)
+    seg = load_segmentation(files.segmentation, data.num_vertices)
+    hand_pca = meta_body.get("hand_pca")
+    flat = bool(meta_body.get("flat_hand_mean", False))
+    model = UpperBodyModel(data, seg, hand_pca=hand_pca, flat_hand_mean=flat, device=device)
+    return BodySetup(files, reference, data, seg, model, hand_pca, flat)
+
+
+def fusion_models(body: BodySetup, *, flame_shape: bool = False) -> FusionModels:
+    """float64 CPU models for fusing FLAME/MANO keys into SMPL-X (hands only with full
+    hand poses, ``hand_pca`` null, and the MANO files present; FLAME itself only when a
+    ``flame_shape`` is to be carried over)."""
+    smplx = UpperBodyModel(body.data, body.segmentation, flat_hand_mean=body.flat_hand_mean,
+                           dtype=torch.float64)
+    mano: dict[str, MANOModel] = {}
+    if body.hand_pca is not None:
+        log.warning("fusion: PCA hand poses (hand_pca=%s) are kept; MANO keys are not fused",
+                    body.hand_pca)
+    else:
+        for side in ("left", "right"):
+            path = body.files.mano_pkl(side)
+            if path.is_file():
+                mano[side] = MANOModel(load_mano(path), dtype=torch.float64)
+    flame = corr = None
+    if flame_shape and body.files.flame_pkl.is_file() \
+            and body.files.flame_correspondence.is_file():
+        flame = FLAMEModel(load_flame(body.files.flame_pkl), dtype=torch.float64)
+        corr = np.load(body.files.flame_correspondence)
+    return FusionModels(smplx=smplx, mano=mano, flame=flame, correspondence=corr)
+
+
+def fine_tune_deltas(num_frames: int, model: UpperBodyModel, device: torch.device
+                     ) -> dict[str, Tensor]:
+    """Zero per-frame deltas: transl [T, 3], expression [T, E], body_pose [T, 21, 3]."""
+    shapes = {"transl": (3,), "expression": (model.num_expression,), "body_pose": (21, 3)}
+    return {k: torch.zeros(num_frames, *shapes[k], device=device) for k in FINE_TUNED}
+
+
+def frame_inputs(base: Mapping[str, Tensor], deltas: Mapping[str, Tensor] | None,
+                 frame: int) -> dict[str, Tensor]:
+    """Batch-1 parameters of one frame: the sequence's [T, ...] tensors at ``frame``, plus
+    the fine-tuned deltas (differentiable) where given."""
+    p = {k: v[frame:frame + 1] for k, v in base.items()}
+    for k, d in (deltas or {}).items():
+        p[k] = d[frame:frame + 1] if k not in p else p[k] + d[frame:frame + 1]
+    return p
+
+
+def face_part_ids(model: UpperBodyModel, segmentation: Mapping[str, np.ndarray],
+                  part_names: Sequence[str]) -> np.ndarray:
+    """[F] index into ``part_names`` of each triangle's part (its corners' majority; the
+    first corner's on a three-way tie), -1 where the part is not among the names."""
+    vertex_part = np.full(int(model.vertex_ids.max()) + 1, -1, np.int64)
+    index = {n: i for i, n in enumerate(part_names)}
+    for name, ids in segmentation.items():
+        ids = ids[ids < len(vertex_part)]
+        vertex_part[ids] = index.get(name, -1)
+    corners = vertex_part[model.vertex_ids][model.faces.cpu().numpy()]  # [F, 3]
+    a, b, c = corners.T
+    return np.where((b == c) & (a != b), b, a)
+
+
+def project_face_colors(vertices: np.ndarray, faces: np.ndarray, face_parts: np.ndarray,
+                        views: Sequence[View], min_alpha: float = 0.9) -> np.ndarray:
+    """[F, 3] colour of each triangle sampled at its projected centroid, averaged over the
+    views where the triangle faces the camera, the pixel is solid foreground and (with part
+    labels) shows the triangle's part, a cheap stand-in for a depth test; NaN where no view
+    passes. ``vertices`` [V, 3] posed at the views' frame."""
+    tri = vertices[faces]  # [F, 3, 3]
+    centroid = tri.mean(1)
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # outward (CCW)
+    total = np.zeros((len(faces), 3))
+    count = np.zeros(len(faces))
+    for view in views:
+        cam = view.camera
+        uv, z = cam.project(centroid)
+        facing = np.einsum("fi,fi->f", normal, cam.center - centroid) > 0
+        px = np.floor(uv).astype(np.int64)
+        inside = facing & (z > 0) & (px[:, 0] >= 0) & (px[:, 0] < cam.width) \
+            & (px[:, 1] >= 0) & (px[:, 1] < cam.height)
+        f = np.flatnonzero(inside)
+        x, y = px[f, 0], px[f, 1]
+        ok = np.ones(len(f), bool)
+        if view.alpha is not None:
+            ok &= view.alpha[y, x] >= min_alpha
+        if view.parts is not None:
+            ok &= view.parts[y, x] == face_parts[f]
+        f, x, y = f[ok], x[ok], y[ok]
+        total[f] += view.rgb[y, x]
+        count[f] += 1
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return total / count[:, None]
+
+
+# -- world Gaussians ----------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class FaceFrames:
+    """Per-triangle frames of a posed mesh (``triangle_frames``) and their quaternions."""
+
+    rot: Tensor    # [F, 3, 3]
+    quat: Tensor   # [F, 4] (w, x, y, z), w >= 0
+    trans: Tensor  # [F, 3]
+    scale: Tensor  # [F]
+
+    @classmethod
+    def of_mesh(cls, vertices: Tensor, faces: Tensor) -> FaceFrames:
+        rot, trans, scale = triangle_frames(vertices, faces)
+        return cls(rot, face_quaternions(rot), trans, scale)
+
+
+def face_quaternions(rot: Tensor) -> Tensor:
+    """[..., 4] quaternions of rotations [..., 3, 3]: the value of ``matrix_to_quaternion``,
+    with the gradient taken on the rotation manifold: for R = R0 exp([w]x), dq = q0 (0, w/2),
+    w = vee of the skew part of R0^T R. (``matrix_to_quaternion``'s own backward is NaN
+    wherever one of Shepperd's four candidates is exactly 0, e.g. at the identity, which
+    the fine-tuned pose reaches through axis-aligned triangle frames.)"""
+    q0 = matrix_to_quaternion(rot.detach())
+    if not rot.requires_grad:
+        return q0
+    a = rot.detach().transpose(-1, -2) @ rot  # [..., 3, 3], identity in value
+    half_w = 0.25 * torch.stack([a[..., 2, 1] - a[..., 1, 2], a[..., 0, 2] - a[..., 2, 0],
+                                 a[..., 1, 0] - a[..., 0, 1]], -1)  # w / 2
+    dq = quaternion_multiply(q0, torch.cat([torch.zeros_like(half_w[..., :1]), half_w], -1))
+    return q0 + (dq - dq.detach())  # exactly q0 in value
+
+
+def world_gaussians(state: Mapping[str, Tensor], frames: FaceFrames,
+                    sh_degree: int | None = None) -> GaussianSet:
+    """World-space Gaussians of a training state (``avatar_state``'s leaves): the maths of
+    :func:`avatar_core.gaussians.avatar.to_world`, with the face quaternions computed once
+    per triangle (not per Gaussian, and with a finite gradient), and only the SH bands up
+    to ``sh_degree`` (None: all) so the unused ones cost nothing."""
+    p = state["parents"]
+    r, t, k = frames.rot[p], frames.trans[p], frames.scale[p]  # [N, 3, 3], [N, 3], [N]
+    local = (r * state["local_means"][:, None, :]).sum(-1)  # [N, 3] = R mean
+    rest = state["sh_rest"]
+    if sh_degree is not None:
+        rest = rest[:, :(sh_degree + 1) ** 2 - 1]
+    sh = torch.cat([state["sh0"], rest], 1) if rest.shape[1] else state["sh0"]
+    return GaussianSet(means=k[:, None] * local + t,
+                       quats=quaternion_multiply(frames.quat[p], state["quats"]),
+                       scales=k[:, None] * torch.exp(state["log_scales"]),
+                       opacities=torch.sigmoid(state["opacity_logits"]), sh=sh)
