@@ -116,8 +116,13 @@ def _terms(blurred: Tensor) -> tuple[Tensor, ...]:
     return mx, my, a1, a2, b1, b2, inv, a1 * a2 * inv
 
 
+def _on_cpu(t: Tensor) -> bool:
+    """Whether the numba formulas apply (CPU tensors); the torch ones run elsewhere."""
+    return t.device.type == "cpu"
+
+
 def _ssim_sum(blurred: Tensor, weight: Tensor) -> Tensor:
-    if blurred.device.type == "cpu":
+    if _on_cpu(blurred):
         return torch.tensor(_ssim_sum_np(_np(blurred), _np(weight), _C1, _C2),
                             dtype=blurred.dtype)
     return (_terms(blurred)[-1] * weight[..., None]).sum()
@@ -125,7 +130,7 @@ def _ssim_sum(blurred: Tensor, weight: Tensor) -> Tensor:
 
 def _ssim_grad_maps(blurred: Tensor, u: Tensor) -> Tensor:
     """[H, W, 3C] upstream-weighted dS/d(mx, mxx, mxy); u [H, W]."""
-    if blurred.device.type == "cpu":
+    if _on_cpu(blurred):
         out = np.empty((*blurred.shape[:2], 3 * (blurred.shape[-1] // 5)),
                        dtype=_np(blurred).dtype)
         _ssim_grad_maps_np(_np(blurred), _np(u), _C1, _C2, out)

@@ -185,7 +185,13 @@ class FaceFrames:
 
     @classmethod
     def of_mesh(cls, vertices: Tensor, faces: Tensor) -> FaceFrames:
-        rot, trans, scale = triangle_frames(vertices, faces)
+        """Frames of ``vertices`` [V, 3] on ``faces`` [F, 3]. The corners are gathered with
+        ``index_select`` into a triangle soup first: the backward of ``vertices[idx]`` with
+        repeated indices (inside ``triangle_frames``) accumulates in a thread-dependent
+        order on the CPU, index_select's does not, so fine-tuning stays bit-reproducible."""
+        soup = torch.index_select(vertices, 0, faces.reshape(-1))  # [3F, 3]
+        corners = torch.arange(soup.shape[0], device=faces.device).view(-1, 3)
+        rot, trans, scale = triangle_frames(soup, corners)
         return cls(rot, face_quaternions(rot), trans, scale)
 
 
@@ -212,13 +218,17 @@ def world_gaussians(state: Mapping[str, Tensor], frames: FaceFrames,
     per triangle (not per Gaussian, and with a finite gradient), and only the SH bands up
     to ``sh_degree`` (None: all) so the unused ones cost nothing."""
     p = state["parents"]
-    r, t, k = frames.rot[p], frames.trans[p], frames.scale[p]  # [N, 3, 3], [N, 3], [N]
+
+    def take(x: Tensor) -> Tensor:  # x[p], with a reproducible backward (see of_mesh)
+        return torch.index_select(x, 0, p)
+
+    r, t, k = take(frames.rot), take(frames.trans), take(frames.scale)  # [N, 3, 3], [N, 3], [N]
     local = (r * state["local_means"][:, None, :]).sum(-1)  # [N, 3] = R mean
     rest = state["sh_rest"]
     if sh_degree is not None:
         rest = rest[:, :(sh_degree + 1) ** 2 - 1]
     sh = torch.cat([state["sh0"], rest], 1) if rest.shape[1] else state["sh0"]
     return GaussianSet(means=k[:, None] * local + t,
-                       quats=quaternion_multiply(frames.quat[p], state["quats"]),
+                       quats=quaternion_multiply(take(frames.quat), state["quats"]),
                        scales=k[:, None] * torch.exp(state["log_scales"]),
                        opacities=torch.sigmoid(state["opacity_logits"]), sh=sh)
