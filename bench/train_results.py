@@ -1,0 +1,128 @@
+"""The synthetic benchmark: the full model against its ablations, and what accuracy costs in time.
+
+For each model (full; no FLAME/MANO fusion; no parameter fine-tuning) it trains on the
+dataset's `train` split, and at evenly spaced points of training exports the avatar and scores
+it on a subset of the held-out `novel_view` views (PSNR / SSIM against training wall-clock,
+against the Gaussian count, next to the render time). At the end every model is evaluated on
+`novel_view` and `self_reenactment`, and the ablation table, the curves (PNG) and the raw
+numbers (JSON) are written to --out. LPIPS is off here (no backbone weights can be fetched),
+so there is no "without LPIPS" ablation.
+
+    telesplat synth capture --out DATA --max-frames 60 --resolution 512 --motions \
+        "smile+grin+mouth_open+thumbs_up,peace+talk_calm+heart,sad+angry+clapping"
+    .venv/bin/python bench/train_results.py DATA --out docs/results --preset quick \\
+        [--iterations N] [--points 5] [--models full,no_fusion,no_finetune]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from avatar_core.dataset.loader import load_dataset  # noqa: E402
+from avatar_core.metrics.evaluate import evaluate  # noqa: E402
+from avatar_core.metrics.report import ablation_json, ablation_table  # noqa: E402
+from avatar_core.train.config import TrainConfig, preset  # noqa: E402
+from avatar_core.train.trainer import Trainer  # noqa: E402
+
+
+def variants(base: TrainConfig) -> dict[str, tuple[TrainConfig, bool]]:
+    """name -> (config, fusion at evaluation)."""
+    return {
+        "full": (base, True),
+        "no_fusion": (replace(base, data=replace(base.data, fusion=False)), False),
+        "no_finetune": (replace(base, finetune=replace(base.finetune, enabled=False)), True),
+    }
+
+
+def train_with_curve(name: str, config: TrainConfig, fusion: bool, data, out: Path,
+                     points: int, curve_views: int) -> tuple[Path, list[dict]]:
+    trainer = Trainer(data, config, out / name)
+    curve = []
+    stops = [round(config.iterations * (i + 1) / points) for i in range(points)]
+    for stop in stops:
+        t0 = time.perf_counter()
+        trainer.train(stop_at=stop)
+        print(f"[{name}] {stop} its, {time.perf_counter() - t0:.0f} s", flush=True)
+        snap = trainer.export(out / name / f"snapshot_{stop:06d}")
+        res = evaluate(snap, data, "novel-view", fusion=fusion, max_views=curve_views,
+                       frame_stride=10)
+        curve.append({"iteration": stop, "train_s": round(trainer.train_time_s, 1),
+                      "num_gaussians": trainer.num_gaussians,
+                      "psnr": res.metrics["psnr"], "ssim": res.metrics["ssim"],
+                      "render_ms": res.timing.get("render_ms_median")})
+        print(f"[{name}] {curve[-1]}", flush=True)
+    final = trainer.export(out / name / "avatar_final")
+    return final, curve
+
+
+def plot(curves: dict[str, list[dict]], out: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4))
+    for name, rows in curves.items():
+        axes[0].plot([r["train_s"] / 60 for r in rows], [r["psnr"] for r in rows], "o-",
+                     label=name)
+        axes[1].plot([r["num_gaussians"] for r in rows], [r["psnr"] for r in rows], "o-",
+                     label=name)
+        axes[2].plot([r["num_gaussians"] for r in rows], [r["render_ms"] for r in rows], "o-",
+                     label=name)
+    axes[0].set(xlabel="training wall-clock (min, 2 CPU cores)", ylabel="novel-view PSNR (dB)")
+    axes[1].set(xlabel="Gaussians after training", ylabel="novel-view PSNR (dB)")
+    axes[2].set(xlabel="Gaussians", ylabel="render ms / view (512x512, cpu)")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+        ax.legend()
+    fig.tight_layout()
+    fig.savefig(out / "accuracy_vs_time.png", dpi=110)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("dataset", type=Path)
+    ap.add_argument("--out", type=Path, default=Path("docs/results"))
+    ap.add_argument("--work", type=Path, default=Path("out/results_work"))
+    ap.add_argument("--preset", default="quick")
+    ap.add_argument("--iterations", type=int, default=None)
+    ap.add_argument("--points", type=int, default=5)
+    ap.add_argument("--curve-views", type=int, default=8)
+    ap.add_argument("--eval-stride", type=int, default=5)
+    ap.add_argument("--models", default="full,no_fusion,no_finetune")
+    args = ap.parse_args()
+    data = load_dataset(args.dataset)
+    base = preset(args.preset)
+    if args.iterations:
+        base = replace(base, iterations=args.iterations,
+                       lr=replace(base.lr, position_max_steps=args.iterations))
+    args.out.mkdir(parents=True, exist_ok=True)
+    curves, results = {}, {}
+    for name, (config, fusion) in variants(base).items():
+        if name not in args.models.split(","):
+            continue
+        final, curves[name] = train_with_curve(name, config, fusion, data, args.work,
+                                               args.points, args.curve_views)
+        results[name] = {}
+        for protocol in ("novel-view", "self-reenactment"):
+            results[name][protocol] = evaluate(
+                final, data, protocol, fusion=fusion, frame_stride=args.eval_stride,
+                out_dir=args.out / name / protocol, max_images=4)
+    (args.out / "ablation.md").write_text(ablation_table(results) + "\n")
+    (args.out / "results.json").write_text(json.dumps(
+        {"ablation": ablation_json(results), "curves": curves, "preset": args.preset,
+         "iterations": base.iterations}, indent=2))
+    plot(curves, args.out)
+    print(ablation_table(results))
+
+
+if __name__ == "__main__":
+    main()
