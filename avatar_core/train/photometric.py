@@ -51,33 +51,53 @@ def _blur(x: Tensor, kernel: Tensor) -> Tensor:
 # -- per-pixel formulas: numba (CPU) ------------------------------------------------------
 
 
-@njit(parallel=True, cache=True, fastmath=False)
-def _ssim_sum_np(blurred, weight, c1, c2):  # pragma: no cover - numba
-    """sum over pixels and channels of weight * S. blurred [H, W, 5C], weight [H, W]."""
-    h, w, m = blurred.shape
-    c = m // 5
-    rows = np.zeros(h)
+@njit(parallel=True, cache=True)
+def _moments_np(p, g, out):  # pragma: no cover - numba
+    """out [H, W, 5C] = (p, g, p^2, g^2, p g) per channel, in one pass."""
+    h, w, c = p.shape
     for i in prange(h):
-        acc = 0.0
+        for j in range(w):
+            for k in range(c):
+                a, b = p[i, j, k], g[i, j, k]
+                out[i, j, k] = a
+                out[i, j, c + k] = b
+                out[i, j, 2 * c + k] = a * a
+                out[i, j, 3 * c + k] = b * b
+                out[i, j, 4 * c + k] = a * b
+
+
+@njit(inline="always")
+def _ssim_terms(blurred, i, j, k, c, c1, c2):  # pragma: no cover - numba
+    mx, my = blurred[i, j, k], blurred[i, j, c + k]
+    mxx, myy, mxy = blurred[i, j, 2 * c + k], blurred[i, j, 3 * c + k], blurred[i, j, 4 * c + k]
+    a1 = 2 * mx * my + c1
+    a2 = 2 * (mxy - mx * my) + c2
+    b1 = mx * mx + my * my + c1
+    b2 = (mxx - mx * mx) + (myy - my * my) + c2
+    return mx, my, a1, a2, b1, b2
+
+
+@njit(parallel=True, cache=True)
+def _sums_np(p, g, blurred, weight, c1, c2):  # pragma: no cover - numba
+    """(sum of weight |p - g|, sum of weight S) over pixels and channels."""
+    h, w, c = p.shape
+    l1_rows, ssim_rows = np.zeros(h), np.zeros(h)
+    for i in prange(h):
+        l1, ssim = 0.0, 0.0
         for j in range(w):
             wt = weight[i, j]
             if wt == 0.0:
                 continue
             for k in range(c):
-                mx, my = blurred[i, j, k], blurred[i, j, c + k]
-                mxx, myy, mxy = blurred[i, j, 2 * c + k], blurred[i, j, 3 * c + k], \
-                    blurred[i, j, 4 * c + k]
-                a1 = 2 * mx * my + c1
-                a2 = 2 * (mxy - mx * my) + c2
-                b1 = mx * mx + my * my + c1
-                b2 = (mxx - mx * mx) + (myy - my * my) + c2
-                acc += wt * (a1 * a2 / (b1 * b2))
-        rows[i] = acc
-    return rows.sum()
+                l1 += wt * abs(p[i, j, k] - g[i, j, k])
+                _, _, a1, a2, b1, b2 = _ssim_terms(blurred, i, j, k, c, c1, c2)
+                ssim += wt * (a1 * a2 / (b1 * b2))
+        l1_rows[i], ssim_rows[i] = l1, ssim
+    return l1_rows.sum(), ssim_rows.sum()
 
 
-@njit(parallel=True, cache=True, fastmath=False)
-def _ssim_grad_maps_np(blurred, u, c1, c2, out):  # pragma: no cover - numba
+@njit(parallel=True, cache=True)
+def _grad_maps_np(blurred, u, c1, c2, out):  # pragma: no cover - numba
     """out [H, W, 3C] = u * (dS/dmx, dS/dmxx, dS/dmxy); u [H, W] upstream per pixel."""
     h, w, m = blurred.shape
     c = m // 5
@@ -86,17 +106,9 @@ def _ssim_grad_maps_np(blurred, u, c1, c2, out):  # pragma: no cover - numba
             uu = u[i, j]
             for k in range(c):
                 if uu == 0.0:
-                    out[i, j, k] = 0.0
-                    out[i, j, c + k] = 0.0
-                    out[i, j, 2 * c + k] = 0.0
+                    out[i, j, k] = out[i, j, c + k] = out[i, j, 2 * c + k] = 0.0
                     continue
-                mx, my = blurred[i, j, k], blurred[i, j, c + k]
-                mxx, myy, mxy = blurred[i, j, 2 * c + k], blurred[i, j, 3 * c + k], \
-                    blurred[i, j, 4 * c + k]
-                a1 = 2 * mx * my + c1
-                a2 = 2 * (mxy - mx * my) + c2
-                b1 = mx * mx + my * my + c1
-                b2 = (mxx - mx * mx) + (myy - my * my) + c2
+                mx, my, a1, a2, b1, b2 = _ssim_terms(blurred, i, j, k, c, c1, c2)
                 inv = 1.0 / (b1 * b2)
                 s = a1 * a2 * inv
                 out[i, j, k] = uu * (2 * my * (a2 - a1) * inv + 2 * mx * s * (1 / b2 - 1 / b1))
@@ -104,7 +116,22 @@ def _ssim_grad_maps_np(blurred, u, c1, c2, out):  # pragma: no cover - numba
                 out[i, j, 2 * c + k] = uu * (2 * a1 * inv)
 
 
-# -- per-pixel formulas: torch (any device) -----------------------------------------------
+@njit(parallel=True, cache=True)
+def _combine_np(p, g, weight, blurred_maps, l1_scale, out):  # pragma: no cover - numba
+    """out = G(mx map) + 2 p G(mxx map) + g G(mxy map) + l1_scale sign(p - g) weight."""
+    h, w, c = p.shape
+    for i in prange(h):
+        for j in range(w):
+            wl = l1_scale * weight[i, j]
+            for k in range(c):
+                a, b = p[i, j, k], g[i, j, k]
+                d = a - b
+                sign = 1.0 if d > 0 else (-1.0 if d < 0 else 0.0)
+                out[i, j, k] = (blurred_maps[i, j, k] + 2 * a * blurred_maps[i, j, c + k]
+                                + b * blurred_maps[i, j, 2 * c + k] + wl * sign)
+
+
+# -- the same formulas in torch (any device) ----------------------------------------------
 
 
 def _terms(blurred: Tensor) -> tuple[Tensor, ...]:
@@ -121,56 +148,70 @@ def _on_cpu(t: Tensor) -> bool:
     return t.device.type == "cpu"
 
 
-def _ssim_sum(blurred: Tensor, weight: Tensor) -> Tensor:
-    if _on_cpu(blurred):
-        return torch.tensor(_ssim_sum_np(_np(blurred), _np(weight), _C1, _C2),
-                            dtype=blurred.dtype)
-    return (_terms(blurred)[-1] * weight[..., None]).sum()
+def _np(t: Tensor) -> np.ndarray:
+    return t.detach().numpy()  # a view (CPU tensors only); numba reads the strides
 
 
-def _ssim_grad_maps(blurred: Tensor, u: Tensor) -> Tensor:
+def _moments(p: Tensor, g: Tensor) -> Tensor:
+    if _on_cpu(p):
+        out = torch.empty(*p.shape[:2], 5 * p.shape[-1], dtype=p.dtype)
+        _moments_np(_np(p), _np(g), _np(out))
+        return out
+    return torch.cat([p, g, p * p, g * g, p * g], -1)
+
+
+def _sums(p: Tensor, g: Tensor, blurred: Tensor, weight: Tensor) -> tuple[Tensor, Tensor]:
+    if _on_cpu(p):
+        l1, ssim = _sums_np(_np(p), _np(g), _np(blurred), _np(weight), _C1, _C2)
+        return torch.tensor(l1, dtype=p.dtype), torch.tensor(ssim, dtype=p.dtype)
+    w = weight[..., None]
+    return ((p - g).abs() * w).sum(), (_terms(blurred)[-1] * w).sum()
+
+
+def _grad_maps(blurred: Tensor, u: Tensor) -> Tensor:
     """[H, W, 3C] upstream-weighted dS/d(mx, mxx, mxy); u [H, W]."""
     if _on_cpu(blurred):
-        out = np.empty((*blurred.shape[:2], 3 * (blurred.shape[-1] // 5)),
-                       dtype=_np(blurred).dtype)
-        _ssim_grad_maps_np(_np(blurred), _np(u), _C1, _C2, out)
-        return torch.from_numpy(out)
+        out = torch.empty(*blurred.shape[:2], 3 * (blurred.shape[-1] // 5),
+                          dtype=blurred.dtype)
+        _grad_maps_np(_np(blurred), _np(u), _C1, _C2, _np(out))
+        return out
     mx, my, a1, a2, b1, b2, inv, s = _terms(blurred)
     maps = [2 * my * (a2 - a1) * inv + 2 * mx * s * (1 / b2 - 1 / b1), -s / b2, 2 * a1 * inv]
     return torch.cat(maps, -1) * u[..., None]
 
 
-def _np(t: Tensor) -> np.ndarray:
-    return t.detach().numpy()  # a view (CPU tensors only); numba reads the strides
+def _combine(p: Tensor, g: Tensor, weight: Tensor, blurred_maps: Tensor,
+             l1_scale: Tensor) -> Tensor:
+    if _on_cpu(p):
+        out = torch.empty_like(p)
+        _combine_np(_np(p), _np(g), _np(weight), _np(blurred_maps), float(l1_scale), _np(out))
+        return out
+    g_mx, g_mxx, g_mxy = blurred_maps.split(p.shape[-1], -1)
+    return g_mx + 2 * p * g_mxx + g * g_mxy + l1_scale * torch.sign(p - g) * weight[..., None]
 
 
 class _Photometric(torch.autograd.Function):
     @staticmethod
     def forward(ctx, pred: Tensor, target: Tensor, weight: Tensor, lam: float) -> Tensor:
-        p, g = pred, target  # [H, W, C]
-        c = p.shape[-1]
-        kernel = gaussian_kernel(dtype=p.dtype, device=p.device)
-        blurred = _blur(torch.cat([p, g, p * p, g * g, p * g], -1), kernel)  # [H, W, 5C]
+        c = pred.shape[-1]
+        kernel = gaussian_kernel(dtype=pred.dtype, device=pred.device)
+        blurred = _blur(_moments(pred, target), kernel)  # [H, W, 5C]
         total = weight.sum()
-        diff = p - g
-        l1 = (diff.abs().sum(-1) * weight).sum() / (c * total)
-        ssim = _ssim_sum(blurred, weight).to(p.device) / (c * total)
-        ctx.save_for_backward(p, g, weight, total, diff, blurred)
+        l1, ssim = (x.to(pred.device) / (c * total) for x in _sums(pred, target, blurred,
+                                                                   weight))
+        ctx.save_for_backward(pred, target, weight, total, blurred)
         ctx.lam = lam
         return (1 - lam) * l1 + lam * (1 - ssim)
 
     @staticmethod
     def backward(ctx, grad_out: Tensor):
-        p, g, weight, total, diff, blurred = ctx.saved_tensors
+        p, g, weight, total, blurred = ctx.saved_tensors
         lam, c = ctx.lam, p.shape[-1]
         scale = grad_out / (c * total)
         u = (-lam * scale) * weight  # [H, W] dL/dS per pixel (and channel)
-        maps = _ssim_grad_maps(blurred, u)  # [H, W, 3C]
         kernel = gaussian_kernel(dtype=p.dtype, device=p.device)
-        g_mx, g_mxx, g_mxy = _blur(maps, kernel).split(c, -1)
-        grad = g_mx + 2 * p * g_mxx + g * g_mxy  # [H, W, C]
-        grad = grad + ((1 - lam) * scale) * torch.sign(diff) * weight[..., None]
-        return grad, None, None, None
+        blurred_maps = _blur(_grad_maps(blurred, u), kernel)  # [H, W, 3C]
+        return _combine(p, g, weight, blurred_maps, (1 - lam) * scale), None, None, None
 
 
 def photometric_loss_fast(pred: Tensor, target: Tensor, weight: Tensor,
