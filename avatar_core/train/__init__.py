@@ -1,4 +1,9 @@
-"""The optimisation core of the avatar trainer: learning rates and Adam groups (:mod:`optim`),
-adaptive density control with Adam-state surgery (:mod:`density`) and the local-frame
-regularisers of GaussianAvatars (:mod:`regularizers`). The training loop itself lives
-elsewhere; these are the pieces it calls."""
+"""Training an avatar on a multi-view dataset.
+
+The loop is :class:`trainer.Trainer` (``telesplat train``), configured by :mod:`config`
+(JSON/TOML). It calls: :mod:`data` (training views, weight maps, subject crops, fused
+per-frame parameters), :mod:`posing` (body model, fine-tuned deltas, world Gaussians,
+initial colours), :mod:`photometric` (the fused L1 + D-SSIM loss), :mod:`optim` (learning
+rates and Adam groups), :mod:`density` (adaptive density control with Adam-state surgery),
+:mod:`regularizers` (GaussianAvatars' local-frame hinges) and :mod:`checkpoint`.
+"""

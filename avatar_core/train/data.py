@@ -14,8 +14,9 @@ LRU cache (decoding three PNGs costs as much as a training step at 512 x 512):
 - with ``crop_to_subject``, the box of the pixels that are both foreground (alpha > 0) and
   weighted (i.e. the upper body; the masked legs are left out), plus ``crop_margin`` px,
   clipped to the image. Only this window is rendered (``Camera.cropped``) and scored, which
-  is the main lever for throughput (about half the pixels of a full-body 512 x 512 view, a
-  quarter or less of the whole image). Outside it the ground truth is background or masked
+  is the main lever for throughput (two thirds of the pixels in the 17-camera studio take,
+  where the upper body fills most of a 512 x 512 frame; less in wider shots, bench/train.py).
+  Outside it the ground truth is background or masked
   legs; the render is background too, up to Gaussians that stray out of the box, which the
   position/scaling regularisers keep within about a triangle of the surface, so the margin
   covers them. A view with no weighted foreground is used whole.

@@ -167,12 +167,12 @@ class Trainer:
     "psnr", "num_gaussians", "elapsed_s", "its_per_s", ...}``.
     """
 
-    def __init__(self, dataset: Dataset | str | Path, config: TrainConfig | None = None,
-                 out_dir: str | Path = "avatar-out", body_model: str | Path | None = None,
+    def __init__(self, dataset: Dataset | str | Path, config: TrainConfig,
+                 out_dir: str | Path, body_model: str | Path | None = None,
                  progress: Progress | None = None, *, checkpoint: dict[str, Any] | None = None,
                  profile: bool = False) -> None:
         self.dataset = dataset if isinstance(dataset, Dataset) else load_dataset(dataset)
-        self.config = config = config if config is not None else TrainConfig()
+        self.config = config
         self.out_dir = Path(out_dir)
         self.progress = progress
         self.device = resolve_device(config.device)
@@ -194,6 +194,7 @@ class Trainer:
         self._frame_cache: OrderedDict[tuple[str, int], FaceFrames] = OrderedDict()
         self._posed_k: Tensor | None = None
         self._last: tuple[Tensor, TrainView] | None = None
+        self._last_loss: float | None = None
         now = time.perf_counter()
         self._window: dict[str, Any] = {"iteration": 0, "time": now, "losses": [],
                                         "session_start": now}
@@ -499,7 +500,8 @@ class Trainer:
         its = self.iteration - window["iteration"]
         losses = window["losses"]
         event = {"type": kind, "iteration": self.iteration, "total": self.config.iterations,
-                 "loss": float(np.mean(losses)) if losses else None, "psnr": psnr_value,
+                 "loss": float(np.mean(losses)) if losses else self._last_loss,
+                 "psnr": psnr_value,
                  "num_gaussians": self.num_gaussians,
                  "elapsed_s": round(self.train_time_s + now - window["session_start"], 3),
                  "its_per_s": round(its / (now - window["time"]), 3) if its > 0 else None,
@@ -522,6 +524,7 @@ class Trainer:
             result = self.step()
             if result.loss is not None:
                 self._window["losses"].append(result.loss)
+                self._last_loss = result.loss
             it = self.iteration
             if it % cfg.progress_interval == 0 or it == end:
                 self._emit("progress")
