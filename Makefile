@@ -27,7 +27,8 @@ run: $(VENV)/.installed
 
 test: $(VENV)/.installed-dev
 	$(PY) -m ruff check .
-	$(PY) -m pytest -q -n 2
+	# Two workers on two cores: one thread each, or the torch / numba pools oversubscribe.
+	OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 NUMBA_NUM_THREADS=1 $(PY) -m pytest -q -n 2
 
 lint: $(VENV)/.installed-dev
 	$(PY) -m ruff check .
