@@ -13,20 +13,20 @@ def matrix_to_quaternion(rot: Tensor) -> Tensor:
     """
     m = rot
     m00, m11, m22 = m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]
-    q_abs = torch.sqrt(
-        torch.clamp(
-            torch.stack(
-                [
-                    1 + m00 + m11 + m22,
-                    1 + m00 - m11 - m22,
-                    1 - m00 + m11 - m22,
-                    1 - m00 - m11 + m22,
-                ],
-                -1,
-            ),
-            min=0.0,
-        )
-    )  # [..., 4] = 2 |w|, 2 |x|, 2 |y|, 2 |z|
+    cand = torch.stack(
+        [
+            1 + m00 + m11 + m22,
+            1 + m00 - m11 - m22,
+            1 - m00 + m11 - m22,
+            1 - m00 - m11 + m22,
+        ],
+        -1,
+    )
+    # sqrt with a zero (not infinite) derivative at 0: an unpicked candidate that is exactly 0
+    # (e.g. at the identity) would otherwise turn the backward into inf * 0 = NaN.
+    positive = cand > 0
+    q_abs = torch.where(positive, torch.sqrt(torch.where(positive, cand, 1.0)), 0.0)
+    # [..., 4] = 2 |w|, 2 |x|, 2 |y|, 2 |z|
     d21, d02, d10 = (
         m[..., 2, 1] - m[..., 1, 2],
         m[..., 0, 2] - m[..., 2, 0],

@@ -30,7 +30,7 @@ from ..rotations import matrix_to_quaternion, quaternion_multiply
 from ..synth.model_files import SyntheticModelFiles
 from .data import FusionModels
 
-__all__ = ["BodySetup", "FaceFrames", "face_part_ids", "face_quaternions", "fine_tune_deltas",
+__all__ = ["BodySetup", "FaceFrames", "face_part_ids", "fine_tune_deltas",
            "frame_inputs", "fusion_models", "project_face_colors", "resolve_body",
            "world_gaussians"]
 
@@ -192,30 +192,14 @@ class FaceFrames:
         soup = torch.index_select(vertices, 0, faces.reshape(-1))  # [3F, 3]
         corners = torch.arange(soup.shape[0], device=faces.device).view(-1, 3)
         rot, trans, scale = triangle_frames(soup, corners)
-        return cls(rot, face_quaternions(rot), trans, scale)
-
-
-def face_quaternions(rot: Tensor) -> Tensor:
-    """[..., 4] quaternions of rotations [..., 3, 3]: the value of ``matrix_to_quaternion``,
-    with the gradient taken on the rotation manifold: for R = R0 exp([w]x), dq = q0 (0, w/2),
-    w = vee of the skew part of R0^T R. (``matrix_to_quaternion``'s own backward is NaN
-    wherever one of Shepperd's four candidates is exactly 0, e.g. at the identity, which
-    the fine-tuned pose reaches through axis-aligned triangle frames.)"""
-    q0 = matrix_to_quaternion(rot.detach())
-    if not rot.requires_grad:
-        return q0
-    a = rot.detach().transpose(-1, -2) @ rot  # [..., 3, 3], identity in value
-    half_w = 0.25 * torch.stack([a[..., 2, 1] - a[..., 1, 2], a[..., 0, 2] - a[..., 2, 0],
-                                 a[..., 1, 0] - a[..., 0, 1]], -1)  # w / 2
-    dq = quaternion_multiply(q0, torch.cat([torch.zeros_like(half_w[..., :1]), half_w], -1))
-    return q0 + (dq - dq.detach())  # exactly q0 in value
+        return cls(rot, matrix_to_quaternion(rot), trans, scale)
 
 
 def world_gaussians(state: Mapping[str, Tensor], frames: FaceFrames,
                     sh_degree: int | None = None) -> GaussianSet:
     """World-space Gaussians of a training state (``avatar_state``'s leaves): the maths of
     :func:`avatar_core.gaussians.avatar.to_world`, with the face quaternions computed once
-    per triangle (not per Gaussian, and with a finite gradient), and only the SH bands up
+    per triangle (not per Gaussian), and only the SH bands up
     to ``sh_degree`` (None: all) so the unused ones cost nothing."""
     p = state["parents"]
 
