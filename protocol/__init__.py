@@ -1,4 +1,41 @@
 """Wire protocol shared by server and clients: message types, msgpack codec, limits.
 
-Filled in by the streaming-service issue; it may import numpy, msgpack and pydantic only.
+It imports numpy, msgpack and pydantic only. ``client/web/protocol.js`` is generated from
+these definitions by ``python -m protocol.jsgen`` and a test checks that the two agree.
 """
+
+from .arrays import pack_array, unpack_array
+from .codec import decode_client, decode_server, encode
+from .errors import ERROR_CODES, ProtocolError
+from .limits import DEFAULT_LIMITS, Limits
+from .messages import (
+    CLIENT_TYPES,
+    CODECS,
+    OUTPUTS,
+    PROTOCOL_VERSION,
+    SERVER_TYPES,
+    AvatarInfo,
+    CameraSpec,
+    Drive,
+    Error,
+    Frame,
+    Hello,
+    Image,
+    Orbit,
+    Ping,
+    Pong,
+    Request,
+    Stats,
+    Timings,
+    View,
+    Welcome,
+)
+from .params import FAMILIES
+
+__all__ = [
+    "CLIENT_TYPES", "CODECS", "DEFAULT_LIMITS", "ERROR_CODES", "FAMILIES", "OUTPUTS",
+    "PROTOCOL_VERSION", "SERVER_TYPES", "AvatarInfo", "CameraSpec", "Drive", "Error", "Frame",
+    "Hello", "Image", "Limits", "Orbit", "Ping", "Pong", "ProtocolError", "Request", "Stats",
+    "Timings", "View", "Welcome", "decode_client", "decode_server", "encode", "pack_array",
+    "unpack_array",
+]

@@ -1,0 +1,268 @@
+"""The message types, defined once: the server, the Python client and (through the generated
+JavaScript module) the browser page all use these.
+
+Every message is a msgpack map with a ``type``. Client -> server: ``hello``, ``drive``,
+``view``, ``request``, ``image``, ``ping``. Server -> client: ``welcome``, ``frame``, ``error``,
+``stats``, ``pong``. Unknown fields are errors, so a typo never passes silently.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
+
+from .errors import ProtocolError
+from .limits import DEFAULT_LIMITS, Limits
+from .params import validate_family
+
+PROTOCOL_VERSION = 1
+MAX_SEQ = 2**53 - 1  # exact in a JavaScript number
+
+OUTPUTS = ("rgb", "alpha", "depth")
+CODECS = ("jpeg", "png", "h264")
+IMAGE_FORMATS = ("jpeg", "png")
+
+Seq = Annotated[int, Field(ge=0, le=MAX_SEQ)]
+Vec3 = tuple[float, float, float]
+
+
+class _Message(BaseModel):
+    model_config = ConfigDict(extra="forbid", arbitrary_types_allowed=True,
+                              allow_inf_nan=False)
+
+
+def _limits(info: ValidationInfo) -> Limits:
+    return (info.context or {}).get("limits", DEFAULT_LIMITS)
+
+
+# -- client -> server --------------------------------------------------------------------
+
+
+class Hello(_Message):
+    """First message of a session (optional when the token came in the URL or a header)."""
+
+    type: Literal["hello"] = "hello"
+    version: int = PROTOCOL_VERSION
+    token: str | None = Field(None, max_length=512)
+    client: str | None = Field(None, max_length=200)
+
+
+class Drive(_Message):
+    """Body-model parameters for the next frame; any subset of any family (partial update).
+
+    ``reset``: every parameter goes back to the rest pose before these are applied.
+    """
+
+    type: Literal["drive"] = "drive"
+    seq: Seq
+    smplx: dict[str, Any] | None = None
+    flame: dict[str, Any] | None = None
+    mano_left: dict[str, Any] | None = None
+    mano_right: dict[str, Any] | None = None
+    reset: bool = False
+
+    @field_validator("smplx", "flame", "mano_left", "mano_right", mode="after")
+    @classmethod
+    def _arrays(cls, value: Any, info: ValidationInfo) -> dict[str, np.ndarray] | None:
+        if value is None:
+            return None
+        try:
+            return validate_family(info.field_name, value, _limits(info).max_array_elements)
+        except ProtocolError as exc:
+            raise ValueError(exc.message) from exc
+
+    def families(self) -> dict[str, dict[str, np.ndarray]]:
+        return {name: getattr(self, name) for name in ("smplx", "flame", "mano_left",
+                                                       "mano_right")
+                if getattr(self, name) is not None}
+
+
+class Orbit(_Message):
+    """A camera on a sphere around ``target`` (the avatar's chest when None), looking at it."""
+
+    yaw_deg: float = Field(0.0, ge=-360, le=360)
+    pitch_deg: float = Field(0.0, ge=-89, le=89)
+    distance: float = Field(2.7, gt=0.05, le=100)
+    fov_y_deg: float = Field(30.0, ge=5, le=120)
+    target: Vec3 | None = None
+
+
+class CameraSpec(_Message):
+    """A full OpenCV camera: world -> camera ``[R|t]``, intrinsics ``K``, image size."""
+
+    K: tuple[Vec3, Vec3, Vec3]
+    R: tuple[Vec3, Vec3, Vec3]
+    t: Vec3
+    width: int = Field(gt=0)
+    height: int = Field(gt=0)
+
+    @model_validator(mode="after")
+    def _proper(self) -> CameraSpec:
+        R = np.asarray(self.R)
+        if abs(np.linalg.det(R) - 1) > 1e-3 or not np.allclose(R @ R.T, np.eye(3), atol=1e-3):
+            raise ValueError("R must be a rotation matrix (orthonormal, det +1)")
+        K = np.asarray(self.K)
+        if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0, 0, 1]):
+            raise ValueError("K must have positive focal lengths and a last row [0, 0, 1]")
+        return self
+
+
+class View(_Message):
+    """Where to look from: an orbit or a full camera (exactly one)."""
+
+    type: Literal["view"] = "view"
+    orbit: Orbit | None = None
+    camera: CameraSpec | None = None
+    moving: bool = False  # the user is dragging: the server may lower JPEG quality
+
+    @model_validator(mode="after")
+    def _one(self) -> View:
+        if (self.orbit is None) == (self.camera is None):
+            raise ValueError("a view has exactly one of 'orbit' and 'camera'")
+        return self
+
+
+class Request(_Message):
+    """What to render and how to send it; fields not sent keep their current value."""
+
+    type: Literal["request"] = "request"
+    outputs: list[Literal["rgb", "alpha", "depth"]] | None = Field(None, min_length=1)
+    width: int | None = Field(None, ge=16)
+    height: int | None = Field(None, ge=16)
+    background: Vec3 | None = None
+    sh_degree: int | None = Field(None, ge=0, le=3)
+    quality: float | None = Field(None, gt=0, le=1)   # fraction of the Gaussians rendered
+    jpeg_quality: int | None = Field(None, ge=1, le=100)
+    codec: Literal["jpeg", "png", "h264"] | None = None
+    max_fps: float | None = Field(None, gt=0)
+
+    @field_validator("background")
+    @classmethod
+    def _unit(cls, value: Vec3 | None) -> Vec3 | None:
+        if value is not None and not all(0 <= c <= 1 for c in value):
+            raise ValueError("background values must be in [0, 1]")
+        return value
+
+    @model_validator(mode="after")
+    def _within(self, info: ValidationInfo) -> Request:
+        lim = _limits(info)
+        if self.width is not None and self.width > lim.max_width:
+            raise ValueError(f"width {self.width} exceeds the limit {lim.max_width}")
+        if self.height is not None and self.height > lim.max_height:
+            raise ValueError(f"height {self.height} exceeds the limit {lim.max_height}")
+        if self.max_fps is not None and self.max_fps > lim.max_fps:
+            raise ValueError(f"max_fps {self.max_fps} exceeds the limit {lim.max_fps}")
+        return self
+
+
+class Image(_Message):
+    """An encoded webcam frame for server-side tracking."""
+
+    type: Literal["image"] = "image"
+    seq: Seq
+    format: Literal["jpeg", "png"] = "jpeg"
+    data: bytes
+
+    @field_validator("data")
+    @classmethod
+    def _size(cls, value: bytes, info: ValidationInfo) -> bytes:
+        lim = _limits(info).max_image_bytes
+        if not value:
+            raise ValueError("data is empty")
+        if len(value) > lim:
+            raise ValueError(f"image of {len(value)} bytes exceeds the limit {lim}")
+        return value
+
+
+class Ping(_Message):
+    type: Literal["ping"] = "ping"
+    t: float = 0.0  # client clock, echoed in pong
+
+
+# -- server -> client --------------------------------------------------------------------
+
+
+class AvatarInfo(_Message):
+    id: str
+    name: str
+    num_gaussians: int
+    sh_degree: int
+    owner: str | None = None
+    metadata: dict[str, Any] = Field(default_factory=dict)
+
+
+class Welcome(_Message):
+    type: Literal["welcome"] = "welcome"
+    version: int = PROTOCOL_VERSION
+    session: str
+    avatar: AvatarInfo
+    limits: Limits
+    codecs: list[str]
+    request: Request  # the effective render request (defaults filled in)
+
+
+class Timings(_Message):
+    """Milliseconds per stage of this frame (track is 0 unless a webcam frame drove it)."""
+
+    track: float = 0.0
+    pose: float = 0.0
+    render: float = 0.0
+    encode: float = 0.0
+
+
+class Frame(_Message):
+    type: Literal["frame"] = "frame"
+    seq: int          # seq of the newest drive (or image) this frame reflects; -1: none yet
+    frame: int        # this session's frame counter
+    codec: Literal["jpeg", "png", "h264"]
+    width: int
+    height: int
+    data: bytes
+    depth: bytes | None = None  # 16-bit PNG, millimetres, when depth was requested
+    keyframe: bool = True       # h264: the stream can start here
+    timings: Timings = Field(default_factory=Timings)
+
+
+class Answers(_Message):
+    type: str | None = None
+    seq: int | None = None
+
+
+class Error(_Message):
+    type: Literal["error"] = "error"
+    code: str
+    message: str
+    answers: Answers | None = None  # the message this error answers, when known
+
+
+class Stats(_Message):
+    type: Literal["stats"] = "stats"
+    fps: float
+    frames: int
+    dropped: int          # frames not sent because a newer input superseded them
+    coalesced: int        # drives merged into a later one before rendering
+    bytes_per_s: float
+    render_ms: float      # recent median
+    sessions: int
+
+
+class Pong(_Message):
+    type: Literal["pong"] = "pong"
+    t: float
+
+
+ClientMessage = Annotated[Hello | Drive | View | Request | Image | Ping,
+                          Field(discriminator="type")]
+ServerMessage = Annotated[Welcome | Frame | Error | Stats | Pong, Field(discriminator="type")]
+CLIENT_TYPES = {m.model_fields["type"].default: m for m in (Hello, Drive, View, Request, Image,
+                                                             Ping)}
+SERVER_TYPES = {m.model_fields["type"].default: m for m in (Welcome, Frame, Error, Stats, Pong)}
