@@ -137,6 +137,30 @@ def _train(args: argparse.Namespace) -> int:
     return 0
 
 
+def _demo_avatar(args: argparse.Namespace) -> int:
+    import logging
+
+    from .demo import ensure_demo_avatar
+
+    logging.basicConfig(level=logging.WARNING, format="%(message)s")
+    bars: dict[str, tqdm] = {}
+
+    def progress(stage: str, done: int, total: int) -> None:
+        bar = bars.get(stage)
+        if bar is None:
+            unit = "view" if stage == "capture" else "it"
+            bar = bars[stage] = tqdm(total=total, desc=f"demo avatar: {stage}", unit=unit)
+        bar.update(done - bar.n)
+
+    try:
+        path = ensure_demo_avatar(args.cache, progress)
+    finally:
+        for bar in bars.values():
+            bar.close()
+    print(f"demo avatar: {path}")
+    return 0
+
+
 def _budget(text: str) -> int | float:
     value = float(text)
     return value if "." in text else int(value)
@@ -251,6 +275,12 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--size", type=int, default=None, help="render width (default: dataset's)")
     ev.add_argument("--models", type=Path, default=None, help="synthetic model folder")
     ev.set_defaults(func=_eval)
+
+    demo = groups.add_parser("demo-avatar", help="build (first run) or find the trained demo "
+                             "avatar: synthetic capture + training, cached")
+    demo.add_argument("--cache", type=Path, default=None,
+                      help="cache folder (default: ~/.cache/telesplat/demo-avatar-vN)")
+    demo.set_defaults(func=_demo_avatar)
     return parser
 
 

@@ -189,6 +189,16 @@ def _quick() -> TrainConfig:
                               opacity_reset_interval=2_000, max_gaussians=60_000))
 
 
+def _demo() -> TrainConfig:
+    """The demo avatar of ``make run`` (avatar_core.demo): the quick schedule compressed to
+    3,000 iterations, so that capture + training stay within ~6 minutes on 2 CPU cores."""
+    return TrainConfig(
+        iterations=3_000, checkpoint_interval=500, sh_interval=600,
+        lr=GaussianLR(position_max_steps=3_000),
+        densify=DensifyConfig(from_iter=300, until_iter=2_400, interval=150,
+                              opacity_reset_interval=1_200, max_gaussians=60_000))
+
+
 def _test() -> TrainConfig:
     """Unit tests: a few hundred iterations on ~64 px images, no LPIPS, densify early. The
     loss is a mean over pixels, so at 64 px each pixel weighs ~60x what it does at 512 px
@@ -203,7 +213,8 @@ def _test() -> TrainConfig:
                               opacity_reset_interval=10_000, max_gaussians=30_000))
 
 
-PRESETS = types.MappingProxyType({"default": TrainConfig, "quick": _quick, "test": _test})
+PRESETS = types.MappingProxyType({"default": TrainConfig, "quick": _quick, "demo": _demo,
+                                  "test": _test})
 
 
 def preset(name: str) -> TrainConfig:

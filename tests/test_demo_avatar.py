@@ -1,0 +1,48 @@
+"""The demo avatar of `make run`: built by the real pipeline (capture -> train -> package) on
+first use, returned from the cache afterwards. A tiny recipe keeps the test to seconds."""
+
+import json
+
+import numpy as np
+
+from avatar_core.demo import DEMO_VERSION, DemoRecipe, ensure_demo_avatar
+from avatar_core.pipeline import load_avatar, render_frames
+from avatar_core.render.camera import orbit
+from avatar_core.render.types import RenderRequest
+from avatar_core.train.config import preset
+
+TINY = DemoRecipe(motions="smile", resolution=48, frames=2, preset="test", iterations=12)
+
+
+def test_demo_avatar_built_once_then_cached(tmp_path, synthetic_files):
+    events = []
+    path = ensure_demo_avatar(tmp_path, lambda *e: events.append(e), TINY,
+                              model_dir=synthetic_files.root)
+    stages = {stage for stage, _, _ in events}
+    assert stages == {"capture", "train"}
+    assert events[-1] == ("train", 12, 12)
+    manifest = json.loads((path / "avatar.json").read_text())
+    assert manifest["metadata"]["trained"] is True
+    assert manifest["metadata"]["demo_version"] == DEMO_VERSION
+    assert not (tmp_path / ".avatar-staging").exists()
+
+    again = []
+    assert ensure_demo_avatar(tmp_path, lambda *e: again.append(e), TINY,
+                              model_dir=synthetic_files.root) == path
+    assert again == []  # cached: no capture, no training
+
+    loaded = load_avatar(str(path), synthetic_files.root)
+    target = loaded.animator.body_model.joint_template[12].cpu().numpy()
+    cam = orbit(target, yaw_deg=0.0, pitch_deg=0.0, distance=2.7, width=64, height=64,
+                fov_y_deg=30.0)
+    (img,) = render_frames(loaded, [{}], [cam], RenderRequest())
+    assert img.shape == (64, 64, 3) and np.ptp(img) > 50  # the avatar is in the picture
+
+
+def test_demo_preset_is_a_compressed_quick_schedule():
+    demo, quick = preset("demo"), preset("quick")
+    assert demo.iterations < quick.iterations
+    d = demo.densify
+    assert d.from_iter < d.until_iter <= demo.iterations
+    assert demo.lr.position_max_steps == demo.iterations
+    assert demo.finetune.enabled and demo.data.fusion  # the full recipe, shorter
