@@ -12,6 +12,10 @@ so there is no "without LPIPS" ablation.
         "smile+grin+mouth_open+thumbs_up,peace+talk_calm+heart,sad+angry+clapping"
     .venv/bin/python bench/train_results.py DATA --out docs/results --preset quick \\
         [--iterations N] [--points 5] [--models full,no_fusion,no_finetune]
+
+Models can also be trained by separate runs (one --models each, own --out) and merged:
+
+    .venv/bin/python bench/train_results.py --merge OUT_FULL OUT_NO_FUSION ... --out docs/results
 """
 
 from __future__ import annotations
@@ -27,7 +31,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from avatar_core.dataset.loader import load_dataset  # noqa: E402
 from avatar_core.metrics.evaluate import evaluate  # noqa: E402
-from avatar_core.metrics.report import ablation_json, ablation_table  # noqa: E402
+from avatar_core.metrics.report import (  # noqa: E402
+    ablation_json,
+    ablation_table,
+    ablation_table_from_json,
+)
 from avatar_core.train.config import TrainConfig, preset  # noqa: E402
 from avatar_core.train.trainer import Trainer  # noqa: E402
 
@@ -76,7 +84,7 @@ def plot(curves: dict[str, list[dict]], out: Path) -> None:
                      label=name)
         axes[2].plot([r["num_gaussians"] for r in rows], [r["render_ms"] for r in rows], "o-",
                      label=name)
-    axes[0].set(xlabel="training wall-clock (min, 2 CPU cores)", ylabel="novel-view PSNR (dB)")
+    axes[0].set(xlabel="training wall-clock (min, 1 thread)", ylabel="novel-view PSNR (dB)")
     axes[1].set(xlabel="Gaussians after training", ylabel="novel-view PSNR (dB)")
     axes[2].set(xlabel="Gaussians", ylabel="render ms / view (512x512, cpu)")
     for ax in axes:
@@ -86,10 +94,31 @@ def plot(curves: dict[str, list[dict]], out: Path) -> None:
     fig.savefig(out / "accuracy_vs_time.png", dpi=110)
 
 
+def merge(runs: list[Path], out: Path) -> None:
+    """One table, one plot and one results.json from runs that each trained some models."""
+    curves, rows, protocols, columns, meta = {}, {}, [], None, {}
+    for run in runs:
+        js = json.loads((run / "results.json").read_text())
+        curves.update(js["curves"])
+        rows.update(js["ablation"]["rows"])
+        protocols += [p for p in js["ablation"]["protocols"] if p not in protocols]
+        columns = js["ablation"]["columns"]
+        meta = {k: js[k] for k in ("preset", "iterations")}
+    table = {"protocols": protocols, "columns": columns, "rows": rows}
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "ablation.md").write_text(ablation_table_from_json(table) + "\n")
+    (out / "results.json").write_text(json.dumps({"ablation": table, "curves": curves, **meta},
+                                                 indent=2))
+    plot(curves, out)
+    print(ablation_table_from_json(table))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("dataset", type=Path)
+    ap.add_argument("dataset", type=Path, nargs="?")
+    ap.add_argument("--merge", type=Path, nargs="+", default=None,
+                    help="--out folders of earlier runs to merge into --out")
     ap.add_argument("--out", type=Path, default=Path("docs/results"))
     ap.add_argument("--work", type=Path, default=Path("out/results_work"))
     ap.add_argument("--preset", default="quick")
@@ -99,6 +128,11 @@ def main() -> None:
     ap.add_argument("--eval-stride", type=int, default=5)
     ap.add_argument("--models", default="full,no_fusion,no_finetune")
     args = ap.parse_args()
+    if args.merge:
+        merge(args.merge, args.out)
+        return
+    if args.dataset is None:
+        ap.error("give a dataset (or --merge)")
     data = load_dataset(args.dataset)
     base = preset(args.preset)
     if args.iterations:

@@ -20,7 +20,8 @@ import cv2
 import numpy as np
 
 __all__ = ["ABLATION_COLUMNS", "METRIC_KEYS", "PROTOCOLS", "EvalResult", "ablation_json",
-           "ablation_table", "load_result", "result_markdown", "side_by_side", "write_result"]
+           "ablation_table", "ablation_table_from_json", "load_result", "result_markdown",
+           "side_by_side", "write_result"]
 
 # Protocol (CLI name) -> dataset split.
 PROTOCOLS = {"novel-view": "novel_view", "self-reenactment": "self_reenactment",
@@ -213,14 +214,20 @@ def ablation_table(results: Mapping[str, Mapping[str, EvalResult]]) -> str:
     without weights, image metrics of cross-identity) and "-" where a run is missing."""
     if not results:
         raise ValueError("no results to tabulate")
-    protocols = _protocols_in(results)
-    header = ["model"] + [f"{p} {LABELS[k]}" for p in protocols for k in ABLATION_COLUMNS]
+    return ablation_table_from_json(ablation_json(results))
+
+
+def ablation_table_from_json(table: Mapping[str, Any]) -> str:
+    """:func:`ablation_table` from :func:`ablation_json`'s output (or several runs' rows
+    merged into one), so separately trained models land in one table."""
+    protocols, columns = table["protocols"], table["columns"]
+    header = ["model"] + [f"{p} {LABELS[k]}" for p in protocols for k in columns]
     lines = ["| " + " | ".join(header) + " |", "|---" * len(header) + "|"]
-    for name, runs in results.items():
+    for name, runs in table["rows"].items():
         cells = [name]
         for p in protocols:
             run = runs.get(p)
-            cells += (["-"] * len(ABLATION_COLUMNS) if run is None else
-                      [_fmt(run.metrics.get(k), k) for k in ABLATION_COLUMNS])
+            cells += (["-"] * len(columns) if run is None else
+                      [_fmt(run.get(k), k) for k in columns])
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
