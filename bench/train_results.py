@@ -54,6 +54,11 @@ def train_with_curve(name: str, config: TrainConfig, fusion: bool, data, out: Pa
     trainer = Trainer(data, config, out / name)
     curve = []
     stops = [round(config.iterations * (i + 1) / points) for i in range(points)]
+    # A snapshot right after a scheduled opacity reset scores a near-transparent avatar
+    # (~10 dB): take that point one iteration earlier, before the reset.
+    d = config.densify
+    stops = [s - 1 if d.enabled and s < d.until_iter and s % d.opacity_reset_interval == 0
+             else s for s in stops]
     for stop in stops:
         t0 = time.perf_counter()
         trainer.train(stop_at=stop)
