@@ -13,6 +13,10 @@ so there is no "without LPIPS" ablation.
     .venv/bin/python bench/train_results.py DATA --out docs/results --preset quick \\
         [--iterations N] [--points 5] [--models full,no_fusion,no_finetune]
 
+Accuracy against the number of Gaussians rendered (and render time) for a trained avatar:
+
+    .venv/bin/python bench/train_results.py DATA --budget-curve AVATAR --out docs/results
+
 Models can also be trained by separate runs (one --models each, own --out) and merged:
 
     .venv/bin/python bench/train_results.py --merge OUT_FULL OUT_NO_FUSION ... --out docs/results
@@ -99,6 +103,38 @@ def plot(curves: dict[str, list[dict]], out: Path) -> None:
     fig.savefig(out / "accuracy_vs_time.png", dpi=110)
 
 
+BUDGETS = (0.05, 0.1, 0.2, 0.35, 0.5, 0.75, 1.0)
+
+
+def budget_curve(avatar: Path, data, out: Path, views: int, stride: int) -> list[dict]:
+    """Novel-view PSNR/SSIM and render ms of one trained avatar when only a fraction of its
+    visible Gaussians (the most important: opacity x footprint) is rendered."""
+    rows = []
+    for budget in BUDGETS:
+        res = evaluate(avatar, data, "novel-view", max_views=views, frame_stride=stride,
+                       budget=None if budget == 1.0 else budget)
+        rows.append({"budget": budget, "psnr": res.metrics["psnr"], "ssim": res.metrics["ssim"],
+                     "render_ms": res.timing.get("render_ms_median")})
+        print(rows[-1], flush=True)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "budget_curve.json").write_text(json.dumps(rows, indent=2))
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 2, figsize=(10, 4))
+    ax[0].plot([r["render_ms"] for r in rows], [r["psnr"] for r in rows], "o-")
+    ax[0].set(xlabel="render ms / view (512x512, cpu)", ylabel="novel-view PSNR (dB)")
+    ax[1].plot([100 * r["budget"] for r in rows], [r["ssim"] for r in rows], "o-")
+    ax[1].set(xlabel="% of visible Gaussians rendered", ylabel="novel-view SSIM")
+    for a in ax:
+        a.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(out / "budget_curve.png", dpi=110)
+    return rows
+
+
 def merge(runs: list[Path], out: Path) -> None:
     """One table, one plot and one results.json from runs that each trained some models."""
     curves, rows, protocols, columns, meta = {}, {}, [], None, {}
@@ -124,6 +160,8 @@ def main() -> None:
     ap.add_argument("dataset", type=Path, nargs="?")
     ap.add_argument("--merge", type=Path, nargs="+", default=None,
                     help="--out folders of earlier runs to merge into --out")
+    ap.add_argument("--budget-curve", type=Path, default=None, metavar="AVATAR",
+                    help="only the render-budget curve of this trained avatar")
     ap.add_argument("--out", type=Path, default=Path("docs/results"))
     ap.add_argument("--work", type=Path, default=Path("out/results_work"))
     ap.add_argument("--preset", default="quick")
@@ -139,6 +177,9 @@ def main() -> None:
     if args.dataset is None:
         ap.error("give a dataset (or --merge)")
     data = load_dataset(args.dataset)
+    if args.budget_curve:
+        budget_curve(args.budget_curve, data, args.out, args.curve_views * 2, args.eval_stride)
+        return
     base = preset(args.preset)
     if args.iterations:
         base = replace(base, iterations=args.iterations,

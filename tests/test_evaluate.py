@@ -229,3 +229,10 @@ def test_unknown_protocol_and_missing_split_are_clear_errors(avatar, synthetic_f
     assert "no 'cross_identity' split" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["eval", "synthetic", str(copy), "--protocol", "bogus"])
+
+
+def test_a_render_budget_costs_accuracy(avatar, dataset_dir):
+    full = evaluate(avatar, dataset_dir, "novel-view", max_views=2)
+    few = evaluate(avatar, dataset_dir, "novel-view", max_views=2, budget=0.1)
+    assert math.isfinite(few.metrics["psnr"])
+    assert few.metrics["psnr"] < full.metrics["psnr"] - 1.0  # a tenth of the splats is visible

@@ -390,12 +390,14 @@ def evaluate(avatar: str | Path | LoadedAvatar, dataset: str | Path | Dataset, p
              *, fusion: bool = True, max_views: int | None = None, frame_stride: int = 1,
              out_dir: str | Path | None = None, size: int | None = None,
              progress: Progress | None = None, model_dir: Path | None = None,
-             max_images: int = 12) -> EvalResult:
+             max_images: int = 12, budget: int | float | None = None) -> EvalResult:
     """Evaluate an avatar (package path, ``synthetic[:I]`` or a LoadedAvatar) on the split of
     ``protocol`` (see the module docstring). Views are the split's in dataset order (sequence,
     frame, camera), every ``frame_stride``-th frame, the first ``max_views`` of them; images
     are rendered at width ``size`` (None: the dataset's). With ``out_dir``, writes
-    ``metrics.json``, ``metrics.md`` and ``images/*.png`` (at most ``max_images``)."""
+    ``metrics.json``, ``metrics.md`` and ``images/*.png`` (at most ``max_images``).
+    ``budget``: render only the K (or that fraction of the visible) most important Gaussians
+    (:class:`RenderRequest`), for accuracy-against-render-time curves."""
     if frame_stride < 1 or (max_views is not None and max_views < 1) or max_images < 0:
         raise ValueError("frame_stride and max_views must be at least 1, max_images >= 0")
     protocol_split(protocol)  # the cheap checks first: before anything is loaded
@@ -415,7 +417,7 @@ def evaluate(avatar: str | Path | LoadedAvatar, dataset: str | Path | Dataset, p
     eval_cam = _at_size(first, evaluation_mask(first), size)[2]
     lpips_reason = None if cross else lpips_unavailable_reason()
     run = _Run(loaded, src, cross, fusion, frame_stride, size,
-               RenderRequest(background=estimate_background(first)),
+               RenderRequest(background=estimate_background(first), budget=budget),
                None if cross or lpips_reason else lpips_metric(),
                _mano_models(loaded, loaded.animator.body_model.dtype), [])
     mismatch = _seed_mismatch(ds.meta["body_model"].get("source", ""), loaded.package.body.model)
