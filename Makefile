@@ -4,7 +4,7 @@ PY := $(VENV)/bin/python
 PYTHON ?= python3
 OUT ?= out
 
-.PHONY: run test install dev lint bench clean
+.PHONY: run test install dev lint bench clean browser
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -25,7 +25,21 @@ dev: $(VENV)/.installed-dev
 run: $(VENV)/.installed
 	$(VENV)/bin/telesplat body demo --out $(OUT)/body_demo.mp4
 
-test: $(VENV)/.installed-dev
+# The browser-page tests drive Debian's chromium through its chromedriver (selenium never
+# downloads one). Installed here when missing and we are root with apt-get; otherwise those
+# tests skip and say why.
+browser:
+	@if command -v chromium >/dev/null 2>&1 && command -v chromedriver >/dev/null 2>&1; then \
+	  :; \
+	elif [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then \
+	  echo "installing chromium and chromium-driver for the browser tests"; \
+	  (apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends \
+	    chromium chromium-driver) || echo "chromium could not be installed: the browser tests will skip"; \
+	else \
+	  echo "chromium / chromedriver missing and not root: the browser tests will skip"; \
+	fi
+
+test: $(VENV)/.installed-dev browser
 	$(PY) -m ruff check .
 	# Two workers on two cores: one thread each, or the torch / numba pools oversubscribe.
 	OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 NUMBA_NUM_THREADS=1 $(PY) -m pytest -q -n 2

@@ -1,0 +1,314 @@
+"""``telesplat-client``: stream a motion, manage avatars and training jobs from the shell.
+
+    telesplat-client stream --avatar demo --motion smile.json --out frames/ [--fps 30]
+    telesplat-client motions get smile --avatar demo --out smile.json
+    telesplat-client jobs submit --dataset NAME [--config cfg.json] --watch
+    telesplat-client avatars list
+
+``--server`` defaults to $TELESPLAT_SERVER (else http://127.0.0.1:8000), ``--token`` to
+$TELESPLAT_TOKEN.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+DEFAULT_SERVER = "http://127.0.0.1:8000"
+
+
+def _common(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--server", default=os.environ.get("TELESPLAT_SERVER", DEFAULT_SERVER),
+                        help="base URL (default $TELESPLAT_SERVER or %(default)s)")
+    parser.add_argument("--token", default=os.environ.get("TELESPLAT_TOKEN"),
+                        help="bearer token (default $TELESPLAT_TOKEN)")
+    parser.add_argument("--json", action="store_true", help="print raw JSON answers")
+
+
+def _rest(args: argparse.Namespace):
+    from .rest import RestClient
+
+    return RestClient(args.server, args.token)
+
+
+def _print(args: argparse.Namespace, value: Any, columns: tuple[str, ...] = ()) -> None:
+    if args.json or not columns or not isinstance(value, list):
+        print(json.dumps(value, indent=2, default=str))
+        return
+    rows = [[str(item.get(c, "")) for c in columns] for item in value]
+    widths = [max([len(c), *(len(r[i]) for r in rows)]) for i, c in enumerate(columns)]
+    for row in [list(columns), *rows]:
+        print("  ".join(cell.ljust(w) for cell, w in zip(row, widths, strict=True)).rstrip())
+
+
+# -- stream ------------------------------------------------------------------------------
+
+
+async def stream_motion(server: str, token: str | None, avatar: str, motion_path: Path,
+                        out: Path, *, fps: float | None = None, size: int = 512,
+                        timeout: float = 30.0, progress: bool = True) -> list[Path]:
+    """Drive ``avatar`` with a motion file frame by frame; save each returned frame in ``out``.
+
+    Lock-step: the next frame is driven once the previous one came back (and not before its
+    time at ``fps``), so every motion frame gets its own image and none are coalesced.
+    """
+    from tqdm import tqdm
+
+    from .images import save_frame
+    from .motion_file import load_motion
+    from .stream import StreamClient
+
+    motion = load_motion(motion_path)
+    rate = fps or motion.fps or 30.0
+    out.mkdir(parents=True, exist_ok=True)
+    written: list[Path] = []
+    async with await StreamClient.connect(server, avatar, token, timeout=timeout,
+                                          client_name="telesplat-client") as client:
+        await client.request(width=size, height=size,
+                             max_fps=min(max(rate, 1.0), client.limits.max_fps))
+        start = time.monotonic()
+        with tqdm(total=len(motion), unit="frame", disable=not progress,
+                  desc=f"streaming {motion_path.name}") as bar:
+            for i, params in enumerate(motion.frames):
+                delay = start + i / rate - time.monotonic()
+                if delay > 0:
+                    await asyncio.sleep(delay)
+                seq = await client.drive(**params, reset=i == 0)
+                frame = await client.wait_frame(seq, timeout=timeout)
+                written.append(save_frame(frame, out / f"{i:05d}"))
+                bar.update(1)
+    return written
+
+
+def cmd_stream(args: argparse.Namespace) -> int:
+    written = asyncio.run(stream_motion(args.server, args.token, args.avatar, args.motion,
+                                        args.out, fps=args.fps, size=args.size,
+                                        timeout=args.timeout, progress=not args.quiet))
+    print(f"wrote {len(written)} frames to {args.out}")
+    return 0
+
+
+# -- avatars -----------------------------------------------------------------------------
+
+
+def cmd_avatars(args: argparse.Namespace) -> int:
+    with _rest(args) as api:
+        if args.action == "list":
+            _print(args, api.avatars(), ("id", "name", "owner", "num_gaussians"))
+        elif args.action == "get":
+            _print(args, api.avatar(args.id))
+        elif args.action == "upload":
+            _print(args, api.upload_avatar(args.package, name=args.name))
+        elif args.action == "download":
+            print(api.download_avatar(args.id, args.out))
+        elif args.action == "delete":
+            api.delete_avatar(args.id)
+            print(f"deleted {args.id}")
+    return 0
+
+
+# -- motions -----------------------------------------------------------------------------
+
+
+def cmd_motions(args: argparse.Namespace) -> int:
+    with _rest(args) as api:
+        if args.action == "list":
+            _print(args, api.motions(), ("name", "category", "duration"))
+            return 0
+        motion = api.motion(args.name, avatar=args.avatar, fps=args.fps)
+        if args.out:
+            Path(args.out).write_text(json.dumps(motion))
+            print(f"wrote {len(motion.get('frames', []))} frames to {args.out}")
+        else:
+            print(json.dumps(motion))
+    return 0
+
+
+# -- jobs --------------------------------------------------------------------------------
+
+
+def _progress_of(data: Any) -> float | None:
+    """A 0..1 progress from an event payload, whatever of the usual fields it carries."""
+    if not isinstance(data, dict):
+        return None
+    if isinstance(data.get("progress"), int | float):
+        value = float(data["progress"])
+        return value / 100.0 if value > 1.0 else value
+    for done, total in (("step", "total"), ("iteration", "iterations"), ("done", "total")):
+        if isinstance(data.get(done), int | float) and data.get(total):
+            return float(data[done]) / float(data[total])
+    return None
+
+
+TERMINAL_STATES = ("succeeded", "failed", "cancelled")
+
+
+def _config(value: str | None) -> dict[str, Any] | str | None:
+    """--config: a JSON file (a training config) or a preset name (quick, default, test)."""
+    if value is None:
+        return None
+    path = Path(value)
+    if path.suffix == ".json" or path.is_file():
+        return json.loads(path.read_text())
+    return value
+
+
+def watch_job(api, job_id: str, *, progress: bool = True) -> dict[str, Any]:
+    """Follow a job's events with a progress bar until it ends; returns its final status."""
+    from tqdm import tqdm
+
+    with tqdm(total=1000, unit="‰", disable=not progress, desc=f"job {job_id}",
+              bar_format="{l_bar}{bar}| {postfix}") as bar:
+        # The server ends the stream with an `end` event once the job has finished; a stream
+        # that times out first (no news for 10 minutes) is resumed after the last event id.
+        last_id = None
+        for _ in range(1000):  # reconnects, each after a bounded stream
+            for event in api.job_events(job_id, after=last_id):
+                last_id = int(event.id) if event.id and event.id.isdigit() else last_id
+                data = event.data if isinstance(event.data, dict) else {}
+                fraction = _progress_of(data)
+                if fraction is not None:
+                    bar.n = round(min(max(fraction, 0.0), 1.0) * 1000)
+                state = data.get("state")
+                loss = f" loss {data['loss']:.4f}" if isinstance(data.get("loss"), float) else ""
+                bar.set_postfix_str(f"{state or event.event}{loss}", refresh=True)
+                if event.event == "end":
+                    return api.job(job_id)
+            if api.job(job_id).get("state") in TERMINAL_STATES:
+                break
+    return api.job(job_id)
+
+
+def cmd_jobs(args: argparse.Namespace) -> int:
+    with _rest(args) as api:
+        if args.action == "submit":
+            config = _config(args.config)
+            job = api.submit_job(dataset=args.dataset, archive=args.archive, config=config,
+                                 name=args.name)
+            job_id = job.get("id") or job.get("job_id")
+            print(f"submitted job {job_id}")
+            if args.watch:
+                final = watch_job(api, job_id, progress=not args.quiet)
+                _print(args, final)
+                state = final.get("state") or final.get("status")
+                return 0 if state in ("succeeded", "done") else 1
+        elif args.action == "list":
+            _print(args, api.jobs(), ("id", "name", "state", "progress"))
+        elif args.action == "status":
+            _print(args, api.job(args.id))
+        elif args.action == "watch":
+            _print(args, watch_job(api, args.id, progress=not args.quiet))
+        elif args.action == "logs":
+            print(api.job_logs(args.id, tail=args.tail))
+        elif args.action == "cancel":
+            _print(args, api.cancel_job(args.id))
+        elif args.action == "result":
+            _print(args, api.job_result(args.id))
+    return 0
+
+
+def cmd_health(args: argparse.Namespace) -> int:
+    with _rest(args) as api:
+        _print(args, api.health())
+    return 0
+
+
+# -- parser ------------------------------------------------------------------------------
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="telesplat-client", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("stream", help="stream a motion file and save the frames")
+    _common(p)
+    p.add_argument("--avatar", required=True)
+    p.add_argument("--motion", type=Path, required=True,
+                   help=".json list of per-frame dicts or .npz with a frame axis")
+    p.add_argument("--out", type=Path, required=True, help="folder for the frames")
+    p.add_argument("--fps", type=float, default=None,
+                   help="drive rate (default: the file's, else 30)")
+    p.add_argument("--size", type=int, default=512, help="frame width and height")
+    p.add_argument("--timeout", type=float, default=30.0, help="seconds to wait per frame")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_stream)
+
+    p = sub.add_parser("avatars", help="list, upload, download, delete avatars")
+    avatars = p.add_subparsers(dest="action", required=True)
+    a = avatars.add_parser("list")
+    _common(a)
+    for action in ("get", "delete"):
+        a = avatars.add_parser(action)
+        _common(a)
+        a.add_argument("id")
+    a = avatars.add_parser("upload")
+    _common(a)
+    a.add_argument("package", type=Path, help="avatar package: .zip or folder")
+    a.add_argument("--name")
+    a = avatars.add_parser("download")
+    _common(a)
+    a.add_argument("id")
+    a.add_argument("--out", type=Path, default=Path("."), help="file or folder")
+    p.set_defaults(func=cmd_avatars)
+
+    p = sub.add_parser("motions", help="the server's built-in motion clips")
+    motions = p.add_subparsers(dest="action", required=True)
+    _common(motions.add_parser("list"))
+    m = motions.add_parser("get", help="per-frame parameters of a clip (JSON)")
+    _common(m)
+    m.add_argument("name")
+    m.add_argument("--avatar")
+    m.add_argument("--fps", type=float)
+    m.add_argument("--out", type=Path, help="write the JSON here (streamable with 'stream')")
+    p.set_defaults(func=cmd_motions)
+
+    p = sub.add_parser("jobs", help="training jobs")
+    jobs = p.add_subparsers(dest="action", required=True)
+    j = jobs.add_parser("submit")
+    _common(j)
+    source = j.add_mutually_exclusive_group(required=True)
+    source.add_argument("--dataset", help="a dataset name the server knows")
+    source.add_argument("--archive", type=Path, help="a dataset archive to upload")
+    j.add_argument("--config", help="training config: a JSON file or a preset name (quick)")
+    j.add_argument("--name")
+    j.add_argument("--watch", action="store_true", help="follow progress until it ends")
+    j.add_argument("--quiet", action="store_true")
+    _common(jobs.add_parser("list"))
+    for action in ("status", "watch", "logs", "cancel", "result"):
+        j = jobs.add_parser(action)
+        _common(j)
+        j.add_argument("id")
+        j.add_argument("--quiet", action="store_true")
+        if action == "logs":
+            j.add_argument("--tail", type=int, help="only the last N lines")
+    p.set_defaults(func=cmd_jobs)
+
+    p = sub.add_parser("health", help="server health")
+    _common(p)
+    p.set_defaults(func=cmd_health)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    from .rest import ApiError
+    from .stream import StreamError
+
+    try:
+        return args.func(args)
+    except (ApiError, StreamError, ValueError, OSError, TimeoutError) as exc:
+        print(f"telesplat-client: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,117 @@
+// One streaming session over the WebSocket: messages in and out, seq numbers, latency.
+//
+// Events (EventTarget): "welcome", "frame", "stats", "servererror", "pong", "close";
+// each event's `detail` is the decoded message (close: {code, reason}).
+
+import { PROTOCOL_VERSION, ProtocolError, decode, encode } from "./protocol.js";
+
+export function streamUrl(avatar, token) {
+  const scheme = location.protocol === "https:" ? "wss" : "ws";
+  const query = new URLSearchParams({ avatar });
+  if (token) query.set("token", token);
+  return `${scheme}://${location.host}/v1/stream?${query}`;
+}
+
+export class Session extends EventTarget {
+  constructor(url) {
+    super();
+    this.url = url;
+    this.seq = 0;
+    this.welcome = null;
+    this.sentAt = new Map();  // seq -> performance.now() when sent
+    this.bytesIn = 0;
+    this.ws = new WebSocket(url);
+    this.ws.binaryType = "arraybuffer";
+    this.ready = new Promise((resolve, reject) => {
+      this._resolve = resolve;
+      this._reject = reject;
+    });
+    this.ws.addEventListener("open", () => {
+      this._send({ type: "hello", version: PROTOCOL_VERSION, client: "telesplat-web" });
+    });
+    this.ws.addEventListener("message", (event) => this._receive(event.data));
+    this.ws.addEventListener("close", (event) => {
+      this._reject(new ProtocolError("internal", event.reason || "connection closed"));
+      this._emit("close", { code: event.code, reason: event.reason });
+    });
+  }
+
+  get open() {
+    return this.ws.readyState === WebSocket.OPEN;
+  }
+
+  _emit(type, detail) {
+    this.dispatchEvent(new CustomEvent(type, { detail }));
+  }
+
+  _send(message, options = {}) {
+    if (!this.open) return false;
+    this.ws.send(encode(message, options));
+    return true;
+  }
+
+  _receive(data) {
+    if (!(data instanceof ArrayBuffer)) return;  // the protocol is binary only
+    this.bytesIn += data.byteLength;
+    let message;
+    try {
+      message = decode(data);
+    } catch (err) {
+      this._emit("servererror", { code: "bad_message", message: String(err) });
+      return;
+    }
+    if (message.type === "welcome") {
+      this.welcome = message;
+      this._resolve(message);
+      this._emit("welcome", message);
+    } else if (message.type === "frame") {
+      const sent = this.sentAt.get(message.seq);
+      message.latencyMs = sent === undefined ? null : performance.now() - sent;
+      // Frames may skip coalesced seqs: forget everything up to this one.
+      for (const seq of this.sentAt.keys()) if (seq <= message.seq) this.sentAt.delete(seq);
+      this._emit("frame", message);
+    } else if (message.type === "error") {
+      if (!this.welcome) this._reject(new ProtocolError(message.code, message.message));
+      this._emit("servererror", message);
+    } else if (message.type === "pong") {
+      message.rttMs = performance.now() - message.t;
+      this._emit("pong", message);
+    } else {
+      this._emit(message.type, message);
+    }
+  }
+
+  _stamp() {
+    this.seq += 1;
+    this.sentAt.set(this.seq, performance.now());
+    if (this.sentAt.size > 1000) this.sentAt.delete(this.sentAt.keys().next().value);
+    return this.seq;
+  }
+
+  /** Partial parameters: {smplx: {jaw_pose: Float32Array}, ...}; returns the seq or null. */
+  drive(families, reset = false) {
+    const seq = this._stamp();
+    return this._send({ type: "drive", seq, reset, ...families }, { validate: true }) ? seq : null;
+  }
+
+  view(orbit, moving = false) {
+    return this._send({ type: "view", orbit, moving }, { validate: true });
+  }
+
+  request(fields) {
+    return this._send({ type: "request", ...fields }, { validate: true });
+  }
+
+  image(bytes, format = "jpeg") {
+    const seq = this._stamp();
+    return this._send({ type: "image", seq, format, data: bytes }) ? seq : null;
+  }
+
+  ping() {
+    return this._send({ type: "ping", t: performance.now() });
+  }
+
+  close() {
+    this.ws.close(1000, "bye");
+  }
+}

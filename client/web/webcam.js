@@ -1,0 +1,61 @@
+// Webcam driving: grab camera frames, encode them as JPEG and send `image` messages at a
+// capped rate. The server tracks them into parameters (or answers `unsupported` until the
+// tracker is in).
+
+const MAX_FPS = 10;        // the tracker needs no more, and uplinks are often thin
+const WIDTH = 320;         // small frames: landmarks need little, the message stays small
+const JPEG_QUALITY = 0.7;
+
+export class Webcam {
+  constructor(send) {
+    this.send = send;  // (Uint8Array) => void
+    this.stream = null;
+    this.timer = null;
+    this.busy = false;
+    this.video = document.createElement("video");
+    this.video.muted = true;
+    this.video.playsInline = true;
+    this.canvas = document.createElement("canvas");
+  }
+
+  get running() {
+    return this.stream !== null;
+  }
+
+  async start() {
+    if (!navigator.mediaDevices?.getUserMedia) {
+      throw new Error("this browser gives no camera access (needs https or localhost)");
+    }
+    this.stream = await navigator.mediaDevices.getUserMedia({
+      video: { width: { ideal: 640 }, height: { ideal: 480 } }, audio: false,
+    });
+    this.video.srcObject = this.stream;
+    await this.video.play();
+    this.timer = setInterval(() => this._grab(), 1000 / MAX_FPS);
+  }
+
+  stop() {
+    clearInterval(this.timer);
+    this.timer = null;
+    this.stream?.getTracks().forEach((track) => track.stop());
+    this.stream = null;
+    this.video.srcObject = null;
+  }
+
+  _grab() {
+    // Skip a tick rather than queue encodes when the browser is slow.
+    if (this.busy || !this.video.videoWidth) return;
+    this.busy = true;
+    const height = Math.round((WIDTH * this.video.videoHeight) / this.video.videoWidth);
+    this.canvas.width = WIDTH;
+    this.canvas.height = height;
+    this.canvas.getContext("2d").drawImage(this.video, 0, 0, WIDTH, height);
+    this.canvas.toBlob(async (blob) => {
+      try {
+        if (blob && this.running) this.send(new Uint8Array(await blob.arrayBuffer()));
+      } finally {
+        this.busy = false;
+      }
+    }, "image/jpeg", JPEG_QUALITY);
+  }
+}
