@@ -1,0 +1,110 @@
+"""The FastAPI application: ``create_app(settings)``.
+
+``app.state`` carries ``settings``, ``tokens`` (TokenStore), ``registry`` (AvatarRegistry),
+``metrics`` and ``ctx`` (the ServerContext every route uses); in local auth mode
+``local_token`` is the admin token printed at start-up. The demo avatar is registered and a
+warm-up frame rendered in the lifespan's start-up (numba compiles its kernels once).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+from fastapi import FastAPI
+from fastapi.staticfiles import StaticFiles
+
+from protocol import PROTOCOL_VERSION, View
+from protocol.messages import Orbit
+
+from . import routes_avatars, routes_motions, routes_stream, routes_system
+from .auth import LOCAL_SUBJECT, SCOPES, TokenStore
+from .config import Settings
+from .context import ServerContext, SessionSlots
+from .drive import DriveState
+from .jobs import routes as jobs_routes
+from .metrics import ServerMetrics
+from .registry import DEMO_ID, AvatarRegistry
+from .renderer import FrameJob, SessionRenderer
+from .scheduler import RenderScheduler
+
+log = logging.getLogger("telesplat.server")
+
+WEB_DIR = Path(__file__).resolve().parent.parent / "client" / "web"  # served, never imported
+WARMUP_SIZE = 64
+
+
+def warm_up(ctx: ServerContext) -> float | None:
+    """Render one small frame of the demo avatar (compiles the numba kernels). Seconds taken."""
+    import time
+
+    try:
+        record = ctx.registry.get(DEMO_ID)
+    except KeyError:
+        return None
+    start = time.perf_counter()
+    loaded, animator, manos = ctx.session_models(record.id)
+    renderer = SessionRenderer(loaded, animator, manos, backend=ctx.settings.backend)
+    req = routes_stream.default_request(ctx, record).model_copy(
+        update={"width": WARMUP_SIZE, "height": WARMUP_SIZE})
+    job = FrameJob(DriveState(), View(orbit=Orbit()), req, ctx.settings.jpeg_quality)
+    ctx.scheduler.submit(renderer.render, job).result()
+    renderer.close()
+    return time.perf_counter() - start
+
+
+def _start(ctx: ServerContext) -> None:
+    s = ctx.settings
+    rec = ctx.registry.register_demo(s.demo_avatar)
+    if rec is not None:
+        log.info("demo avatar %r (%s, %d Gaussians)", rec.id, rec.name, rec.num_gaussians)
+    ctx.metrics.avatars.set(len(ctx.registry.list()))
+    if s.warmup:
+        took = warm_up(ctx)
+        if took is not None:
+            log.info("warm-up frame rendered in %.1f s", took)
+
+
+def create_app(settings: Settings) -> FastAPI:
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    tokens = TokenStore(settings.tokens_path)
+    local_token = None
+    if settings.auth == "local":
+        tokens.revoke_subject(LOCAL_SUBJECT)  # one live local token: the one printed last
+        local_token = tokens.issue(LOCAL_SUBJECT, SCOPES)
+    ctx = ServerContext(
+        settings=settings, tokens=tokens,
+        registry=AvatarRegistry(settings.avatars_dir, max_package_bytes=settings.max_upload_bytes
+                                * 4),  # uncompressed may exceed the zip
+        scheduler=RenderScheduler(settings.render_threads, settings.torch_threads),
+        metrics=ServerMetrics(), slots=SessionSlots(settings.max_sessions),
+        local_token=local_token)
+
+    @contextlib.asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        await asyncio.to_thread(_start, ctx)
+        async with jobs_routes.lifespan(app):  # the training worker
+            yield
+        await asyncio.to_thread(ctx.scheduler.shutdown)
+
+    app = FastAPI(title="Telesplat", version="0.1.0", lifespan=lifespan,
+                  description="Hosts 3D-Gaussian upper-body avatars and drives them live over "
+                              f"a WebSocket (protocol version {PROTOCOL_VERSION}).")
+    app.state.ctx = ctx
+    app.state.settings = settings
+    app.state.tokens = tokens
+    app.state.registry = ctx.registry
+    app.state.metrics = ctx.metrics
+    app.state.local_token = local_token
+    app.include_router(routes_system.router)
+    app.include_router(routes_avatars.router)
+    app.include_router(routes_stream.router)
+    app.include_router(routes_motions.router)
+    app.include_router(jobs_routes.router)
+    # Last: the browser page at "/" would shadow any route added after it.
+    if (WEB_DIR / "index.html").is_file():
+        app.mount("/", StaticFiles(directory=WEB_DIR, html=True), name="web")
+    return app

@@ -1,0 +1,94 @@
+"""``telesplat serve`` (also ``python -m server``): run the streaming server with uvicorn.
+
+``avatar_core.cli`` dispatches ``serve`` here with a lazy import, so the engine never imports
+the server at module level.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import logging
+import sys
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # `telesplat --help` should not pay for importing FastAPI
+    from fastapi import FastAPI
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--host", default=None, help="interface (default from settings: "
+                                                     "127.0.0.1)")
+    parser.add_argument("--port", type=int, default=None, help="TCP port (default 8000)")
+    parser.add_argument("--config", type=Path, default=None, help="settings file (.toml/.json)")
+    parser.add_argument("--data-dir", type=Path, default=None, help="avatars, tokens, jobs")
+    parser.add_argument("--demo-avatar", default=None,
+                        help="synthetic, trained, none or a package path")
+    parser.add_argument("--log-level", default="info")
+    parser.add_argument("--issue-token", metavar="SUBJECT:SCOPES", default=None,
+                        help="add a token to the token store (e.g. alice:stream,train), print "
+                             "it and exit")
+
+
+def _announce(app: FastAPI, url: str) -> None:
+    """Print the URL (with the local admin token) once start-up, warm-up included, is done."""
+    inner = app.router.lifespan_context
+
+    @contextlib.asynccontextmanager
+    async def announced(app: FastAPI) -> AsyncIterator[None]:
+        async with inner(app):
+            token = app.state.local_token
+            if token:
+                print(f"Telesplat is serving at {url}/?token={token}", flush=True)
+                print(f"  admin token (subject 'local'): {token}", flush=True)
+            else:
+                print(f"Telesplat is serving at {url}/ (tokens from "
+                      f"{app.state.settings.tokens_path})", flush=True)
+            yield
+
+    app.router.lifespan_context = announced
+
+
+def serve(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from .app import create_app
+    from .config import load_settings
+    from .net import listen_socket
+
+    settings = load_settings(args.config, host=args.host, port=args.port,
+                             data_dir=args.data_dir, demo_avatar=args.demo_avatar)
+    if args.issue_token:
+        from .auth import TokenStore
+
+        subject, _, scopes = args.issue_token.partition(":")
+        token = TokenStore(settings.tokens_path).issue(subject, scopes.split(",") or ["stream"])
+        print(token)
+        return 0
+    logging.basicConfig(level=args.log_level.upper(), format="%(levelname)s %(name)s: "
+                                                             "%(message)s")
+    app = create_app(settings)
+    sock = listen_socket(settings.host, settings.port, settings.send_buffer_bytes)
+    host = f"[{settings.host}]" if ":" in settings.host else settings.host
+    _announce(app, f"http://{host}:{sock.getsockname()[1]}")
+    config = uvicorn.Config(app, log_level=args.log_level, lifespan="on",
+                            ws_max_size=settings.limits.max_message_bytes + 1024,
+                            timeout_graceful_shutdown=5)
+    uvicorn.Server(config).run(sockets=[sock])
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="telesplat serve", description=__doc__)
+    add_arguments(parser)
+    try:
+        return serve(parser.parse_args(argv))
+    except (ValueError, OSError) as exc:
+        print(f"telesplat serve: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

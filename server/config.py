@@ -1,0 +1,116 @@
+"""Server settings: defaults here, then a TOML/JSON file, then ``TELESPLAT_<FIELD>`` env vars.
+
+Every field is documented; ``docs/server.md`` has the same table. Nested ``limits`` come from a
+``[limits]`` table in the file, or as JSON in ``TELESPLAT_LIMITS`` (merged over the file's).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tomllib
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from protocol import Limits
+
+ENV_PREFIX = "TELESPLAT_"
+
+
+def default_data_dir() -> Path:
+    return Path.home() / ".cache" / "telesplat" / "server"
+
+
+class Settings(BaseModel):
+    """Everything the server reads at start-up."""
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+    host: str = Field("127.0.0.1", description="Interface to listen on (0.0.0.0: all).")
+    port: int = Field(8000, ge=0, le=65535, description="TCP port (0: any free port).")
+    data_dir: Path = Field(default_factory=default_data_dir,
+                           description="Where avatars, tokens and job data live.")
+    max_sessions: int = Field(8, ge=1, description="Concurrent streaming sessions; past it a "
+                                                   "new session gets error 'busy' and is closed.")
+    limits: Limits = Field(default_factory=Limits,
+                           description="Per-session protocol limits (sent in 'welcome').")
+    jpeg_quality: int = Field(85, ge=1, le=100, description="JPEG quality of still views.")
+    jpeg_quality_moving: int = Field(60, ge=1, le=100,
+                                     description="JPEG quality while view.moving is set.")
+    default_width: int = Field(512, ge=16, description="Frame width until a request sets it.")
+    default_height: int = Field(512, ge=16, description="Frame height until a request sets it.")
+    default_max_fps: float = Field(30.0, gt=0, description="Per-session frame-rate cap until "
+                                                           "a request sets it (<= limits.max_fps).")
+    auth: Literal["local", "tokens"] = Field(
+        "local", description="local: an admin token for subject 'local' is issued and printed "
+                             "at start-up; tokens: only tokens already in the token file.")
+    tokens_file: Path | None = Field(None, description="Token store (JSON, sha256 hashes); "
+                                                       "default data_dir/tokens.json.")
+    max_upload_bytes: int = Field(512 * 2**20, ge=1024,
+                                  description="Largest avatar upload (zip) accepted, bytes.")
+    demo_avatar: str = Field("synthetic", description="Avatar registered at start-up, owner "
+                                                      "'public': synthetic, trained, none, or "
+                                                      "a package path.")
+    render_threads: int = Field(1, ge=1, le=64, description="Render worker threads shared by "
+                                                            "all sessions (fair round-robin).")
+    torch_threads: int = Field(1, ge=1, le=64, description="torch / numba threads per render "
+                                                           "worker (more oversubscribes cores).")
+    send_buffer_bytes: int = Field(
+        64 * 1024, ge=0, description="Kernel send buffer per connection (SO_SNDBUF; Linux "
+                                     "doubles it); bounds how many frames a slow client can "
+                                     "have queued. 0: the OS default (autotuned, megabytes).")
+    stats_interval_s: float = Field(2.0, gt=0, description="Seconds between 'stats' messages.")
+    warmup: bool = Field(True, description="Render one frame at start-up (numba compiles once).")
+    backend: Literal["auto", "torch", "cpu", "gsplat"] = Field(
+        "auto", description="Rasterizer backend (auto: gsplat on CUDA, else cpu).")
+
+    @field_validator("demo_avatar")
+    @classmethod
+    def _demo(cls, value: str) -> str:
+        if not value:
+            raise ValueError("demo_avatar is synthetic, trained, none or a package path")
+        return value
+
+    @property
+    def tokens_path(self) -> Path:
+        return self.tokens_file or self.data_dir / "tokens.json"
+
+    @property
+    def avatars_dir(self) -> Path:
+        return self.data_dir / "avatars"
+
+
+def _read_file(path: Path) -> dict[str, Any]:
+    text = path.read_text()
+    if path.suffix == ".json":
+        data = json.loads(text)
+    else:  # TOML by default
+        data = tomllib.loads(text)
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: settings must be a table / object")
+    # A [server] table is accepted too, so one file can hold other sections.
+    return dict(data.get("server", data))
+
+
+def _from_env(environ: dict[str, str]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for name in Settings.model_fields:
+        raw = environ.get(ENV_PREFIX + name.upper())
+        if raw is None:
+            continue
+        out[name] = json.loads(raw) if name == "limits" else raw
+    return out
+
+
+def load_settings(path: str | Path | None = None, *, environ: dict[str, str] | None = None,
+                  **overrides: Any) -> Settings:
+    """Settings from defaults < file (``path``) < env vars < keyword overrides."""
+    data: dict[str, Any] = _read_file(Path(path)) if path is not None else {}
+    env = _from_env(dict(os.environ if environ is None else environ))
+    if "limits" in env:
+        env["limits"] = {**data.get("limits", {}), **env["limits"]}
+    data.update(env)
+    data.update({k: v for k, v in overrides.items() if v is not None})
+    return Settings.model_validate(data)

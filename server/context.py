@@ -1,0 +1,62 @@
+"""What the routes share: settings, tokens, avatars, the render scheduler, metrics, sessions."""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass, field
+from typing import Any
+
+from avatar_core.body.models import MANOModel
+from avatar_core.gaussians.animate import AvatarAnimator
+from avatar_core.pipeline import LoadedAvatar
+
+from .auth import TokenStore
+from .config import Settings
+from .drive import mano_models
+from .metrics import ServerMetrics
+from .registry import AvatarRegistry
+from .scheduler import RenderScheduler
+
+
+class SessionSlots:
+    """At most ``limit`` sessions at once."""
+
+    def __init__(self, limit: int) -> None:
+        self.limit = limit
+        self.count = 0
+        self._lock = threading.Lock()
+
+    def try_acquire(self) -> bool:
+        with self._lock:
+            if self.count >= self.limit:
+                return False
+            self.count += 1
+            return True
+
+    def release(self) -> None:
+        with self._lock:
+            self.count = max(0, self.count - 1)
+
+
+@dataclass
+class ServerContext:
+    settings: Settings
+    tokens: TokenStore
+    registry: AvatarRegistry
+    scheduler: RenderScheduler
+    metrics: ServerMetrics
+    slots: SessionSlots
+    sessions: dict[str, Any] = field(default_factory=dict)  # id -> StreamSession
+    local_token: str | None = None
+    _manos: dict[str, dict[str, MANOModel]] = field(default_factory=dict)
+    _manos_lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def session_models(self, avatar_id: str
+                       ) -> tuple[LoadedAvatar, AvatarAnimator, dict[str, MANOModel]]:
+        """A session's own animator, plus the (shared, read-only) MANO models for fusion."""
+        loaded, animator = self.registry.new_animator(avatar_id)
+        with self._manos_lock:
+            manos = self._manos.get(avatar_id)
+            if manos is None:
+                manos = self._manos[avatar_id] = mano_models(loaded)
+        return loaded, animator, manos

@@ -1,0 +1,114 @@
+"""A session's body-model state: partial ``drive`` updates merged per family, and the SMPL-X
+parameters they amount to, with FLAME (face) and MANO (hands) fused in.
+
+Fusion follows the trainer and the evaluator (``avatar_core.body.fusion.fuse``: world-frame
+head and wrist rotations) on the avatar's own upper-body model; MANO keys need the MANO model
+files next to the body model (the synthetic family has them).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+
+from avatar_core.body.fusion import fuse
+from avatar_core.body.model_data import load_mano
+from avatar_core.body.models import MANOModel, SMPLXModel
+from avatar_core.pipeline import LoadedAvatar
+from protocol import Drive, ProtocolError
+
+FAMILY_NAMES = ("smplx", "flame", "mano_left", "mano_right")
+
+
+def mano_models(loaded: LoadedAvatar) -> dict[str, MANOModel]:
+    """MANO models per side that exist for the avatar's body family (same dtype as its model)."""
+    dtype = loaded.animator.body_model.dtype
+    out = {}
+    for side in ("left", "right"):
+        path = loaded.files.mano_pkl(side)
+        if path.is_file():
+            out[side] = MANOModel(load_mano(path), dtype=dtype)
+    return out
+
+
+# FLAME fields fusion reads; per-frame shapes (expr is fitted to the body model's size).
+FLAME_SHAPES = {"expr": None, "rotation": (3,), "neck_pose": (3,), "jaw_pose": (3,),
+                "eyes_pose": (6,), "translation": (3,)}
+
+
+def drive_shapes(model: SMPLXModel, manos: dict[str, MANOModel]
+                 ) -> dict[str, dict[str, tuple[int, ...]]]:
+    """Per family, the per-frame shape each parameter must have for this avatar."""
+    smplx = {k: v for k, v in model.param_spec().items() if k != "vertex_offsets"}
+    flame = {**FLAME_SHAPES, "expr": (model.num_expression,)}
+    out = {"smplx": smplx, "flame": flame}
+    for side in ("left", "right"):
+        if side in manos:
+            out[f"mano_{side}"] = manos[side].param_spec()
+    return out
+
+
+def fit_drive(drive: Drive, shapes: dict[str, dict[str, tuple[int, ...]]]
+              ) -> dict[str, dict[str, np.ndarray]]:
+    """The drive's families with shapes this avatar takes: coefficient vectors (betas,
+    expression) are cut or zero-padded to the model's count, as SMPL-X / FLAME tools do.
+    ProtocolError for what cannot fit (a family or field this avatar does not take)."""
+    out: dict[str, dict[str, np.ndarray]] = {}
+    for family, values in drive.families().items():
+        spec = shapes.get(family)
+        if spec is None:
+            raise ProtocolError("unsupported", f"{family}: this avatar's body model has no "
+                                               "model for it", {"type": "drive", "seq": drive.seq})
+        fitted = {}
+        for name, arr in values.items():
+            want = spec.get(name)
+            if want is None:
+                raise ProtocolError("unsupported", f"{family}.{name} cannot be driven live",
+                                    {"type": "drive", "seq": drive.seq})
+            if arr.shape != want and arr.ndim == 1 and len(want) == 1:
+                arr = np.pad(arr[:want[0]], (0, max(0, want[0] - arr.size)))
+            if arr.shape != want:
+                raise ProtocolError("invalid", f"{family}.{name}: this avatar takes shape "
+                                               f"{list(want)}, got {list(arr.shape)}",
+                                    {"type": "drive", "seq": drive.seq})
+            fitted[name] = arr
+        out[family] = fitted
+    return out
+
+
+@dataclass
+class DriveState:
+    """The newest value of every parameter sent so far, per family; ``seq`` of the last drive."""
+
+    families: dict[str, dict[str, np.ndarray]] = field(
+        default_factory=lambda: {name: {} for name in FAMILY_NAMES})
+    seq: int = -1
+
+    def apply(self, drive: Drive, fitted: dict[str, dict[str, np.ndarray]]) -> None:
+        """Merge a drive (its families as :func:`fit_drive` returned them)."""
+        if drive.reset:
+            self.families = {name: {} for name in FAMILY_NAMES}
+        for name, values in fitted.items():
+            self.families[name] = {**self.families[name], **values}
+        self.seq = drive.seq
+
+    def copy(self) -> DriveState:
+        # Arrays are never mutated in place (updates replace them), so a shallow copy is enough.
+        return DriveState({k: dict(v) for k, v in self.families.items()}, self.seq)
+
+    def smplx_params(self, model: SMPLXModel, manos: dict[str, MANOModel]) -> dict[str, Any]:
+        """SMPL-X parameters (no batch axis, or batch 1) with the face and hands fused in.
+
+        Raises ValueError (ParameterError) when the parameters do not fit the model."""
+        body = dict(self.families["smplx"])
+        flame = self.families["flame"]
+        hands = {side: self.families[f"mano_{side}"] for side in ("left", "right")}
+        if not flame and not any(hands.values()):
+            return body
+        with torch.no_grad():
+            fused = fuse(body, model, flame=flame or None, left_hand=hands["left"] or None,
+                         right_hand=hands["right"] or None, mano_models=manos)
+        return {k: v for k, v in fused.to_dict().items() if v is not None}

@@ -1,0 +1,357 @@
+"""REST API of training jobs: ``/v1/jobs`` (docs/jobs.md).
+
+Every route needs the ``train`` scope (``admin`` implies it). A job of another owner is
+answered 404, exactly like a job that does not exist, so ids leak nothing; admins see all.
+The service is ``request.app.state.jobs`` (a :class:`JobService`), set up by :func:`lifespan`,
+which server/app.py runs inside its own.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+from collections.abc import AsyncIterator
+from typing import Annotated, Any, Literal
+
+from fastapi import APIRouter, Header, HTTPException, Query, Request, Response
+from fastapi.responses import PlainTextResponse, StreamingResponse
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from starlette.concurrency import run_in_threadpool
+from starlette.datastructures import UploadFile
+
+from ..auth import Principal, require_scope
+from .service import JobService, SubmitError
+from .store import InvalidTransition, Job, JobNotFound
+from .worker import LOG_FILE
+
+__all__ = ["JobList", "JobOut", "JobResult", "JobSubmit", "lifespan", "router"]
+
+router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
+_TRAIN = require_scope("train")  # every route: the caller's Principal, 401 / 403 otherwise
+
+MAX_JSON_BODY = 1 << 20
+MULTIPART_SLACK = 1 << 20     # form fields and boundaries around the archive
+MAX_LOG_BYTES = 1 << 20
+MAX_TAIL_LINES = 10_000
+MAX_STREAM_S = 600.0
+POLL_S = 0.25
+KEEPALIVE_S = 15.0
+EVENT_PAGE = 500
+
+StateName = Literal["queued", "running", "succeeded", "failed", "cancelled"]
+_NOT_FOUND = "no such job"
+_ERRORS: dict[int | str, dict[str, Any]] = {
+    401: {"description": "No or an unknown bearer token."},
+    403: {"description": "The token lacks the 'train' scope."},
+    404: {"description": "No such job, or the job belongs to another owner."},
+}
+
+
+class JobOut(BaseModel):
+    """A job as clients see it."""
+
+    id: str
+    owner: str
+    name: str | None = Field(description="The avatar's name (None: the dataset's subject).")
+    state: StateName
+    dataset: str = Field(description="'upload' or 'dataset:<name>'.")
+    created: float = Field(description="Unix seconds.")
+    started: float | None
+    finished: float | None
+    progress: float = Field(description="iteration / total, in [0, 1].")
+    iteration: int
+    total: int
+    loss: float | None = Field(description="The last reported training loss.")
+    error: str | None = Field(description="Why the job failed or was cancelled.")
+    avatar_id: str | None = Field(description="The registered avatar, once succeeded.")
+    attempts: int = Field(description="Runs so far (a resume after a restart is one more).")
+    cancel_requested: bool
+    config: dict[str, Any] = Field(description="The resolved training config.")
+
+    @classmethod
+    def of(cls, job: Job) -> JobOut:
+        d = job.to_dict()
+        d.pop("dataset_path")  # a server path
+        return cls(**d)
+
+
+class JobList(BaseModel):
+    jobs: list[JobOut]
+
+
+class JobResult(BaseModel):
+    job_id: str
+    avatar_id: str
+
+
+class JobSubmit(BaseModel):
+    """A job on a dataset that is on the server (``data_dir/datasets/<name>``)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    dataset: str = Field(description="The dataset's name.")
+    config: dict[str, Any] | str | None = Field(
+        None, description="A preset name ('default', 'quick', 'test') or a TrainConfig object "
+                          "(nested keys, optional 'preset'); default 'default'.")
+    name: str | None = Field(None, description="The avatar's name.")
+
+
+_SUBMIT_BODY = {"requestBody": {"required": True, "content": {
+    "application/json": {"schema": JobSubmit.model_json_schema()},
+    "multipart/form-data": {"schema": {
+        "type": "object", "required": ["archive"],
+        "properties": {
+            "archive": {"type": "string", "format": "binary",
+                        "description": "A zip of one Format v1 dataset."},
+            "config": {"type": "string", "description": "JSON: a preset name or a "
+                                                        "TrainConfig object."},
+            "name": {"type": "string", "description": "The avatar's name."}}}},
+}}}
+
+
+def _service(request: Request) -> JobService:
+    service = getattr(request.app.state, "jobs", None)
+    if service is None:
+        raise HTTPException(503, "the job service is not running")
+    return service
+
+
+@contextlib.asynccontextmanager
+async def lifespan(app: Any) -> AsyncIterator[None]:
+    """Runs inside the app's lifespan (server/app.py): the JobService on the app's settings
+    and registry, as ``app.state.jobs``; queued and interrupted jobs resume at start, running
+    ones are checkpointed and re-queued at stop."""
+    service = JobService.from_settings(app.state.settings, app.state.registry)
+    await asyncio.to_thread(service.start)
+    app.state.jobs = service
+    try:
+        yield
+    finally:
+        app.state.jobs = None
+        await asyncio.to_thread(service.stop)
+
+
+def _visible(service: JobService, principal: Principal, job_id: str) -> Job:
+    try:
+        job = service.store.get(job_id)
+    except JobNotFound:
+        raise HTTPException(404, _NOT_FOUND) from None
+    if not (principal.is_admin or job.owner == principal.subject):
+        raise HTTPException(404, _NOT_FOUND)
+    return job
+
+
+async def _limited_body(request: Request, limit: int) -> Request:
+    """The request with a receive channel that answers 413 past ``limit`` bytes (also for
+    chunked bodies, which carry no Content-Length)."""
+    length = request.headers.get("content-length")
+    if length is not None and length.isdigit() and int(length) > limit:
+        raise HTTPException(413, f"the request body is larger than {limit} bytes")
+    received = 0
+
+    async def receive() -> Any:
+        nonlocal received
+        message = await request.receive()
+        if message["type"] == "http.request":
+            received += len(message.get("body", b""))
+            if received > limit:
+                raise HTTPException(413, f"the request body is larger than {limit} bytes")
+        return message
+
+    return Request(request.scope, receive)
+
+
+def _form_config(text: str | None) -> Any:
+    """The multipart ``config`` field: JSON (an object or a preset name) or a bare name."""
+    if text is None or not text.strip():
+        return None
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError:
+        if text.strip().isidentifier():
+            return text.strip()
+        raise HTTPException(422, "config must be JSON (an object or a preset name)") from None
+
+
+async def _submit_upload(request: Request, service: JobService, owner: str) -> Job:
+    limit = service.limits.max_upload_bytes
+    limited = await _limited_body(request, limit + MULTIPART_SLACK)
+    form = await limited.form(max_files=1, max_fields=8)
+    try:
+        archive = form.get("archive")
+        if not isinstance(archive, UploadFile):
+            raise HTTPException(400, "the multipart body needs a file field 'archive' (a zip)")
+        if archive.size is not None and archive.size > limit:
+            raise HTTPException(413, f"the archive is larger than {limit} bytes")
+        fields = {k: form.get(k) for k in ("config", "name")}
+        if any(v is not None and not isinstance(v, str) for v in fields.values()):
+            raise HTTPException(400, "config and name must be text fields")
+        config = _form_config(fields["config"])
+        return await run_in_threadpool(service.submit_archive, owner, archive.file, config,
+                                       fields["name"])
+    finally:
+        await form.close()
+
+
+async def _submit_named(request: Request, service: JobService, owner: str) -> Job:
+    limited = await _limited_body(request, MAX_JSON_BODY)
+    try:
+        body = JobSubmit.model_validate_json(await limited.body())
+    except ValidationError as exc:
+        raise HTTPException(422, json.loads(exc.json(include_url=False))) from None
+    return await run_in_threadpool(service.submit_named, owner, body.dataset, body.config,
+                                   body.name)
+
+
+@router.post("", status_code=201, response_model=JobOut, openapi_extra=_SUBMIT_BODY,
+             summary="Submit a training job",
+             responses={**_ERRORS,
+                        400: {"description": "Bad dataset or upload (the detail says why)."},
+                        404: {"description": "No dataset of that name on the server."},
+                        413: {"description": "Upload larger than the limits."},
+                        415: {"description": "Neither JSON nor multipart/form-data."},
+                        422: {"description": "Bad training config (the detail names the "
+                                             "key)."}})
+async def submit_job(request: Request, response: Response,
+                     principal: Principal = _TRAIN) -> JobOut:
+    """Train an avatar: on a dataset on the server (JSON ``{"dataset", "config", "name"}``)
+    or on an uploaded zip (multipart: ``archive``, ``config``, ``name``)."""
+    service = _service(request)
+    kind = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    try:
+        if kind == "application/json":
+            job = await _submit_named(request, service, principal.subject)
+        elif kind == "multipart/form-data":
+            job = await _submit_upload(request, service, principal.subject)
+        else:
+            raise HTTPException(415, "send application/json (a dataset on the server) or "
+                                     "multipart/form-data (an 'archive' zip)")
+    except SubmitError as exc:
+        raise HTTPException(exc.status, str(exc)) from None
+    response.headers["Location"] = f"{router.prefix}/{job.id}"
+    return JobOut.of(job)
+
+
+@router.get("", response_model=JobList, summary="List jobs", responses=_ERRORS)
+def list_jobs(request: Request,
+              state: Annotated[StateName | None, Query()] = None,
+              limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+              principal: Principal = _TRAIN) -> JobList:
+    """Your jobs, newest first (admins: everyone's)."""
+    owner = None if principal.is_admin else principal.subject
+    jobs = _service(request).store.list(owner=owner, state=state, limit=limit)
+    return JobList(jobs=[JobOut.of(j) for j in jobs])
+
+
+@router.get("/{job_id}", response_model=JobOut, summary="A job's status and progress",
+            responses=_ERRORS)
+def get_job(job_id: str, request: Request,
+            principal: Principal = _TRAIN) -> JobOut:
+    return JobOut.of(_visible(_service(request), principal, job_id))
+
+
+@router.post("/{job_id}/cancel", status_code=202, response_model=JobOut, summary="Cancel a job",
+             responses={**_ERRORS, 409: {"description": "The job has already finished."}})
+def cancel_job(job_id: str, request: Request,
+               principal: Principal = _TRAIN) -> JobOut:
+    """A queued job is cancelled at once; a running one when its process stops (within
+    seconds: ``cancel_requested`` is set meanwhile)."""
+    service = _service(request)
+    _visible(service, principal, job_id)
+    try:
+        return JobOut.of(service.cancel(job_id))
+    except InvalidTransition as exc:
+        raise HTTPException(409, str(exc)) from None
+
+
+@router.get("/{job_id}/result", response_model=JobResult, summary="The trained avatar",
+            responses={**_ERRORS, 409: {"description": "The job has not succeeded (yet)."}})
+def job_result(job_id: str, request: Request,
+               principal: Principal = _TRAIN) -> JobResult:
+    job = _visible(_service(request), principal, job_id)
+    if job.state != "succeeded" or job.avatar_id is None:
+        why = f": {job.error}" if job.error else ""
+        raise HTTPException(409, f"job {job.id} is {job.state}{why}; no avatar")
+    return JobResult(job_id=job.id, avatar_id=job.avatar_id)
+
+
+@router.get("/{job_id}/logs", response_class=PlainTextResponse, summary="The training log",
+            responses={**_ERRORS, 200: {"content": {"text/plain": {}}}})
+def job_logs(job_id: str, request: Request,
+             tail: Annotated[int | None, Query(ge=1, le=MAX_TAIL_LINES)] = None,
+             principal: Principal = _TRAIN) -> PlainTextResponse:
+    """The log (at most its last 1 MiB); ``tail``: only the last N lines."""
+    service = _service(request)
+    _visible(service, principal, job_id)
+    path = service.worker.job_dir(job_id) / LOG_FILE
+    text = ""
+    if path.is_file():
+        with open(path, "rb") as f:
+            size = f.seek(0, 2)
+            f.seek(max(0, size - MAX_LOG_BYTES))
+            data = f.read(MAX_LOG_BYTES)
+        text = data.decode("utf-8", errors="replace")
+        if size > MAX_LOG_BYTES:  # drop the cut first line
+            text = text.partition("\n")[2]
+    if tail is not None:
+        lines = text.splitlines()[-tail:]
+        text = "\n".join(lines) + ("\n" if lines else "")
+    return PlainTextResponse(text)
+
+
+def _sse(event_id: int | None, kind: str, data: dict[str, Any]) -> str:
+    head = f"id: {event_id}\n" if event_id is not None else ""
+    return f"{head}event: {kind}\ndata: {json.dumps(data, separators=(',', ':'))}\n\n"
+
+
+@router.get("/{job_id}/events", summary="Job events (Server-Sent Events)",
+            response_class=StreamingResponse,
+            responses={**_ERRORS, 200: {"content": {"text/event-stream": {}},
+                                        "description": "id: seq, event: type, data: JSON; "
+                                                       "a last 'end' event when the job ends."}})
+def job_events(job_id: str, request: Request,
+               after: Annotated[int, Query(ge=0)] = 0,
+               timeout: Annotated[float, Query(gt=0, le=MAX_STREAM_S)] = MAX_STREAM_S,
+               last_event_id: Annotated[str | None, Header()] = None,
+               principal: Principal = _TRAIN) -> StreamingResponse:
+    """Replays the events after ``after`` / ``Last-Event-ID`` (the larger), then streams new
+    ones; ends with an ``end`` event once the job has finished, or after ``timeout`` s
+    (reconnect with Last-Event-ID)."""
+    service = _service(request)
+    _visible(service, principal, job_id)
+    start = after
+    if last_event_id is not None and last_event_id.strip().isdigit():
+        start = max(start, int(last_event_id.strip()))
+    store = service.store
+
+    async def stream() -> Any:
+        loop = asyncio.get_running_loop()
+        seq, deadline = start, loop.time() + timeout
+        quiet_since = loop.time()
+        while True:
+            events = await run_in_threadpool(store.events, job_id, seq, EVENT_PAGE)
+            for ev in events:
+                yield _sse(ev.seq, ev.type, ev.data)
+                seq = ev.seq
+            now = loop.time()
+            if events:
+                quiet_since = now
+                if len(events) == EVENT_PAGE:
+                    continue
+            else:
+                job = await run_in_threadpool(store.get, job_id)
+                # its last state event is written with the state: nothing can follow it
+                if job.done and not await run_in_threadpool(store.events, job_id, seq, 1):
+                    yield _sse(None, "end", {"state": job.state, "avatar_id": job.avatar_id,
+                                             "error": job.error})
+                    return
+            if now >= deadline or await request.is_disconnected():
+                return
+            if now - quiet_since >= KEEPALIVE_S:
+                quiet_since = now
+                yield ": keepalive\n\n"
+            await asyncio.sleep(POLL_S)
+
+    return StreamingResponse(stream(), media_type="text/event-stream",
+                             headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})

@@ -1,0 +1,372 @@
+"""The job store: jobs, their states and their events.
+
+:class:`JobStore` is the interface the worker and the routes use; :class:`SQLiteJobStore` is
+the embedded default (stdlib sqlite3, WAL, one connection per thread). The training process
+opens the same database file, so a store must be safe across processes: every write is one
+``BEGIN IMMEDIATE`` transaction, and each state change appends its ``state`` event in the same
+transaction, so the event order is the order things happened. Another backend (a Ray
+cluster's, say) implements the same interface.
+"""
+
+from __future__ import annotations
+
+import json
+import secrets
+import sqlite3
+import threading
+import time
+from abc import ABC, abstractmethod
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+__all__ = ["ACTIVE", "STATES", "TERMINAL", "Event", "InvalidTransition", "Job", "JobNotFound",
+           "JobStore", "NewJob", "SQLiteJobStore"]
+
+STATES = ("queued", "running", "succeeded", "failed", "cancelled")
+ACTIVE = ("queued", "running")
+TERMINAL = ("succeeded", "failed", "cancelled")
+# Allowed transitions; running -> queued is the requeue of an interrupted run.
+_NEXT = {"queued": {"running", "cancelled", "failed"},
+         "running": {"succeeded", "failed", "cancelled", "queued"}}
+
+
+class JobNotFound(KeyError):
+    pass
+
+
+class InvalidTransition(ValueError):
+    pass
+
+
+@dataclass(frozen=True)
+class NewJob:
+    """What a submission gives the store."""
+
+    owner: str
+    dataset: str          # shown to users: "upload" or "dataset:<name>"
+    dataset_path: str     # where the worker reads it
+    config: dict[str, Any]  # the resolved TrainConfig as plain JSON types
+    total: int            # config["iterations"]
+    name: str | None = None
+    id: str | None = None  # None: a fresh random id
+
+
+@dataclass(frozen=True)
+class Job:
+    id: str
+    owner: str
+    name: str | None
+    state: str
+    dataset: str
+    dataset_path: str
+    config: dict[str, Any]
+    created: float
+    started: float | None
+    finished: float | None
+    iteration: int
+    total: int
+    loss: float | None
+    error: str | None
+    avatar_id: str | None
+    attempts: int
+    cancel_requested: bool
+
+    @property
+    def progress(self) -> float:
+        return min(1.0, self.iteration / self.total) if self.total > 0 else 0.0
+
+    @property
+    def done(self) -> bool:
+        return self.state in TERMINAL
+
+    def to_dict(self) -> dict[str, Any]:
+        return {**asdict(self), "progress": self.progress}
+
+
+@dataclass(frozen=True)
+class Event:
+    job_id: str
+    seq: int      # 1, 2, ... per job
+    time: float
+    data: dict[str, Any]  # always has "type"
+
+    @property
+    def type(self) -> str:
+        return str(self.data.get("type", "message"))
+
+
+def new_job_id() -> str:
+    return secrets.token_hex(8)
+
+
+class JobStore(ABC):
+    """Where jobs and their events live. Raises JobNotFound for an unknown id and
+    InvalidTransition for a state change the lifecycle does not allow."""
+
+    @abstractmethod
+    def create(self, new: NewJob) -> Job: ...
+
+    @abstractmethod
+    def get(self, job_id: str) -> Job: ...
+
+    @abstractmethod
+    def list(self, owner: str | None = None, state: str | None = None,
+             limit: int = 100) -> list[Job]:
+        """Newest first; ``owner`` None: every owner."""
+
+    @abstractmethod
+    def claim_next(self) -> Job | None:
+        """The oldest queued job, now running (attempts + 1); None when none is queued."""
+
+    @abstractmethod
+    def transition(self, job_id: str, state: str, *, error: str | None = None,
+                   avatar_id: str | None = None, note: dict[str, Any] | None = None) -> Job:
+        """Change the state (with a ``state`` event carrying ``note``)."""
+
+    @abstractmethod
+    def request_cancel(self, job_id: str) -> Job:
+        """Queued: cancelled at once. Running: flagged for the worker. Finished:
+        InvalidTransition."""
+
+    @abstractmethod
+    def report(self, job_id: str, event: dict[str, Any]) -> int:
+        """Append a trainer event (its ``iteration`` / ``loss`` update the job); its seq."""
+
+    @abstractmethod
+    def set_error(self, job_id: str, error: str) -> None:
+        """Record why a run is failing (the worker finishes the job)."""
+
+    @abstractmethod
+    def events(self, job_id: str, after: int = 0, limit: int = 1000) -> list[Event]: ...
+
+    def close(self) -> None:  # noqa: B027 - optional for backends without resources
+        pass
+
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS jobs (
+    id TEXT PRIMARY KEY,
+    owner TEXT NOT NULL,
+    name TEXT,
+    state TEXT NOT NULL CHECK (state IN ('queued','running','succeeded','failed','cancelled')),
+    dataset TEXT NOT NULL,
+    dataset_path TEXT NOT NULL,
+    config TEXT NOT NULL,
+    created REAL NOT NULL,
+    started REAL,
+    finished REAL,
+    iteration INTEGER NOT NULL DEFAULT 0,
+    total INTEGER NOT NULL,
+    loss REAL,
+    error TEXT,
+    avatar_id TEXT,
+    attempts INTEGER NOT NULL DEFAULT 0,
+    cancel_requested INTEGER NOT NULL DEFAULT 0
+);
+CREATE INDEX IF NOT EXISTS jobs_state ON jobs (state, created);
+CREATE INDEX IF NOT EXISTS jobs_owner ON jobs (owner, created);
+CREATE TABLE IF NOT EXISTS events (
+    job_id TEXT NOT NULL REFERENCES jobs (id) ON DELETE CASCADE,
+    seq INTEGER NOT NULL,
+    time REAL NOT NULL,
+    data TEXT NOT NULL,
+    PRIMARY KEY (job_id, seq)
+);
+"""
+_COLUMNS = ("id, owner, name, state, dataset, dataset_path, config, created, started, "
+            "finished, iteration, total, loss, error, avatar_id, attempts, cancel_requested")
+
+
+def _job(row: sqlite3.Row) -> Job:
+    values = dict(row)
+    values["config"] = json.loads(values["config"])
+    values["cancel_requested"] = bool(values["cancel_requested"])
+    return Job(**values)
+
+
+def _finite(x: Any) -> float | None:
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        return None
+    return v if v == v and abs(v) != float("inf") else None
+
+
+class SQLiteJobStore(JobStore):
+    """Jobs in one SQLite file; usable from many threads and processes at once."""
+
+    def __init__(self, path: str | Path, *, timeout_s: float = 30.0) -> None:
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.timeout_s = timeout_s
+        self._local = threading.local()
+        self._all: list[sqlite3.Connection] = []
+        self._lock = threading.Lock()
+        self._db().executescript(_SCHEMA)  # its own transaction (IF NOT EXISTS: idempotent)
+
+    # -- connections -----------------------------------------------------------------------
+
+    def _db(self) -> sqlite3.Connection:
+        db = getattr(self._local, "db", None)
+        if db is None:
+            # autocommit mode (isolation_level None): transactions are explicit below
+            db = sqlite3.connect(self.path, timeout=self.timeout_s, isolation_level=None,
+                                 check_same_thread=False)
+            db.row_factory = sqlite3.Row
+            db.execute("PRAGMA journal_mode=WAL")
+            db.execute("PRAGMA synchronous=NORMAL")
+            db.execute("PRAGMA foreign_keys=ON")
+            self._local.db = db
+            with self._lock:
+                self._all.append(db)
+        return db
+
+    @contextmanager
+    def _write(self) -> Iterator[sqlite3.Connection]:
+        db = self._db()
+        db.execute("BEGIN IMMEDIATE")  # take the write lock now: no upgrade deadlocks
+        try:
+            yield db
+        except BaseException:
+            db.execute("ROLLBACK")
+            raise
+        db.execute("COMMIT")
+
+    def close(self) -> None:
+        with self._lock:
+            conns, self._all = self._all, []
+        for db in conns:
+            try:
+                db.close()
+            except sqlite3.ProgrammingError:  # closed from its own thread already
+                pass
+        self._local = threading.local()
+
+    # -- helpers ---------------------------------------------------------------------------
+
+    def _get(self, db: sqlite3.Connection, job_id: str) -> Job:
+        row = db.execute(f"SELECT {_COLUMNS} FROM jobs WHERE id = ?", (job_id,)).fetchone()
+        if row is None:
+            raise JobNotFound(job_id)
+        return _job(row)
+
+    @staticmethod
+    def _append(db: sqlite3.Connection, job_id: str, data: dict[str, Any], now: float) -> int:
+        seq = db.execute("SELECT COALESCE(MAX(seq), 0) + 1 FROM events WHERE job_id = ?",
+                         (job_id,)).fetchone()[0]
+        db.execute("INSERT INTO events (job_id, seq, time, data) VALUES (?, ?, ?, ?)",
+                   (job_id, seq, now, json.dumps({**data, "time": now}, allow_nan=False)))
+        return int(seq)
+
+    def _move(self, db: sqlite3.Connection, job: Job, state: str, now: float, *,
+              note: dict[str, Any] | None = None, **columns: Any) -> None:
+        if state not in _NEXT.get(job.state, ()):
+            raise InvalidTransition(f"job {job.id} is {job.state}; it cannot become {state}")
+        columns["state"] = state
+        if state in TERMINAL:
+            columns["finished"] = now
+        sets = ", ".join(f"{k} = ?" for k in columns)
+        db.execute(f"UPDATE jobs SET {sets} WHERE id = ?", (*columns.values(), job.id))
+        event = {"type": "state", "state": state, **(note or {})}
+        if columns.get("error"):
+            event["error"] = columns["error"]
+        if columns.get("avatar_id"):
+            event["avatar_id"] = columns["avatar_id"]
+        self._append(db, job.id, event, now)
+
+    # -- the interface ---------------------------------------------------------------------
+
+    def create(self, new: NewJob) -> Job:
+        job_id = new.id or new_job_id()
+        now = time.time()
+        with self._write() as db:
+            db.execute(
+                "INSERT INTO jobs (id, owner, name, state, dataset, dataset_path, config, "
+                "created, total) VALUES (?, ?, ?, 'queued', ?, ?, ?, ?, ?)",
+                (job_id, new.owner, new.name, new.dataset, new.dataset_path,
+                 json.dumps(new.config), now, int(new.total)))
+            self._append(db, job_id, {"type": "state", "state": "queued"}, now)
+            return self._get(db, job_id)
+
+    def get(self, job_id: str) -> Job:
+        return self._get(self._db(), job_id)
+
+    def list(self, owner: str | None = None, state: str | None = None,
+             limit: int = 100) -> list[Job]:
+        where, args = [], []
+        if owner is not None:
+            where.append("owner = ?")
+            args.append(owner)
+        if state is not None:
+            where.append("state = ?")
+            args.append(state)
+        sql = f"SELECT {_COLUMNS} FROM jobs"
+        if where:
+            sql += " WHERE " + " AND ".join(where)
+        sql += " ORDER BY created DESC, rowid DESC LIMIT ?"
+        return [_job(r) for r in self._db().execute(sql, (*args, int(limit)))]
+
+    def claim_next(self) -> Job | None:
+        now = time.time()
+        with self._write() as db:
+            row = db.execute(f"SELECT {_COLUMNS} FROM jobs WHERE state = 'queued' "
+                             "ORDER BY created, rowid LIMIT 1").fetchone()
+            if row is None:
+                return None
+            job = _job(row)
+            self._move(db, job, "running", now, note={"attempt": job.attempts + 1},
+                       started=job.started or now, attempts=job.attempts + 1)
+            return self._get(db, job.id)
+
+    def transition(self, job_id: str, state: str, *, error: str | None = None,
+                   avatar_id: str | None = None, note: dict[str, Any] | None = None) -> Job:
+        now = time.time()
+        columns: dict[str, Any] = {}
+        if error is not None:
+            columns["error"] = error
+        if avatar_id is not None:
+            columns["avatar_id"] = avatar_id
+        with self._write() as db:
+            self._move(db, self._get(db, job_id), state, now, note=note, **columns)
+            return self._get(db, job_id)
+
+    def request_cancel(self, job_id: str) -> Job:
+        now = time.time()
+        with self._write() as db:
+            job = self._get(db, job_id)
+            if job.state == "queued":
+                self._move(db, job, "cancelled", now, error="cancelled before it ran",
+                           cancel_requested=1)
+            elif job.state == "running":
+                if not job.cancel_requested:
+                    db.execute("UPDATE jobs SET cancel_requested = 1 WHERE id = ?", (job_id,))
+                    self._append(db, job_id, {"type": "cancel_requested"}, now)
+            else:
+                raise InvalidTransition(f"job {job_id} has already finished ({job.state})")
+            return self._get(db, job_id)
+
+    def report(self, job_id: str, event: dict[str, Any]) -> int:
+        now = time.time()
+        data = {k: (_finite(v) if isinstance(v, float) else v) for k, v in event.items()}
+        data.setdefault("type", "message")
+        with self._write() as db:
+            self._get(db, job_id)
+            if isinstance(data.get("iteration"), int):
+                db.execute("UPDATE jobs SET iteration = ?, loss = COALESCE(?, loss) "
+                           "WHERE id = ?", (data["iteration"], _finite(data.get("loss")),
+                                            job_id))
+            return self._append(db, job_id, data, now)
+
+    def set_error(self, job_id: str, error: str) -> None:
+        with self._write() as db:
+            self._get(db, job_id)
+            db.execute("UPDATE jobs SET error = ? WHERE id = ?", (error, job_id))
+
+    def events(self, job_id: str, after: int = 0, limit: int = 1000) -> list[Event]:
+        rows = self._db().execute(
+            "SELECT job_id, seq, time, data FROM events WHERE job_id = ? AND seq > ? "
+            "ORDER BY seq LIMIT ?", (job_id, int(after), int(limit)))
+        return [Event(r["job_id"], r["seq"], r["time"], json.loads(r["data"])) for r in rows]

@@ -1,0 +1,38 @@
+"""Prometheus metrics, in a registry of the app's own (several apps may live in one process)."""
+
+from __future__ import annotations
+
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
+
+LATENCY_BUCKETS_MS = (2, 5, 10, 20, 35, 50, 75, 100, 150, 250, 500, 1000, 2500)
+
+
+class ServerMetrics:
+    def __init__(self) -> None:
+        self.registry = CollectorRegistry()
+        r = self.registry
+        self.sessions = Gauge("telesplat_sessions", "Streaming sessions open now", registry=r)
+        self.sessions_total = Counter("telesplat_sessions_opened", "Sessions opened",
+                                      registry=r)
+        self.sessions_refused = Counter("telesplat_sessions_refused",
+                                        "Sessions refused, by reason", ["reason"], registry=r)
+        self.frames = Counter("telesplat_frames", "Frames sent, by codec", ["codec"],
+                              registry=r)
+        self.dropped = Counter("telesplat_frames_dropped", "Inputs superseded before they got "
+                               "a frame of their own", registry=r)
+        self.coalesced = Counter("telesplat_drives_coalesced",
+                                 "Drives merged into a later one before rendering", registry=r)
+        self.bytes_sent = Counter("telesplat_frame_bytes", "Encoded frame bytes sent",
+                                  registry=r)
+        self.messages = Counter("telesplat_messages", "Client messages received, by type",
+                                ["type"], registry=r)
+        self.errors = Counter("telesplat_errors", "Error messages sent, by code", ["code"],
+                              registry=r)
+        self.stage_ms = Histogram("telesplat_stage_ms", "Milliseconds per frame stage",
+                                  ["stage"], buckets=LATENCY_BUCKETS_MS, registry=r)
+        self.render_queue = Gauge("telesplat_render_queue", "Renders queued or running",
+                                  registry=r)
+        self.avatars = Gauge("telesplat_avatars", "Avatars in the registry", registry=r)
+
+    def render_text(self) -> bytes:
+        return generate_latest(self.registry)

@@ -1,0 +1,240 @@
+"""Avatar packages the server can stream: ``<root>/<id>/{record.json, package/}``.
+
+A package is validated with ``load_package`` before anything lands in the registry, copied to a
+temporary folder inside ``root`` and renamed into place, so a reader never sees half an
+avatar and a failed add leaves nothing behind. Records (owner, name, metadata) survive
+restarts. Loaded avatars are cached; each streaming session gets its own animator (posing
+is stateful) over the shared, read-only model tensors.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import re
+import secrets
+import shutil
+import tempfile
+import threading
+import time
+import zipfile
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from avatar_core.body.cache import StageCache
+from avatar_core.gaussians.animate import AvatarAnimator
+from avatar_core.gaussians.package import (
+    GAUSSIANS,
+    MANIFEST,
+    MAX_PACKAGE_BYTES,
+    PackageError,
+    load_package,
+    save_package,
+)
+from avatar_core.pipeline import LoadedAvatar, load_avatar
+
+from .auth import PUBLIC_OWNER
+
+RECORD, PACKAGE_DIR = "record.json", "package"
+ID_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$")
+DEMO_ID = "demo"
+
+
+class AvatarNotFound(KeyError):
+    pass
+
+
+@dataclass
+class AvatarRecord:
+    id: str
+    name: str
+    owner: str
+    num_gaussians: int
+    sh_degree: int
+    created: float
+    size_bytes: int
+    source: str = ""  # where it came from (a demo spec, a job id, "upload")
+    metadata: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def _dir_size(path: Path) -> int:
+    return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
+
+
+class AvatarRegistry:
+    """Avatar packages under ``root``, with owners; thread-safe."""
+
+    def __init__(self, root: str | Path, *, max_package_bytes: int = MAX_PACKAGE_BYTES) -> None:
+        self.root = Path(root)
+        self.root.mkdir(parents=True, exist_ok=True)
+        self.max_package_bytes = max_package_bytes
+        self._lock = threading.RLock()
+        self._records: dict[str, AvatarRecord] = {}
+        self._loaded: dict[str, LoadedAvatar] = {}
+        self._load_locks: dict[str, threading.Lock] = {}
+        self._scan()
+
+    # -- records ---------------------------------------------------------------------------
+
+    def _scan(self) -> None:
+        for rec_file in sorted(self.root.glob(f"*/{RECORD}")):
+            try:
+                rec = AvatarRecord(**json.loads(rec_file.read_text()))
+            except (ValueError, TypeError):
+                continue  # a damaged record is skipped, not fatal
+            if rec.id == rec_file.parent.name:
+                self._records[rec.id] = rec
+        for tmp in self.root.glob(".incoming-*"):  # leftovers of a crash mid-add
+            shutil.rmtree(tmp, ignore_errors=True)
+
+    def package_dir(self, avatar_id: str) -> Path:
+        return self.root / avatar_id / PACKAGE_DIR
+
+    def get(self, avatar_id: str) -> AvatarRecord:
+        with self._lock:
+            rec = self._records.get(avatar_id) if isinstance(avatar_id, str) else None
+        if rec is None:
+            raise AvatarNotFound(avatar_id)
+        return rec
+
+    def list(self, owner: str | None = None, *, include_public: bool = False
+             ) -> list[AvatarRecord]:
+        """Records of ``owner`` (all when None), plus the public ones if asked, oldest first."""
+        with self._lock:
+            recs = list(self._records.values())
+        if owner is not None:
+            owners = {owner, PUBLIC_OWNER} if include_public else {owner}
+            recs = [r for r in recs if r.owner in owners]
+        return sorted(recs, key=lambda r: (r.created, r.id))
+
+    # -- adding and removing -----------------------------------------------------------------
+
+    def add_package(self, src: str | Path, owner: str, name: str | None = None, *,
+                    avatar_id: str | None = None, source: str = "",
+                    metadata: dict[str, Any] | None = None) -> AvatarRecord:
+        """Validate a package (folder or zip) and copy it in atomically; PackageError if bad.
+
+        ``avatar_id``: a fixed id (replaces an avatar of that id), else a fresh random one.
+        """
+        src = Path(src)
+        package = load_package(src, max_bytes=self.max_package_bytes)  # raises PackageError
+        avatar_id = avatar_id or secrets.token_hex(8)
+        if not ID_PATTERN.match(avatar_id):
+            raise ValueError(f"bad avatar id {avatar_id!r}")
+        staging = Path(tempfile.mkdtemp(prefix=".incoming-", dir=self.root))
+        try:
+            target = staging / PACKAGE_DIR
+            target.mkdir()
+            if src.is_dir():
+                for member in (MANIFEST, GAUSSIANS):
+                    shutil.copyfile(src / member, target / member)
+            else:
+                _extract_members(src, target)
+            rec = AvatarRecord(
+                id=avatar_id, name=name or package.name, owner=owner,
+                num_gaussians=package.avatar.num, sh_degree=package.avatar.sh_degree,
+                created=time.time(), size_bytes=_dir_size(target), source=source,
+                metadata={**package.metadata, **(metadata or {})})
+            (staging / RECORD).write_text(json.dumps(rec.to_dict(), indent=2))
+            with self._lock:
+                final = self.root / avatar_id
+                if final.exists():
+                    self._remove_dir(final)
+                staging.rename(final)
+                self._records[avatar_id] = rec
+                self._loaded.pop(avatar_id, None)
+            return rec
+        finally:
+            shutil.rmtree(staging, ignore_errors=True)
+
+    def _remove_dir(self, path: Path) -> None:
+        # Rename first so the id is free at once; then delete at leisure.
+        trash = path.with_name(f".incoming-trash-{secrets.token_hex(4)}")
+        path.rename(trash)
+        shutil.rmtree(trash, ignore_errors=True)
+
+    def delete(self, avatar_id: str) -> None:
+        with self._lock:
+            self.get(avatar_id)
+            self._remove_dir(self.root / avatar_id)
+            self._records.pop(avatar_id, None)
+            self._loaded.pop(avatar_id, None)
+
+    def write_zip(self, avatar_id: str, out: str | Path) -> Path:
+        """The avatar's package as a zip (what an upload accepts)."""
+        self.get(avatar_id)
+        pkg = self.package_dir(avatar_id)
+        out = Path(out)
+        with zipfile.ZipFile(out, "w", zipfile.ZIP_DEFLATED) as z:
+            for member in (MANIFEST, GAUSSIANS):
+                z.write(pkg / member, member)
+        return out
+
+    # -- the demo avatar ---------------------------------------------------------------------
+
+    def register_demo(self, spec: str) -> AvatarRecord | None:
+        """The start-up demo avatar (owner 'public', id 'demo'): 'synthetic[:N]', 'trained',
+        'none' or a package path. Kept as is when already registered from the same spec."""
+        if spec == "none":
+            return None
+        with self._lock:
+            existing = self._records.get(DEMO_ID)
+        if existing is not None and existing.source == f"demo:{spec}" and spec != "trained":
+            return existing
+        if spec == "synthetic" or spec.startswith("synthetic:"):
+            loaded = load_avatar(spec)
+            with tempfile.TemporaryDirectory(dir=self.root, prefix=".incoming-") as tmp:
+                src = save_package(loaded.package, Path(tmp) / "pkg")
+                return self.add_package(src, PUBLIC_OWNER, avatar_id=DEMO_ID,
+                                        source=f"demo:{spec}")
+        if spec == "trained":
+            from avatar_core.demo import ensure_demo_avatar  # the lead's; trains once, cached
+
+            path = Path(ensure_demo_avatar())
+        else:
+            path = Path(spec)
+        return self.add_package(path, PUBLIC_OWNER, avatar_id=DEMO_ID, source=f"demo:{spec}")
+
+    # -- loading for streaming ---------------------------------------------------------------
+
+    def open(self, avatar_id: str) -> LoadedAvatar:
+        """The loaded avatar (package + animator), cached. Its animator is shared: sessions
+        should use :meth:`new_animator` instead of posing with it."""
+        self.get(avatar_id)
+        with self._lock:
+            lock = self._load_locks.setdefault(avatar_id, threading.Lock())
+        with lock:  # one load per avatar, even when many sessions start at once
+            with self._lock:
+                loaded = self._loaded.get(avatar_id)
+            if loaded is None:
+                loaded = load_avatar(str(self.package_dir(avatar_id)))
+                with self._lock:
+                    if avatar_id in self._records:
+                        self._loaded[avatar_id] = loaded
+        return loaded
+
+    def new_animator(self, avatar_id: str) -> tuple[LoadedAvatar, AvatarAnimator]:
+        """A fresh animator for one session: the model's tensors are shared (read-only), its
+        stage cache and the animator's last-pose cache are the session's own."""
+        loaded = self.open(avatar_id)
+        base = loaded.animator
+        model = copy.copy(base.body_model)  # shallow: same parameter tensors
+        object.__setattr__(model, "cache", StageCache(enabled=base.body_model.cache.enabled))
+        animator = AvatarAnimator(model, base.avatar, betas=base.betas)
+        return loaded, animator
+
+
+def _extract_members(src: Path, target: Path) -> None:
+    """Copy the two package members out of a zip that ``load_package`` has already checked."""
+    with zipfile.ZipFile(src) as z:
+        names = {Path(i.filename).name: i for i in z.infolist() if not i.is_dir()}
+        for member in (MANIFEST, GAUSSIANS):
+            with z.open(names[member]) as fin, open(target / member, "wb") as fout:
+                shutil.copyfileobj(fin, fout, 1 << 20)
+
+
+__all__ = ["DEMO_ID", "AvatarNotFound", "AvatarRecord", "AvatarRegistry", "PackageError"]

@@ -1,0 +1,127 @@
+"""One session's frame work, run on a render thread: pose -> rasterize -> encode.
+
+A session never has two renders in flight, so the state here (the animator's caches, the H.264
+encoder) is touched by one thread at a time.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from avatar_core.body.models import MANOModel
+from avatar_core.gaussians.animate import AvatarAnimator
+from avatar_core.pipeline import LoadedAvatar
+from avatar_core.render.camera import Camera, orbit
+from avatar_core.render.rasterize import rasterize
+from avatar_core.render.types import RenderRequest
+from protocol import Request, Timings, View
+
+from .drive import DriveState, drive_shapes
+from .encoders import H264Encoder, encode_depth_png, encode_jpeg, encode_png
+
+CHEST_DROP_M = 0.2  # orbit target: this far below the neck joint (as the render CLI)
+
+
+@dataclass(frozen=True)
+class FrameJob:
+    """A snapshot of what one frame shows."""
+
+    drive: DriveState
+    view: View
+    request: Request          # effective: every field set
+    jpeg_quality: int         # already lowered when the view moves
+
+
+@dataclass
+class RenderedFrame:
+    seq: int
+    codec: str
+    width: int
+    height: int
+    data: bytes
+    depth: bytes | None
+    keyframe: bool
+    timings: Timings
+    stats: dict = field(default_factory=dict)
+
+
+class SessionRenderer:
+    def __init__(self, loaded: LoadedAvatar, animator: AvatarAnimator,
+                 manos: dict[str, MANOModel], backend: str = "auto") -> None:
+        self.animator = animator
+        self.manos = manos
+        self.backend = backend
+        model = animator.body_model
+        self.shapes = drive_shapes(model, manos)
+        self.chest = model.joint_template[12].cpu().numpy() - np.array([0.0, CHEST_DROP_M, 0.0])
+        self._h264: H264Encoder | None = None
+        self._last_codec: str | None = None
+        self._closed = threading.Event()
+
+    def camera(self, view: View, width: int, height: int) -> Camera:
+        if view.camera is not None:
+            c = view.camera
+            cam = Camera(np.asarray(c.K), np.asarray(c.R), np.asarray(c.t), c.width, c.height)
+            return cam if cam.size == (width, height) else cam.resized(width, height)
+        o = view.orbit
+        target = self.chest if o.target is None else np.asarray(o.target, dtype=np.float64)
+        return orbit(target, o.yaw_deg, o.pitch_deg, o.distance, width=width, height=height,
+                     fov_y_deg=o.fov_y_deg)
+
+    def render(self, job: FrameJob) -> RenderedFrame:
+        req = job.request
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            params = job.drive.smplx_params(self.animator.body_model, self.manos)
+            posed = self.animator.pose(params)
+            t1 = time.perf_counter()
+            cam = self.camera(job.view, req.width, req.height)
+            outputs = tuple(dict.fromkeys(("rgb", *req.outputs)))  # rgb always: frame.data
+            budget = None if req.quality >= 1.0 else float(req.quality)
+            out = rasterize(posed.gaussians, cam, RenderRequest(
+                outputs=outputs, background=tuple(req.background), sh_degree=req.sh_degree,
+                budget=budget, backend=self.backend))
+            rgb = (out.rgb.clamp(0, 1) * 255).round().to(torch.uint8).cpu().numpy()  # [H,W,3]
+            alpha = None if out.alpha is None else \
+                (out.alpha.clamp(0, 1) * 255).round().to(torch.uint8).cpu().numpy()  # [H, W]
+            depth = None if out.depth is None else out.depth.cpu().numpy()  # [H, W] metres
+        t2 = time.perf_counter()
+        codec, keyframe = req.codec, True
+        if "alpha" in req.outputs and codec != "h264":
+            codec, data = "png", encode_png(rgb, alpha)
+        elif codec == "png":
+            data = encode_png(rgb)
+        elif codec == "h264":
+            data, keyframe = self._encode_h264(rgb, req)
+        else:
+            data = encode_jpeg(rgb, job.jpeg_quality)
+        self._last_codec = codec
+        depth_png = encode_depth_png(depth) if "depth" in req.outputs else None
+        t3 = time.perf_counter()
+        timings = Timings(pose=(t1 - t0) * 1e3, render=(t2 - t1) * 1e3, encode=(t3 - t2) * 1e3)
+        return RenderedFrame(job.drive.seq, codec, cam.width, cam.height, data, depth_png,
+                             keyframe, timings, {"n_rendered": out.stats.get("n_rendered")})
+
+    def _encode_h264(self, rgb: np.ndarray, req: Request) -> tuple[bytes, bool]:
+        h, w = rgb.shape[:2]
+        if self._h264 is None or (self._h264.width, self._h264.height) != (w, h):
+            if self._h264 is not None:
+                self._h264.close()
+            self._h264 = H264Encoder(w, h, fps=req.max_fps)
+        elif self._last_codec != "h264":
+            self._h264.force_keyframe()  # back from another codec: the client restarts here
+        return self._h264.encode(rgb)
+
+    def force_keyframe(self) -> None:
+        if self._h264 is not None:
+            self._h264.force_keyframe()
+
+    def close(self) -> None:
+        if self._h264 is not None:
+            self._h264.close()
+            self._h264 = None

@@ -1,0 +1,154 @@
+"""REST ``/v1/avatars``: list, get, upload (zip), download (zip), delete.
+
+Reading needs the ``stream`` scope, uploading and deleting the ``train`` scope. A caller sees
+its own avatars and the public ones (an admin sees all). Unknown ids are 404; an avatar that
+exists but is another owner's is 403.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import tempfile
+from pathlib import Path
+from typing import Any
+
+from fastapi import APIRouter, HTTPException, Request, status
+from fastapi.responses import FileResponse
+from pydantic import BaseModel, Field
+from starlette.background import BackgroundTask
+
+from .auth import Principal, require_scope
+from .context import ServerContext
+from .registry import AvatarNotFound, AvatarRecord, PackageError
+from .uploads import receive_upload
+
+router = APIRouter(prefix="/v1/avatars", tags=["avatars"])
+_STREAM = require_scope("stream")  # reading
+_TRAIN = require_scope("train")    # creating and deleting
+
+
+class AvatarOut(BaseModel):
+    id: str
+    name: str
+    owner: str
+    num_gaussians: int
+    sh_degree: int
+    created: float = Field(description="Unix time it was added")
+    size_bytes: int
+    source: str = ""
+    metadata: dict[str, Any] = Field(default_factory=dict)
+
+    @classmethod
+    def of(cls, rec: AvatarRecord) -> AvatarOut:
+        return cls(**rec.to_dict())
+
+
+class ErrorOut(BaseModel):
+    detail: str
+
+
+ERRORS: dict[int | str, dict[str, Any]] = {
+    401: {"model": ErrorOut, "description": "Missing or invalid token"},
+    403: {"model": ErrorOut, "description": "Wrong scope, or another owner's avatar"},
+}
+
+
+def _ctx(request: Request) -> ServerContext:
+    return request.app.state.ctx
+
+
+def _visible(ctx: ServerContext, principal: Principal, avatar_id: str) -> AvatarRecord:
+    try:
+        rec = ctx.registry.get(avatar_id)
+    except AvatarNotFound:
+        raise HTTPException(404, f"no avatar {avatar_id!r}") from None
+    if not principal.can_see(rec.owner):
+        raise HTTPException(403, f"avatar {avatar_id!r} belongs to another owner")
+    return rec
+
+
+@router.get("", summary="List avatars", response_model=list[AvatarOut], responses=ERRORS)
+def list_avatars(request: Request, principal: Principal = _STREAM
+                 ) -> list[AvatarOut]:
+    """The caller's avatars and the public ones (every avatar for an admin)."""
+    registry = _ctx(request).registry
+    recs = registry.list() if principal.is_admin else \
+        registry.list(principal.subject, include_public=True)
+    return [AvatarOut.of(r) for r in recs]
+
+
+@router.get("/{avatar_id}", summary="Get one avatar", response_model=AvatarOut,
+            responses={**ERRORS, 404: {"model": ErrorOut, "description": "No such avatar"}})
+def get_avatar(avatar_id: str, request: Request,
+               principal: Principal = _STREAM) -> AvatarOut:
+    return AvatarOut.of(_visible(_ctx(request), principal, avatar_id))
+
+
+@router.post(
+    "", summary="Upload an avatar package (zip)", status_code=status.HTTP_201_CREATED,
+    response_model=AvatarOut,
+    responses={**ERRORS, 400: {"model": ErrorOut, "description": "Malformed body"},
+               413: {"model": ErrorOut, "description": "Larger than max_upload_bytes"},
+               422: {"model": ErrorOut, "description": "Not a valid avatar package"}},
+    openapi_extra={"requestBody": {"required": True, "content": {
+        "multipart/form-data": {"schema": {
+            "type": "object", "required": ["file"],
+            "properties": {"file": {"type": "string", "format": "binary"},
+                           "name": {"type": "string", "maxLength": 200}}}},
+        "application/zip": {"schema": {"type": "string", "format": "binary"}}}}})
+async def upload_avatar(request: Request, name: str | None = None,
+                        principal: Principal = _TRAIN) -> AvatarOut:
+    """A package zip (``avatar.json`` + ``gaussians.npz``), validated before anything is
+    unpacked; the caller owns the new avatar. ``name`` (query or form field) overrides the
+    package's name."""
+    ctx = _ctx(request)
+    upload = await receive_upload(request, ctx.settings.data_dir / "tmp",
+                                  ctx.settings.max_upload_bytes)
+    try:
+        rec = await asyncio.to_thread(
+            ctx.registry.add_package, upload.path, principal.subject,
+            name or upload.name, source="upload")
+    except PackageError as exc:
+        raise HTTPException(422, f"not a valid avatar package: {exc}".replace(
+            str(upload.path), "upload")) from None
+    finally:
+        upload.path.unlink(missing_ok=True)
+    ctx.metrics.avatars.set(len(ctx.registry.list()))
+    return AvatarOut.of(rec)
+
+
+@router.get("/{avatar_id}/package", summary="Download an avatar package (zip)",
+            response_class=FileResponse,
+            responses={**ERRORS, 200: {"content": {"application/zip": {}}},
+                       404: {"model": ErrorOut, "description": "No such avatar"}})
+async def download_avatar(avatar_id: str, request: Request,
+                          principal: Principal = _STREAM) -> FileResponse:
+    ctx = _ctx(request)
+    rec = _visible(ctx, principal, avatar_id)
+    tmp_dir = ctx.settings.data_dir / "tmp"
+    tmp_dir.mkdir(parents=True, exist_ok=True)
+    with tempfile.NamedTemporaryFile(dir=tmp_dir, suffix=".zip", delete=False) as fh:
+        path = Path(fh.name)
+    try:
+        await asyncio.to_thread(ctx.registry.write_zip, rec.id, path)
+    except (AvatarNotFound, OSError):
+        path.unlink(missing_ok=True)
+        raise HTTPException(404, f"no avatar {avatar_id!r}") from None
+    return FileResponse(path, media_type="application/zip", filename=f"{rec.id}.zip",
+                        background=BackgroundTask(path.unlink, missing_ok=True))
+
+
+@router.delete("/{avatar_id}", summary="Delete an avatar", status_code=204,
+               responses={**ERRORS, 404: {"model": ErrorOut, "description": "No such avatar"}})
+def delete_avatar(avatar_id: str, request: Request,
+                  principal: Principal = _TRAIN) -> None:
+    """Only its owner or an admin may delete an avatar (public ones: admins only)."""
+    ctx = _ctx(request)
+    rec = _visible(ctx, principal, avatar_id)
+    if not principal.can_modify(rec.owner):
+        raise HTTPException(403, f"only the owner or an admin may delete avatar {avatar_id!r}")
+    try:
+        ctx.registry.delete(avatar_id)
+    except AvatarNotFound:
+        raise HTTPException(404, f"no avatar {avatar_id!r}") from None
+    ctx.metrics.avatars.set(len(ctx.registry.list()))

@@ -1,0 +1,89 @@
+"""REST ``/v1/motions``: the built-in motion library (expressions, gestures, conversation) as
+per-frame SMPL-X parameters, so that the browser page and other clients can play the clips.
+
+Clips become parameters only through an avatar's body-model rig (its expression names,
+gesture hand shapes and hand means), so ``GET /v1/motions/{name}`` samples the clip for one
+avatar. ``betas`` are left out: a drive with them would replace the avatar's identity.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from fastapi import APIRouter, HTTPException, Query, Request
+from pydantic import BaseModel, Field
+
+from avatar_core.synth.body_demo import model_rig
+from avatar_core.synth.motion import Rig
+from avatar_core.synth.motions import ALIASES, MOTIONS, motion
+
+from .auth import Principal, require_scope
+from .context import ServerContext
+from .registry import AvatarNotFound
+
+router = APIRouter(prefix="/v1/motions", tags=["motions"])
+_STREAM = require_scope("stream")
+MAX_FPS = 60.0
+
+
+class MotionOut(BaseModel):
+    name: str
+    category: str
+    duration: float = Field(description="seconds")
+
+
+class MotionList(BaseModel):
+    motions: list[MotionOut]
+
+
+class MotionFrames(MotionOut):
+    fps: float
+    frames: list[dict[str, dict[str, list[Any]]]] = Field(
+        description="per frame a drive body: {'smplx': {field: nested list}}")
+
+
+@router.get("", summary="List the built-in motion clips", response_model=MotionList)
+def list_motions(principal: Principal = _STREAM) -> MotionList:
+    return MotionList(motions=[MotionOut(name=n, category=s.category,
+                                         duration=round(motion(n).duration, 3))
+                               for n, s in MOTIONS.items()])
+
+
+def _rig(request: Request, avatar_id: str) -> Rig:
+    """The avatar's rig, cached per app (a race only computes one twice)."""
+    rigs: dict[str, Rig] | None = getattr(request.app.state, "motion_rigs", None)
+    if rigs is None:
+        rigs = request.app.state.motion_rigs = {}
+    if avatar_id not in rigs:
+        ctx: ServerContext = request.app.state.ctx
+        loaded = ctx.registry.open(avatar_id)
+        rigs[avatar_id] = model_rig(loaded.files, loaded.animator.body_model)
+    return rigs[avatar_id]
+
+
+@router.get("/{name}", summary="A clip sampled for one avatar", response_model=MotionFrames,
+            responses={404: {"description": "Unknown motion or avatar"},
+                       403: {"description": "Another owner's avatar"}})
+def get_motion(name: str, request: Request, principal: Principal = _STREAM,
+               avatar: str = Query(description="avatar id whose rig samples the clip"),
+               fps: float = Query(30.0, gt=0, le=MAX_FPS)) -> MotionFrames:
+    ctx: ServerContext = request.app.state.ctx
+    canonical = ALIASES.get(name, name)
+    if canonical not in MOTIONS:
+        raise HTTPException(404, f"unknown motion {name!r}; known: {sorted(MOTIONS)}")
+    clip = motion(canonical)
+    try:
+        record = ctx.registry.get(avatar)
+    except AvatarNotFound:
+        raise HTTPException(404, f"no avatar {avatar!r}") from None
+    if not principal.can_see(record.owner):
+        raise HTTPException(403, f"avatar {avatar!r} belongs to another owner")
+    rig = _rig(request, record.id)
+    count = max(1, int(round(clip.duration * fps)) + 1)
+    frames = []
+    for i in range(count):
+        params = clip.sample(min(i / fps, clip.duration), rig)
+        params.pop("betas", None)
+        frames.append({"smplx": {k: v.tolist() for k, v in params.items()}})
+    return MotionFrames(name=canonical, category=MOTIONS[canonical].category,
+                        duration=clip.duration, fps=fps, frames=frames)

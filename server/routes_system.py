@@ -1,0 +1,39 @@
+"""``/v1/health`` (no auth) and ``/metrics`` (Prometheus text, no auth)."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Request, Response
+from prometheus_client import CONTENT_TYPE_LATEST
+from pydantic import BaseModel
+
+from protocol import PROTOCOL_VERSION
+
+from .context import ServerContext
+
+router = APIRouter(tags=["system"])
+
+
+class HealthOut(BaseModel):
+    status: str
+    protocol_version: int
+    sessions: int
+    max_sessions: int
+    avatars: int
+    render_queue: int
+
+
+@router.get("/v1/health", summary="Liveness and load", response_model=HealthOut)
+def health(request: Request) -> HealthOut:
+    ctx: ServerContext = request.app.state.ctx
+    return HealthOut(status="ok", protocol_version=PROTOCOL_VERSION, sessions=ctx.slots.count,
+                     max_sessions=ctx.slots.limit, avatars=len(ctx.registry.list()),
+                     render_queue=ctx.scheduler.queued)
+
+
+@router.get("/metrics", summary="Prometheus metrics", response_class=Response,
+            responses={200: {"content": {CONTENT_TYPE_LATEST: {}}}})
+def metrics(request: Request) -> Response:
+    ctx: ServerContext = request.app.state.ctx
+    ctx.metrics.sessions.set(ctx.slots.count)
+    ctx.metrics.render_queue.set(ctx.scheduler.queued)
+    return Response(ctx.metrics.render_text(), media_type=CONTENT_TYPE_LATEST)

@@ -1,0 +1,311 @@
+"""One streaming session: a receiver, a render loop and a control sender over one WebSocket.
+
+Latest input wins. The receiver applies every message to the session state at once (a drive
+merges into the parameters, a view replaces the camera, a request updates the render
+settings) and raises a flag; the render loop takes a snapshot of the newest state only, so
+inputs that arrive while a frame is being made are coalesced into the next one, never queued.
+The render loop sends each frame before it renders the next: with at most one frame in the
+send path, a slow client gets fewer, fresh frames instead of a growing backlog. Control
+messages (errors, pongs, stats) go through a small bounded queue of their own, so the
+receiver never waits on the socket.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import contextlib
+import logging
+import statistics
+import time
+import uuid
+from dataclasses import dataclass
+from typing import Any
+
+from fastapi import WebSocket
+from starlette.websockets import WebSocketDisconnect
+
+from protocol import (
+    PROTOCOL_VERSION,
+    Drive,
+    Error,
+    Frame,
+    Hello,
+    Image,
+    Limits,
+    Ping,
+    Pong,
+    ProtocolError,
+    Request,
+    Stats,
+    View,
+    decode_client,
+    encode,
+)
+from protocol.messages import Answers
+
+from .drive import DriveState, fit_drive
+from .metrics import ServerMetrics
+from .renderer import FrameJob, RenderedFrame, SessionRenderer
+from .scheduler import RenderScheduler
+
+log = logging.getLogger(__name__)
+
+CONTROL_QUEUE = 64        # pending control messages; past it new ones are dropped
+RENDER_MS_WINDOW = 50     # frames in the stats median
+H264_ALIGN = 2            # H.264 wants even sizes
+
+
+class TokenBucket:
+    """``rate`` tokens per second, at most ``burst`` saved up."""
+
+    def __init__(self, rate: float, burst: float | None = None) -> None:
+        self.rate = rate
+        self.capacity = burst if burst is not None else max(1.0, rate)
+        self.tokens = self.capacity
+        self.stamp = time.monotonic()
+
+    def take(self) -> bool:
+        now = time.monotonic()
+        self.tokens = min(self.capacity, self.tokens + (now - self.stamp) * self.rate)
+        self.stamp = now
+        if self.tokens >= 1.0:
+            self.tokens -= 1.0
+            return True
+        return False
+
+
+@dataclass
+class SessionConfig:
+    limits: Limits
+    jpeg_quality: int
+    jpeg_quality_moving: int
+    stats_interval_s: float
+
+
+def error_message(code: str, message: str, answers: dict | None = None) -> Error:
+    return Error(code=code, message=message,
+                 answers=Answers(**answers) if answers else None)
+
+
+class StreamSession:
+    def __init__(self, ws: WebSocket, renderer: SessionRenderer, scheduler: RenderScheduler,
+                 metrics: ServerMetrics, config: SessionConfig, request: Request, view: View,
+                 session_count: Any) -> None:
+        self.id = uuid.uuid4().hex[:12]
+        self.ws = ws
+        self.renderer = renderer
+        self.scheduler = scheduler
+        self.metrics = metrics
+        self.config = config
+        self.limits = config.limits
+        self.request = request
+        self.view = view
+        self.drive = DriveState()
+        self.shapes = renderer.shapes
+        self.session_count = session_count  # () -> int, for stats
+        self.bucket = TokenBucket(self.limits.max_messages_per_s)
+        self._dirty = asyncio.Event()
+        self._dirty.set()  # the first frame shows the rest pose
+        self._control: asyncio.Queue = asyncio.Queue(CONTROL_QUEUE)
+        self._send_lock = asyncio.Lock()
+        self._inflight = None  # concurrent future of the render running now
+        # counters
+        self.frames = 0
+        self.dropped = 0
+        self.coalesced = 0
+        self.bytes_sent = 0
+        self._pending_inputs = 1  # inputs waiting for a frame (the initial one)
+        self._pending_drives = 0
+        self._render_ms: collections.deque[float] = collections.deque(maxlen=RENDER_MS_WINDOW)
+        self.closed = asyncio.Event()
+
+    # -- sending -----------------------------------------------------------------------------
+
+    async def _send(self, data: bytes) -> None:
+        async with self._send_lock:
+            await self.ws.send_bytes(data)
+
+    def send_control(self, message: Any) -> None:
+        """Queue a control message; dropped (and counted) if the client is that far behind."""
+        if isinstance(message, Error):
+            self.metrics.errors.labels(message.code).inc()
+        with contextlib.suppress(asyncio.QueueFull):
+            self._control.put_nowait(encode(message))
+
+    def send_error(self, code: str, message: str, answers: dict | None = None) -> None:
+        self.send_control(error_message(code, message, answers))
+
+    async def _control_sender(self) -> None:
+        while True:
+            data = await self._control.get()
+            await self._send(data)
+
+    # -- receiving ---------------------------------------------------------------------------
+
+    async def _receiver(self) -> None:
+        while True:
+            message = await self.ws.receive()
+            if message["type"] == "websocket.disconnect":
+                return
+            data = message.get("bytes")
+            if data is None:
+                self.send_error("bad_message", "messages are binary msgpack frames, not text")
+                continue
+            if not self.bucket.take():
+                self.metrics.messages.labels("rate_limited").inc()
+                self.send_error("rate_limited", f"more than {self.limits.max_messages_per_s:g} "
+                                                "messages per second; this one was dropped")
+                continue
+            try:
+                msg = decode_client(data, self.limits)
+                self.metrics.messages.labels(msg.type).inc()
+                self.handle(msg)
+            except ProtocolError as exc:
+                self.metrics.messages.labels("invalid").inc()
+                self.send_error(exc.code, exc.message, exc.answers)
+
+    def handle(self, msg: Any) -> None:
+        """Apply one decoded client message to the session state (never blocks)."""
+        if isinstance(msg, Drive):
+            fitted = fit_drive(msg, self.shapes)  # ProtocolError before anything changes
+            self.drive.apply(msg, fitted)
+            self._pending_drives += 1
+            self._changed()
+        elif isinstance(msg, View):
+            self.view = msg
+            self._changed()
+        elif isinstance(msg, Request):
+            self.request = self.merged_request(self.request, msg, self.limits)
+            self._changed()
+        elif isinstance(msg, Ping):
+            self.send_control(Pong(t=msg.t))
+        elif isinstance(msg, Image):
+            raise ProtocolError("unsupported", "server-side tracking of webcam images is not "
+                                               "available yet; send drive messages",
+                                {"type": "image", "seq": msg.seq})
+        elif isinstance(msg, Hello):
+            if msg.version != PROTOCOL_VERSION:
+                raise ProtocolError("version", f"this server speaks protocol version "
+                                               f"{PROTOCOL_VERSION}, not {msg.version}",
+                                    {"type": "hello", "seq": None})
+
+    @staticmethod
+    def merged_request(current: Request, update: Request, limits: Limits) -> Request:
+        fields = update.model_dump(exclude_none=True, exclude={"type"})
+        merged = current.model_copy(update=fields)
+        if merged.codec == "h264":
+            if merged.width % H264_ALIGN or merged.height % H264_ALIGN:
+                raise ProtocolError("unsupported", f"h264 needs an even frame size, got "
+                                                   f"{merged.width}x{merged.height}",
+                                    {"type": "request", "seq": None})
+            if "alpha" in merged.outputs:
+                raise ProtocolError("unsupported", "h264 frames carry no alpha; ask for png",
+                                    {"type": "request", "seq": None})
+        if merged.max_fps > limits.max_fps:
+            merged = merged.model_copy(update={"max_fps": limits.max_fps})
+        return merged
+
+    def _changed(self) -> None:
+        self._pending_inputs += 1
+        self._dirty.set()
+
+    # -- rendering ---------------------------------------------------------------------------
+
+    def _snapshot(self) -> FrameJob:
+        req = self.request
+        quality = req.jpeg_quality
+        if self.view.moving:
+            quality = min(quality, self.config.jpeg_quality_moving)
+        # Every input since the last frame but one lost its own frame; likewise for drives.
+        self.dropped += max(0, self._pending_inputs - 1)
+        self.metrics.dropped.inc(max(0, self._pending_inputs - 1))
+        self.coalesced += max(0, self._pending_drives - 1)
+        self.metrics.coalesced.inc(max(0, self._pending_drives - 1))
+        self._pending_inputs = self._pending_drives = 0
+        return FrameJob(self.drive.copy(), self.view, req, quality)
+
+    async def _render_loop(self) -> None:
+        loop = asyncio.get_running_loop()
+        next_at = loop.time()
+        while True:
+            await self._dirty.wait()
+            delay = next_at - loop.time()
+            if delay > 0:
+                await asyncio.sleep(delay)  # frame-rate cap; inputs keep coalescing meanwhile
+            self._dirty.clear()
+            job = self._snapshot()
+            started = loop.time()
+            next_at = started + 1.0 / job.request.max_fps
+            future = self.scheduler.submit(self.renderer.render, job)
+            self._inflight = future  # kept after a cancel: teardown waits for it to finish
+            try:
+                frame = await asyncio.wrap_future(future)
+            except ValueError as exc:  # parameters the model refused (ParameterError)
+                self.send_error("invalid", f"cannot pose these parameters: {exc}",
+                                {"type": "drive", "seq": job.drive.seq})
+                continue
+            except Exception as exc:  # noqa: BLE001 - the session goes on
+                log.exception("render failed in session %s", self.id)
+                self.send_error("internal", f"rendering failed: {type(exc).__name__}")
+                continue
+            await self._send_frame(frame)
+
+    async def _send_frame(self, f: RenderedFrame) -> None:
+        msg = Frame(seq=f.seq, frame=self.frames, codec=f.codec, width=f.width, height=f.height,
+                    data=f.data, depth=f.depth, keyframe=f.keyframe, timings=f.timings)
+        data = encode(msg)
+        await self._send(data)
+        self.frames += 1
+        self.bytes_sent += len(data)
+        self._render_ms.append(f.timings.render)
+        m = self.metrics
+        m.frames.labels(f.codec).inc()
+        m.bytes_sent.inc(len(data))
+        for stage in ("pose", "render", "encode"):
+            m.stage_ms.labels(stage).observe(getattr(f.timings, stage))
+
+    # -- stats ---------------------------------------------------------------------------------
+
+    async def _stats_loop(self) -> None:
+        interval = self.config.stats_interval_s
+        frames, sent, stamp = self.frames, self.bytes_sent, time.monotonic()
+        while True:
+            await asyncio.sleep(interval)
+            now = time.monotonic()
+            dt = max(now - stamp, 1e-6)
+            self.send_control(Stats(
+                fps=(self.frames - frames) / dt, frames=self.frames, dropped=self.dropped,
+                coalesced=self.coalesced, bytes_per_s=(self.bytes_sent - sent) / dt,
+                render_ms=statistics.median(self._render_ms) if self._render_ms else 0.0,
+                sessions=self.session_count()))
+            frames, sent, stamp = self.frames, self.bytes_sent, now
+
+    # -- lifetime ------------------------------------------------------------------------------
+
+    async def run(self) -> None:
+        """Until the client leaves (or the socket fails); then everything is torn down."""
+        tasks = [asyncio.create_task(coro, name=f"{self.id}:{coro.__name__}") for coro in (
+            self._receiver(), self._render_loop(), self._control_sender(), self._stats_loop())]
+        try:
+            done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+            for task in done:
+                exc = task.exception()
+                if exc is not None and not isinstance(exc, (WebSocketDisconnect, OSError,
+                                                            RuntimeError)):
+                    log.error("session %s: %s failed: %r", self.id, task.get_name(), exc)
+        finally:
+            for task in tasks:
+                task.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+            self._release_renderer()
+            self.closed.set()
+
+    def _release_renderer(self) -> None:
+        """Close the encoder once no render thread uses it (a running render finishes first;
+        a queued one was cancelled with its task)."""
+        future = self._inflight
+        if future is not None and not future.done():
+            future.add_done_callback(lambda _: self.renderer.close())
+        else:
+            self.renderer.close()

@@ -1,0 +1,123 @@
+"""The job store: state transitions, event order, cancel, reading back after a restart, and
+two writers (threads) at once."""
+
+import threading
+
+import pytest
+
+from server.jobs.store import InvalidTransition, JobNotFound, NewJob, SQLiteJobStore
+
+
+def _new(owner="alice", total=100, **kw) -> NewJob:
+    return NewJob(owner=owner, dataset="dataset:take1", dataset_path="/data/take1",
+                  config={"iterations": total}, total=total, **kw)
+
+
+@pytest.fixture
+def store(tmp_path):
+    s = SQLiteJobStore(tmp_path / "jobs.db")
+    yield s
+    s.close()
+
+
+def _states(store, job_id):
+    return [e.data["state"] for e in store.events(job_id) if e.type == "state"]
+
+
+def test_lifecycle_and_events_in_order(store):
+    job = store.create(_new(name="Alice"))
+    assert job.state == "queued" and job.attempts == 0 and job.progress == 0
+    assert job.name == "Alice" and job.config == {"iterations": 100}
+    claimed = store.claim_next()
+    assert claimed.id == job.id and claimed.state == "running" and claimed.attempts == 1
+    assert claimed.started is not None and store.claim_next() is None
+    store.report(job.id, {"type": "progress", "iteration": 40, "total": 100, "loss": 0.5})
+    store.report(job.id, {"type": "progress", "iteration": 80, "total": 100,
+                          "loss": float("nan")})  # NaN is stored as null, the last loss kept
+    got = store.get(job.id)
+    assert got.iteration == 80 and got.progress == pytest.approx(0.8) and got.loss == 0.5
+    done = store.transition(job.id, "succeeded", avatar_id="av1")
+    assert done.done and done.avatar_id == "av1" and done.finished >= done.started
+    events = store.events(job.id)
+    assert [e.seq for e in events] == list(range(1, len(events) + 1))
+    assert [e.type for e in events] == ["state", "state", "progress", "progress", "state"]
+    assert _states(store, job.id) == ["queued", "running", "succeeded"]
+    assert events[3].data["loss"] is None and events[-1].data["avatar_id"] == "av1"
+    assert [e.seq for e in store.events(job.id, after=3)] == [4, 5]
+    with pytest.raises(InvalidTransition):
+        store.transition(job.id, "running")
+
+
+def test_invalid_transitions_and_unknown_ids(store):
+    job = store.create(_new())
+    with pytest.raises(InvalidTransition):
+        store.transition(job.id, "succeeded")  # queued cannot succeed
+    with pytest.raises(JobNotFound):
+        store.get("nope")
+    with pytest.raises(JobNotFound):
+        store.report("nope", {"type": "progress"})
+
+
+def test_cancel_queued_is_immediate_running_is_a_request(store):
+    a, b = store.create(_new()), store.create(_new())
+    assert store.claim_next().id == a.id  # oldest first
+    cancelled = store.request_cancel(b.id)
+    assert cancelled.state == "cancelled" and cancelled.error
+    running = store.request_cancel(a.id)
+    assert running.state == "running" and running.cancel_requested
+    store.request_cancel(a.id)  # twice: one cancel_requested event
+    assert [e.type for e in store.events(a.id)].count("cancel_requested") == 1
+    store.transition(a.id, "cancelled")
+    with pytest.raises(InvalidTransition):
+        store.request_cancel(a.id)
+
+
+def test_requeue_keeps_attempts_and_claims_oldest_first(store):
+    first = store.create(_new())
+    second = store.create(_new())
+    store.claim_next()
+    store.transition(first.id, "queued", note={"reason": "the server restarted"})
+    again = store.claim_next()
+    assert again.id == first.id and again.attempts == 2
+    assert store.claim_next().id == second.id
+
+
+def test_list_by_owner_and_state(store):
+    a = store.create(_new("alice"))
+    store.create(_new("bob"))
+    c = store.create(_new("alice"))
+    store.claim_next()
+    assert [j.id for j in store.list(owner="alice")] == [c.id, a.id]  # newest first
+    assert [j.id for j in store.list(state="running")] == [a.id]
+    assert len(store.list()) == 3 and len(store.list(limit=2)) == 2
+
+
+def test_everything_reads_back_after_a_restart(tmp_path):
+    first = SQLiteJobStore(tmp_path / "jobs.db")
+    job = first.create(_new())
+    first.claim_next()
+    first.report(job.id, {"type": "progress", "iteration": 10, "loss": 0.25})
+    first.set_error(job.id, "boom")
+    first.close()
+    again = SQLiteJobStore(tmp_path / "jobs.db")
+    got = again.get(job.id)
+    assert (got.state, got.iteration, got.loss, got.error, got.attempts) == (
+        "running", 10, 0.25, "boom", 1)
+    assert [e.type for e in again.events(job.id)] == ["state", "state", "progress"]
+    again.close()
+
+
+def test_concurrent_writers_keep_one_sequence(store):
+    job = store.create(_new())
+
+    def write(n):
+        for i in range(n):
+            store.report(job.id, {"type": "progress", "iteration": i})
+
+    threads = [threading.Thread(target=write, args=(25,)) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=30)
+    seqs = [e.seq for e in store.events(job.id)]
+    assert seqs == list(range(1, 102))
