@@ -15,6 +15,8 @@ import cv2
 import numpy as np
 import torch
 
+from .body.model_data import load_mano
+from .body.models import MANOModel
 from .gaussians.animate import AvatarAnimator, synthetic_package
 from .gaussians.package import AvatarPackage, load_package
 from .render.camera import Camera, orbit
@@ -50,6 +52,18 @@ def load_avatar(spec: str, model_dir: Path | None = None) -> LoadedAvatar:
         package.body.check_faces(model.faces.cpu().numpy())
     animator = AvatarAnimator(model, package.avatar, betas=np.asarray(package.body.betas))
     return LoadedAvatar(package, animator, files)
+
+
+def mano_models(loaded: LoadedAvatar) -> dict[str, MANOModel]:
+    """The MANO models per side that exist beside the avatar's body model (same dtype), for
+    fusing MANO hand parameters into SMPL-X."""
+    dtype = loaded.animator.body_model.dtype
+    out = {}
+    for side in ("left", "right"):
+        path = loaded.files.mano_pkl(side)
+        if path.is_file():
+            out[side] = MANOModel(load_mano(path), dtype=dtype)
+    return out
 
 
 def motion_frames(spec: str, loaded: LoadedAvatar, fps: float,

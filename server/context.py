@@ -8,11 +8,10 @@ from typing import Any
 
 from avatar_core.body.models import MANOModel
 from avatar_core.gaussians.animate import AvatarAnimator
-from avatar_core.pipeline import LoadedAvatar
+from avatar_core.pipeline import LoadedAvatar, mano_models
 
 from .auth import TokenStore
 from .config import Settings
-from .drive import mano_models
 from .metrics import ServerMetrics
 from .registry import AvatarRegistry
 from .scheduler import RenderScheduler

@@ -15,23 +15,10 @@ import numpy as np
 import torch
 
 from avatar_core.body.fusion import fuse
-from avatar_core.body.model_data import load_mano
 from avatar_core.body.models import MANOModel, SMPLXModel
-from avatar_core.pipeline import LoadedAvatar
 from protocol import Drive, ProtocolError
 
 FAMILY_NAMES = ("smplx", "flame", "mano_left", "mano_right")
-
-
-def mano_models(loaded: LoadedAvatar) -> dict[str, MANOModel]:
-    """MANO models per side that exist for the avatar's body family (same dtype as its model)."""
-    dtype = loaded.animator.body_model.dtype
-    out = {}
-    for side in ("left", "right"):
-        path = loaded.files.mano_pkl(side)
-        if path.is_file():
-            out[side] = MANOModel(load_mano(path), dtype=dtype)
-    return out
 
 
 # FLAME fields fusion reads; per-frame shapes (expr is fitted to the body model's size).

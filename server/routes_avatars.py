@@ -57,7 +57,8 @@ def _ctx(request: Request) -> ServerContext:
     return request.app.state.ctx
 
 
-def _visible(ctx: ServerContext, principal: Principal, avatar_id: str) -> AvatarRecord:
+def visible_avatar(ctx: ServerContext, principal: Principal, avatar_id: str) -> AvatarRecord:
+    """The avatar if the caller may see it: 404 when unknown, 403 when another owner's."""
     try:
         rec = ctx.registry.get(avatar_id)
     except AvatarNotFound:
@@ -81,7 +82,7 @@ def list_avatars(request: Request, principal: Principal = _STREAM
             responses={**ERRORS, 404: {"model": ErrorOut, "description": "No such avatar"}})
 def get_avatar(avatar_id: str, request: Request,
                principal: Principal = _STREAM) -> AvatarOut:
-    return AvatarOut.of(_visible(_ctx(request), principal, avatar_id))
+    return AvatarOut.of(visible_avatar(_ctx(request), principal, avatar_id))
 
 
 @router.post(
@@ -124,7 +125,7 @@ async def upload_avatar(request: Request, name: str | None = None,
 async def download_avatar(avatar_id: str, request: Request,
                           principal: Principal = _STREAM) -> FileResponse:
     ctx = _ctx(request)
-    rec = _visible(ctx, principal, avatar_id)
+    rec = visible_avatar(ctx, principal, avatar_id)
     tmp_dir = ctx.settings.data_dir / "tmp"
     tmp_dir.mkdir(parents=True, exist_ok=True)
     with tempfile.NamedTemporaryFile(dir=tmp_dir, suffix=".zip", delete=False) as fh:
@@ -144,7 +145,7 @@ def delete_avatar(avatar_id: str, request: Request,
                   principal: Principal = _TRAIN) -> None:
     """Only its owner or an admin may delete an avatar (public ones: admins only)."""
     ctx = _ctx(request)
-    rec = _visible(ctx, principal, avatar_id)
+    rec = visible_avatar(ctx, principal, avatar_id)
     if not principal.can_modify(rec.owner):
         raise HTTPException(403, f"only the owner or an admin may delete avatar {avatar_id!r}")
     try:

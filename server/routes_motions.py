@@ -19,7 +19,7 @@ from avatar_core.synth.motions import ALIASES, MOTIONS, motion
 
 from .auth import Principal, require_scope
 from .context import ServerContext
-from .registry import AvatarNotFound
+from .routes_avatars import visible_avatar
 
 router = APIRouter(prefix="/v1/motions", tags=["motions"])
 _STREAM = require_scope("stream")
@@ -72,12 +72,7 @@ def get_motion(name: str, request: Request, principal: Principal = _STREAM,
     if canonical not in MOTIONS:
         raise HTTPException(404, f"unknown motion {name!r}; known: {sorted(MOTIONS)}")
     clip = motion(canonical)
-    try:
-        record = ctx.registry.get(avatar)
-    except AvatarNotFound:
-        raise HTTPException(404, f"no avatar {avatar!r}") from None
-    if not principal.can_see(record.owner):
-        raise HTTPException(403, f"avatar {avatar!r} belongs to another owner")
+    record = visible_avatar(ctx, principal, avatar)
     rig = _rig(request, record.id)
     count = max(1, int(round(clip.duration * fps)) + 1)
     frames = []

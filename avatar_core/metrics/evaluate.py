@@ -48,11 +48,10 @@ import numpy as np
 import torch
 
 from ..body.fusion import fuse
-from ..body.model_data import load_mano
 from ..body.models import BodyOutput, MANOModel, SMPLXModel
 from ..dataset import Dataset, View, ViewKey, load_dataset
 from ..dataset.preview import write_png
-from ..pipeline import LoadedAvatar, load_avatar
+from ..pipeline import LoadedAvatar, load_avatar, mano_models
 from ..render.camera import Camera
 from ..render.rasterize import rasterize
 from ..render.types import RenderRequest
@@ -253,15 +252,6 @@ class _SequenceData:
 # -- the evaluation ------------------------------------------------------------------------
 
 
-def _mano_models(loaded: LoadedAvatar, dtype: torch.dtype) -> dict[str, MANOModel]:
-    out = {}
-    for side in ("left", "right"):
-        path = loaded.files.mano_pkl(side)
-        if path.is_file():
-            out[side] = MANOModel(load_mano(path), dtype=dtype)
-    return out
-
-
 def _nanmean(values: Sequence[float | None]) -> float | None:
     vals = [v for v in values if v is not None and not np.isnan(v)]
     return float(np.mean(vals)) if vals else None
@@ -419,7 +409,7 @@ def evaluate(avatar: str | Path | LoadedAvatar, dataset: str | Path | Dataset, p
     run = _Run(loaded, src, cross, fusion, frame_stride, size,
                RenderRequest(background=estimate_background(first), budget=budget),
                None if cross or lpips_reason else lpips_metric(),
-               _mano_models(loaded, loaded.animator.body_model.dtype), [])
+               mano_models(loaded), [])
     mismatch = _seed_mismatch(ds.meta["body_model"].get("source", ""), loaded.package.body.model)
     if mismatch:
         _warn(mismatch, run.warnings)
