@@ -22,8 +22,11 @@ $(VENV)/.installed-dev: pyproject.toml | $(PY)
 install: $(VENV)/.installed
 dev: $(VENV)/.installed-dev
 
+# The trained demo avatar is built on the first run (synthetic capture + training, ~6 min on
+# 2 cores, with progress bars) and cached; then the server starts and prints its URL + token.
 run: $(VENV)/.installed
-	$(VENV)/bin/telesplat body demo --out $(OUT)/body_demo.mp4
+	$(VENV)/bin/telesplat demo-avatar
+	$(VENV)/bin/telesplat serve --host 127.0.0.1 --port 8000 --demo-avatar trained
 
 # The browser-page tests drive Debian's chromium through its chromedriver (selenium never
 # downloads one). Installed here when missing and we are root with apt-get; otherwise those
