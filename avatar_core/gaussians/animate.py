@@ -13,14 +13,16 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 from torch import Tensor
 
 from ..body.model_data import load_smplx
 from ..body.params import SMPLXParams
 from ..body.upper_body import UpperBodyModel, load_segmentation
 from ..render.types import GaussianSet
-from .avatar import GaussianAvatar, pose_gaussians
+from .avatar import GaussianAvatar, pose_gaussians_torch, posing_tensors
 from .package import AvatarPackage, BodyReference, faces_fingerprint
+from .pose_cpu import can_use_kernel, pose_gaussians_cpu
 
 
 @dataclass
@@ -60,6 +62,26 @@ class AvatarAnimator:
         self.hits = self.misses = 0
         self._key: bytes | None = None
         self._last: PosedAvatar | None = None
+        self._constants: tuple[tuple[int, int], Tensor, Tensor] | None = None
+
+    def _scales_opacities(self) -> tuple[Tensor, Tensor]:
+        """exp(log_scales) and sigmoid(opacity_logits): avatar constants, computed once (again
+        only if someone changed the avatar's tensors in place since)."""
+        a = self.avatar
+        version = (a.log_scales._version, a.opacity_logits._version)
+        if self._constants is None or self._constants[0] != version:
+            with torch.no_grad():
+                self._constants = (version, torch.exp(a.log_scales),
+                                   torch.sigmoid(a.opacity_logits))
+        return self._constants[1], self._constants[2]
+
+    def _gaussians(self, vertices: Tensor) -> GaussianSet:
+        a, faces = self.avatar, self.body_model.faces
+        if not can_use_kernel(posing_tensors(a), vertices, faces):
+            return pose_gaussians_torch(a, vertices, faces)  # autograd or CUDA: the reference
+        scales, opacities = self._scales_opacities()
+        return pose_gaussians_cpu(a.parents, a.local_means, scales, a.quats, opacities, a.sh,
+                                  vertices, faces)
 
     def pose(self, params: SMPLXParams | dict[str, Any] | None = None) -> PosedAvatar:
         raw = params.to_dict() if isinstance(params, SMPLXParams) else dict(params or {})
@@ -74,7 +96,7 @@ class AvatarAnimator:
         if out.vertices.shape[0] != 1:
             raise ValueError("the animator poses one frame at a time (batch 1)")
         vertices = out.vertices[0]
-        posed = PosedAvatar(vertices, pose_gaussians(self.avatar, vertices, self.body_model.faces))
+        posed = PosedAvatar(vertices, self._gaussians(vertices))
         self._key, self._last = key, posed
         return posed
 

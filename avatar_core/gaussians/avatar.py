@@ -18,6 +18,7 @@ from ..render.sh import rgb_to_sh0, sh_degree_from_bases
 from ..render.types import GaussianSet
 from ..rotations import matrix_to_quaternion, quaternion_multiply
 from .frames import triangle_frames
+from .pose_cpu import can_use_kernel, pose_gaussians_cpu
 
 # A fresh Gaussian is a thin disc on its triangle: in-plane sigma 0.4 k, 0.05 k along the normal.
 INIT_LOCAL_SCALE = (0.4, 0.4, 0.05)
@@ -121,6 +122,26 @@ def to_world(avatar: GaussianAvatar, rot: Tensor, trans: Tensor, scale: Tensor) 
 
 
 def pose_gaussians(avatar: GaussianAvatar, vertices: Tensor, faces: Tensor) -> GaussianSet:
-    """World-space Gaussians on a posed mesh. vertices [V, 3], faces [F, 3]."""
+    """World-space Gaussians on a posed mesh. vertices [V, 3], faces [F, 3].
+
+    On the CPU with no gradient asked for, the numba twin (`pose_cpu`) computes the same thing;
+    otherwise (autograd, CUDA) the torch reference below does.
+    """
+    if can_use_kernel(posing_tensors(avatar), vertices, faces):
+        return pose_gaussians_cpu(avatar.parents, avatar.local_means, torch.exp(avatar.log_scales),
+                                  avatar.quats, torch.sigmoid(avatar.opacity_logits), avatar.sh,
+                                  vertices, faces)
+    return pose_gaussians_torch(avatar, vertices, faces)
+
+
+def posing_tensors(avatar: GaussianAvatar) -> tuple[Tensor, ...]:
+    """The avatar tensors that posing reads (sh is passed through)."""
+    return (avatar.parents, avatar.local_means, avatar.log_scales, avatar.quats,
+            avatar.opacity_logits)
+
+
+def pose_gaussians_torch(avatar: GaussianAvatar, vertices: Tensor, faces: Tensor
+                         ) -> GaussianSet:
+    """The reference (differentiable, any device) of `pose_gaussians`."""
     rot, trans, scale = triangle_frames(vertices, faces)
     return to_world(avatar, rot, trans, scale)

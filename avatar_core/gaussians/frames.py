@@ -6,7 +6,8 @@ edge's length and the triangle's height on that edge.
 
 Degenerate triangles (a zero-length first edge, collinear or coincident corners) still get a
 finite orthonormal frame: the edge direction falls back to the longest edge, then to +x; the
-normal falls back to an axis perpendicular to the edge. k is floored at `MIN_SCALE`, so a
+normal falls back to an axis perpendicular to the edge when the corners are collinear (the
+sine of the angle at v0 below `COLLINEAR_SIN`). k is floored at `MIN_SCALE`, so a
 collapsed triangle carries its Gaussians as tiny splats, never as NaN.
 """
 
@@ -16,6 +17,7 @@ import torch
 from torch import Tensor
 
 MIN_SCALE = 1e-8
+COLLINEAR_SIN = 1e-6  # corners whose angle's sine is below this count as collinear
 _TINY = 1e-30  # inside sqrt: keeps the norm's gradient finite at zero
 
 
@@ -50,7 +52,13 @@ def triangle_frames(vertices: Tensor, faces: Tensor, eps: float = 1e-12
         -2, lengths.argmax(-1)[..., None, None].expand(*e01.shape[:-1], 1, 3))[..., 0, :]
     edge = _unit_or(e01, _unit_or(longest, x_axis, eps), eps)
     cross = torch.cross(e01, e02, dim=-1)
-    normal = _unit_or(cross, _perpendicular(edge), eps * eps)
+    # Collinear or coincident corners: |e01 x e02| is rounding noise (fused multiply-adds leave
+    # ~1e-17, not 0), so test it against |e01| |e02| (the sine of the corner angle), not an
+    # absolute epsilon; the noise would otherwise pick an arbitrary normal.
+    cross_sq = (cross * cross).sum(-1, keepdim=True)
+    span_sq = (e01 * e01).sum(-1, keepdim=True) * (e02 * e02).sum(-1, keepdim=True)
+    flat = cross_sq <= COLLINEAR_SIN**2 * span_sq
+    normal = torch.where(flat, _perpendicular(edge), cross / _norm(cross))
     # Re-orthogonalise: with a fallback edge the raw normal may not be perpendicular to it.
     normal = normal - (normal * edge).sum(-1, keepdim=True) * edge
     normal = _unit_or(normal, _perpendicular(edge), eps)
