@@ -28,6 +28,13 @@ run: $(VENV)/.installed
 	$(VENV)/bin/telesplat demo-avatar
 	$(VENV)/bin/telesplat serve --host 127.0.0.1 --port 8000 --demo-avatar trained
 
+# The MediaPipe TFLite models: the mediapipe wheel is fetched with `pip download --no-deps`
+# (never installed), the models are read out of it and converted to ONNX, all cached in
+# ~/.cache/telesplat/mediapipe ($$TELESPLAT_MEDIAPIPE_CACHE); a no-op once cached.
+.PHONY: models
+models: $(VENV)/.installed
+	$(VENV)/bin/telesplat track fetch-models
+
 # The browser-page tests drive Debian's chromium through its chromedriver (selenium never
 # downloads one). Installed here when missing and we are root with apt-get; otherwise those
 # tests skip and say why.

@@ -161,6 +161,50 @@ def _demo_avatar(args: argparse.Namespace) -> int:
     return 0
 
 
+def _track_fetch_models(args: argparse.Namespace) -> int:
+    from .track.models import ModelFetchError, cache_dir, fetch_models
+
+    try:
+        paths = fetch_models(args.cache, prelu=args.prelu, force=args.force, progress=print)
+    except ModelFetchError as exc:
+        print(f"telesplat: error: {exc}", file=sys.stderr)
+        return 2
+    print(f"{len(paths)} ONNX models in {cache_dir(args.cache) / 'onnx'}")
+    return 0
+
+
+def _add_track(groups: argparse._SubParsersAction) -> None:
+    track = groups.add_parser("track", help="monocular tracking (MediaPipe models as ONNX)")
+    track_cmds = track.add_subparsers(dest="command", required=True)
+    fetch = track_cmds.add_parser(
+        "fetch-models", help="download the mediapipe wheel (pip download, never installed), "
+        "extract its TFLite models and convert them to ONNX, cached")
+    fetch.add_argument("--cache", type=Path, default=None,
+                       help="cache folder (default: $TELESPLAT_MEDIAPIPE_CACHE or "
+                            "~/.cache/telesplat/mediapipe)")
+    fetch.add_argument("--prelu", choices=["rewrite", "op"], default="rewrite",
+                       help="PReLU as Relu(x) + alpha*Min(x, 0) (faster) or the PRelu op")
+    fetch.add_argument("--force", action="store_true", help="convert again even if cached")
+    fetch.set_defaults(func=_track_fetch_models)
+
+
+def _serve(args: argparse.Namespace) -> int:
+    from server.cli import serve  # lazy: the engine never imports the server at module level
+
+    return serve(args)
+
+
+def _add_serve(groups: argparse._SubParsersAction) -> None:
+    serve = groups.add_parser("serve", help="run the streaming server (FastAPI + uvicorn)")
+    try:
+        from server.cli import add_arguments
+    except ImportError:  # the server package is not installed: the command says so when run
+        serve.add_argument("args", nargs=argparse.REMAINDER)
+    else:
+        add_arguments(serve)
+    serve.set_defaults(func=_serve)
+
+
 def _budget(text: str) -> int | float:
     value = float(text)
     return value if "." in text else int(value)
@@ -281,6 +325,9 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--cache", type=Path, default=None,
                       help="cache folder (default: ~/.cache/telesplat/demo-avatar-vN)")
     demo.set_defaults(func=_demo_avatar)
+
+    _add_track(groups)
+    _add_serve(groups)
     return parser
 
 
