@@ -173,6 +173,53 @@ def _track_fetch_models(args: argparse.Namespace) -> int:
     return 0
 
 
+def _track_landmarks(args: argparse.Namespace) -> int:
+    import cv2
+
+    from .track.draw import draw_result
+    from .track.image import decode_image
+    from .track.models import ModelFetchError
+    from .track.tracker import Tracker
+    from .track.types import TrackingInputError
+
+    try:
+        frame = decode_image(Path(args.image).read_bytes())
+        tracker = Tracker(models=args.cache, mask=args.mask)
+        for _ in range(args.frames):  # > 1: tracking mode, the ROI from the landmarks
+            result = tracker.track(frame)
+    except (OSError, TrackingInputError, ModelFetchError) as exc:
+        print(f"telesplat: error: {exc}", file=sys.stderr)
+        return 2
+    if not cv2.imwrite(str(args.out), draw_result(frame, result)):
+        print(f"telesplat: error: could not write {args.out}", file=sys.stderr)
+        return 2
+    hands = ", ".join(h.handedness for h in result.hands) or "none"
+    print(f"face: {'yes' if result.face else 'no'}; hands: {hands}; "
+          f"body: {'yes' if result.pose else 'no'} -> {args.out}")
+    return 0
+
+
+def _track_fit(args: argparse.Namespace) -> int:
+    from .track.fit.video import default_session, frames_from, track_params, write_params
+    from .track.models import ModelFetchError
+    from .track.tracker import Tracker
+    from .track.types import TrackingInputError
+
+    source = args.webcam if args.webcam is not None else str(args.image or args.video)
+    try:
+        tracker = Tracker(models=args.cache)
+        session = default_session(args.fov, smoothing=not args.no_smoothing)
+        with tqdm(total=args.frames, unit="frame", desc="tracking") as bar:
+            params = track_params(frames_from(source, args.frames), session, tracker,
+                                  with_transl=args.with_transl, progress=lambda: bar.update())
+        out = write_params(params, args.out)
+    except (OSError, ValueError, TrackingInputError, ModelFetchError) as exc:
+        print(f"telesplat: error: {exc}", file=sys.stderr)
+        return 2
+    print(f"{len(params)} frames of SMPL-X parameters -> {out}")
+    return 0
+
+
 def _add_track(groups: argparse._SubParsersAction) -> None:
     track = groups.add_parser("track", help="monocular tracking (MediaPipe models as ONNX)")
     track_cmds = track.add_subparsers(dest="command", required=True)
@@ -186,6 +233,32 @@ def _add_track(groups: argparse._SubParsersAction) -> None:
                        help="PReLU as Relu(x) + alpha*Min(x, 0) (faster) or the PRelu op")
     fetch.add_argument("--force", action="store_true", help="convert again even if cached")
     fetch.set_defaults(func=_track_fetch_models)
+    draw = track_cmds.add_parser(
+        "landmarks", help="track one image (JPEG/PNG) and draw the face, hand and body "
+        "landmarks on it, for eyeballing")
+    draw.add_argument("image", type=Path)
+    draw.add_argument("--out", type=Path, required=True, help="output PNG")
+    draw.add_argument("--mask", action="store_true", help="also tint the person mask")
+    draw.add_argument("--frames", type=int, default=2,
+                      help="track the image this many times (>= 2: ROIs from landmarks)")
+    draw.add_argument("--cache", type=Path, default=None, help="model cache folder")
+    draw.set_defaults(func=_track_landmarks)
+    fit = track_cmds.add_parser(
+        "fit", help="track a video, the webcam or an image and fit SMPL-X parameters per "
+        "frame, written as a motion file (.json or .npz) for render/stream --motion")
+    src = fit.add_mutually_exclusive_group(required=True)
+    src.add_argument("video", nargs="?", type=Path, help="video file")
+    src.add_argument("--webcam", type=int, metavar="INDEX", help="camera index (e.g. 0)")
+    src.add_argument("--image", type=Path, help="one JPEG/PNG image")
+    fit.add_argument("--out", type=Path, required=True, help="PARAMS.npz or PARAMS.json")
+    fit.add_argument("--frames", type=int, default=None, help="at most this many frames")
+    fit.add_argument("--fov", type=float, default=60.0,
+                     help="the camera's horizontal field of view, degrees")
+    fit.add_argument("--no-smoothing", action="store_true", help="no One Euro smoothing")
+    fit.add_argument("--with-transl", action="store_true",
+                     help="keep transl (the subject's place in front of the camera)")
+    fit.add_argument("--cache", type=Path, default=None, help="model cache folder")
+    fit.set_defaults(func=_track_fit)
 
 
 def _serve(args: argparse.Namespace) -> int:

@@ -1,6 +1,7 @@
 """``telesplat-client``: stream a motion, manage avatars and training jobs from the shell.
 
     telesplat-client stream --avatar demo --motion smile.json --out frames/ [--fps 30]
+    telesplat-client drive --avatar demo --webcam   (or --video clip.mp4)
     telesplat-client motions get smile --avatar demo --out smile.json
     telesplat-client jobs submit --dataset NAME [--config cfg.json] --watch
     telesplat-client avatars list
@@ -91,6 +92,21 @@ def cmd_stream(args: argparse.Namespace) -> int:
                                         args.out, fps=args.fps, size=args.size,
                                         timeout=args.timeout, progress=not args.quiet))
     print(f"wrote {len(written)} frames to {args.out}")
+    return 0
+
+
+def cmd_drive(args: argparse.Namespace) -> int:
+    from .remote_tracker import drive_from_camera
+
+    source = args.webcam if args.webcam is not None else str(args.video)
+    try:
+        stats = asyncio.run(drive_from_camera(
+            args.server, args.token, args.avatar, source, max_frames=args.frames,
+            fov_x_deg=args.fov, out=args.out, timeout=args.timeout, progress=not args.quiet))
+    except (OSError, RuntimeError, ValueError) as exc:
+        print(f"telesplat-client: error: {exc}", file=sys.stderr)
+        return 2
+    print(f"sent {stats['sent']} drives (tracking {stats['track_ms']:.0f} ms per frame)")
     return 0
 
 
@@ -239,6 +255,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--timeout", type=float, default=30.0, help="seconds to wait per frame")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_stream)
+
+    p = sub.add_parser("drive", help="track the webcam or a video here and drive an avatar "
+                                     "with the fitted parameters (the remote tracker)")
+    _common(p)
+    p.add_argument("--avatar", required=True)
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--webcam", type=int, nargs="?", const=0, metavar="INDEX",
+                     help="camera index (default 0)")
+    src.add_argument("--video", type=Path, help="video file")
+    p.add_argument("--frames", type=int, default=None, help="at most this many frames")
+    p.add_argument("--fov", type=float, default=60.0,
+                   help="the camera's horizontal field of view, degrees")
+    p.add_argument("--out", type=Path, default=None, help="save the returned frames here")
+    p.add_argument("--timeout", type=float, default=30.0, help="seconds to wait per frame")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_drive)
 
     p = sub.add_parser("avatars", help="list, upload, download, delete avatars")
     avatars = p.add_subparsers(dest="action", required=True)

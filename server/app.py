@@ -80,6 +80,7 @@ def create_app(settings: Settings) -> FastAPI:
         registry=AvatarRegistry(settings.avatars_dir, max_package_bytes=settings.max_upload_bytes
                                 * 4),  # uncompressed may exceed the zip
         scheduler=RenderScheduler(settings.render_threads, settings.torch_threads),
+        track_scheduler=RenderScheduler(settings.track_threads, 1),
         metrics=ServerMetrics(), slots=SessionSlots(settings.max_sessions),
         local_token=local_token)
 
@@ -89,6 +90,7 @@ def create_app(settings: Settings) -> FastAPI:
         async with jobs_routes.lifespan(app):  # the training worker
             yield
         await asyncio.to_thread(ctx.scheduler.shutdown)
+        await asyncio.to_thread(ctx.track_scheduler.shutdown)
 
     app = FastAPI(title="Telesplat", version="0.1.0", lifespan=lifespan,
                   description="Hosts 3D-Gaussian upper-body avatars and drives them live over "

@@ -55,6 +55,8 @@ class Settings(BaseModel):
                                                       "a package path.")
     render_threads: int = Field(1, ge=1, le=64, description="Render worker threads shared by "
                                                             "all sessions (fair round-robin).")
+    track_threads: int = Field(1, ge=1, le=64, description="Webcam-tracking worker threads "
+                                                           "shared by all sessions.")
     torch_threads: int = Field(1, ge=1, le=64, description="torch / numba threads per render "
                                                            "worker (more oversubscribes cores).")
     send_buffer_bytes: int = Field(

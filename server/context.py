@@ -43,6 +43,7 @@ class ServerContext:
     tokens: TokenStore
     registry: AvatarRegistry
     scheduler: RenderScheduler
+    track_scheduler: RenderScheduler  # webcam images -> fitted parameters, off the renderers
     metrics: ServerMetrics
     slots: SessionSlots
     sessions: dict[str, Any] = field(default_factory=dict)  # id -> StreamSession

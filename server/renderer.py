@@ -35,6 +35,7 @@ class FrameJob:
     view: View
     request: Request          # effective: every field set
     jpeg_quality: int         # already lowered when the view moves
+    track_ms: float = 0.0     # tracking time of the webcam image this frame first shows
 
 
 @dataclass
@@ -103,7 +104,8 @@ class SessionRenderer:
         self._last_codec = codec
         depth_png = encode_depth_png(depth) if "depth" in req.outputs else None
         t3 = time.perf_counter()
-        timings = Timings(pose=(t1 - t0) * 1e3, render=(t2 - t1) * 1e3, encode=(t3 - t2) * 1e3)
+        timings = Timings(track=job.track_ms, pose=(t1 - t0) * 1e3, render=(t2 - t1) * 1e3,
+                          encode=(t3 - t2) * 1e3)
         return RenderedFrame(job.drive.seq, codec, cam.width, cam.height, data, depth_png,
                              keyframe, timings, {"n_rendered": out.stats.get("n_rendered")})
 

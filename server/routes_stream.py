@@ -146,7 +146,7 @@ async def _serve(ws: WebSocket, ctx: ServerContext, record: AvatarRecord) -> Non
     renderer = SessionRenderer(loaded, animator, manos, backend=s.backend)
     request = default_request(ctx, record)
     session = StreamSession(
-        ws, renderer, ctx.scheduler, ctx.metrics,
+        ws, renderer, ctx.scheduler, ctx.track_scheduler, ctx.metrics,
         SessionConfig(s.limits, s.jpeg_quality, s.jpeg_quality_moving, s.stats_interval_s),
         request, View(orbit=Orbit()), session_count=lambda: ctx.slots.count)
     info = AvatarInfo(id=record.id, name=record.name, num_gaussians=record.num_gaussians,

@@ -22,7 +22,8 @@ from typing import Any, TypeVar
 T = TypeVar("T")
 
 
-def _limit_threads(threads: int) -> None:
+def limit_threads(threads: int) -> None:
+    """torch and numba threads of the calling thread's work (a pool initializer)."""
     import torch
 
     if torch.get_num_threads() != threads:
@@ -43,7 +44,7 @@ class RenderScheduler:
         self.threads_per_render = threads_per_render
         self._pool = concurrent.futures.ThreadPoolExecutor(
             max_workers=render_threads, thread_name_prefix="render",
-            initializer=_limit_threads, initargs=(threads_per_render,))
+            initializer=limit_threads, initargs=(threads_per_render,))
         self._lock = threading.Lock()
         self.queued = 0   # submitted, not yet finished
         self.running = 0

@@ -48,6 +48,7 @@ from .drive import DriveState, fit_drive
 from .metrics import ServerMetrics
 from .renderer import FrameJob, RenderedFrame, SessionRenderer
 from .scheduler import RenderScheduler
+from .tracking import SessionTracker, TrackingInputInvalid, TrackingUnavailable
 
 log = logging.getLogger(__name__)
 
@@ -90,12 +91,14 @@ def error_message(code: str, message: str, answers: dict | None = None) -> Error
 
 class StreamSession:
     def __init__(self, ws: WebSocket, renderer: SessionRenderer, scheduler: RenderScheduler,
-                 metrics: ServerMetrics, config: SessionConfig, request: Request, view: View,
+                 track_scheduler: RenderScheduler, metrics: ServerMetrics,
+                 config: SessionConfig, request: Request, view: View,
                  session_count: Any) -> None:
         self.id = uuid.uuid4().hex[:12]
         self.ws = ws
         self.renderer = renderer
         self.scheduler = scheduler
+        self.track_scheduler = track_scheduler
         self.metrics = metrics
         self.config = config
         self.limits = config.limits
@@ -118,6 +121,15 @@ class StreamSession:
         self._pending_inputs = 1  # inputs waiting for a frame (the initial one)
         self._pending_drives = 0
         self._render_ms: collections.deque[float] = collections.deque(maxlen=RENDER_MS_WINDOW)
+        # webcam tracking: the newest image waiting (latest wins) and the tracking time of the
+        # newest tracked one, reported with the next frame
+        animator = renderer.animator
+        self.tracking = SessionTracker(animator.body_model, animator.betas, self.limits)
+        self._image: tuple[Image, float] | None = None
+        self._image_ready = asyncio.Event()
+        self._track_inflight = None
+        self._track_ms = 0.0
+        self.images_dropped = 0
         self.closed = asyncio.Event()
 
     # -- sending -----------------------------------------------------------------------------
@@ -181,9 +193,13 @@ class StreamSession:
         elif isinstance(msg, Ping):
             self.send_control(Pong(t=msg.t))
         elif isinstance(msg, Image):
-            raise ProtocolError("unsupported", "server-side tracking of webcam images is not "
-                                               "available yet; send drive messages",
-                                {"type": "image", "seq": msg.seq})
+            if self.tracking.unavailable:
+                raise ProtocolError("unsupported", self.tracking.unavailable,
+                                    {"type": "image", "seq": msg.seq})
+            if self._image is not None:
+                self.images_dropped += 1  # superseded before tracking started
+            self._image = (msg, time.monotonic())
+            self._image_ready.set()
         elif isinstance(msg, Hello):
             if msg.version != PROTOCOL_VERSION:
                 raise ProtocolError("version", f"this server speaks protocol version "
@@ -223,7 +239,8 @@ class StreamSession:
         self.coalesced += max(0, self._pending_drives - 1)
         self.metrics.coalesced.inc(max(0, self._pending_drives - 1))
         self._pending_inputs = self._pending_drives = 0
-        return FrameJob(self.drive.copy(), self.view, req, quality)
+        track_ms, self._track_ms = self._track_ms, 0.0
+        return FrameJob(self.drive.copy(), self.view, req, quality, track_ms)
 
     async def _render_loop(self) -> None:
         loop = asyncio.get_running_loop()
@@ -250,6 +267,36 @@ class StreamSession:
                 self.send_error("internal", f"rendering failed: {type(exc).__name__}")
                 continue
             await self._send_frame(frame)
+
+    async def _track_loop(self) -> None:
+        """Track the newest image, one at a time, off the event loop; its fit drives."""
+        while True:
+            await self._image_ready.wait()
+            self._image_ready.clear()
+            pending, self._image = self._image, None
+            if pending is None:
+                continue
+            image, received_at = pending
+            answers = {"type": "image", "seq": image.seq}
+            future = self.track_scheduler.submit(self.tracking.process, image, received_at)
+            self._track_inflight = future
+            try:
+                tracked = await asyncio.wrap_future(future)
+                drive = Drive(seq=tracked.seq, smplx=tracked.params)
+                self.drive.apply(drive, fit_drive(drive, self.shapes))
+            except TrackingUnavailable as exc:
+                self.send_error("unsupported", str(exc), answers)
+                continue
+            except (TrackingInputInvalid, ProtocolError) as exc:
+                self.send_error("invalid", f"cannot track this image: {exc}", answers)
+                continue
+            except Exception as exc:  # noqa: BLE001 - the session goes on
+                log.exception("tracking failed in session %s", self.id)
+                self.send_error("internal", f"tracking failed: {type(exc).__name__}", answers)
+                continue
+            self._track_ms = tracked.track_ms
+            self._pending_drives += 1
+            self._changed()
 
     async def _send_frame(self, f: RenderedFrame) -> None:
         msg = Frame(seq=f.seq, frame=self.frames, codec=f.codec, width=f.width, height=f.height,
@@ -286,7 +333,8 @@ class StreamSession:
     async def run(self) -> None:
         """Until the client leaves (or the socket fails); then everything is torn down."""
         tasks = [asyncio.create_task(coro, name=f"{self.id}:{coro.__name__}") for coro in (
-            self._receiver(), self._render_loop(), self._control_sender(), self._stats_loop())]
+            self._receiver(), self._render_loop(), self._control_sender(), self._stats_loop(),
+            self._track_loop())]
         try:
             done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
             for task in done:
@@ -302,8 +350,13 @@ class StreamSession:
             self.closed.set()
 
     def _release_renderer(self) -> None:
-        """Close the encoder once no render thread uses it (a running render finishes first;
-        a queued one was cancelled with its task)."""
+        """Close the encoder and the tracker once no thread uses them (a running job finishes
+        first; a queued one was cancelled with its task)."""
+        tracking = self._track_inflight
+        if tracking is not None and not tracking.done():
+            tracking.add_done_callback(lambda _: self.tracking.close())
+        else:
+            self.tracking.close()
         future = self._inflight
         if future is not None and not future.done():
             future.add_done_callback(lambda _: self.renderer.close())

@@ -8,7 +8,7 @@ import time
 
 import pytest
 
-from tests.server_fixtures import server  # noqa: F401 (the module's fixture)
+from tests.server_fixtures import server_fixture  # noqa: F401 (the `server` fixture)
 from tests.test_client_units import chromium_missing, make_chromium
 
 pytestmark = pytest.mark.skipif(chromium_missing() is not None,
@@ -129,12 +129,24 @@ def test_slider_drives_and_latency_is_measured(page):
 
 
 def test_webcam_toggle_shows_the_servers_answer(page):
+    from tests.test_track_drive import models_available
+
     wait_for(page, "window.telesplat.framesShown > 0", 60, "a frame")
     page.find_element("id", "webcam").click()  # Chromium's fake camera stands in
-    status = wait_for(page, "/unsupported/.test(document.getElementById('webcam-status')"
-                            ".textContent) && document.getElementById('webcam-status')"
-                            ".textContent", 30, "the server's answer to webcam frames")
-    assert "unsupported" in status
+    if models_available():  # the server tracks the images: frames keep coming, no error
+        before = page.execute_script("return window.telesplat.framesShown")
+        wait_for(page, f"window.telesplat.framesShown > {before} + 2", 60,
+                 "frames driven by webcam images")
+        errors = page.execute_script(
+            "return window.telesplat.errors.filter(e => e.answers?.type === 'image')"
+            ".map(e => e.code)")
+        assert errors == [], errors
+        assert page.find_element("id", "webcam-status").text == "sending frames…"
+    else:
+        status = wait_for(page, "/unsupported/.test(document.getElementById('webcam-status')"
+                                ".textContent) && document.getElementById('webcam-status')"
+                                ".textContent", 30, "the server's answer to webcam frames")
+        assert "unsupported" in status
     page.find_element("id", "webcam").click()
     assert page.find_element("id", "webcam-status").text == "off"
 

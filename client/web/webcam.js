@@ -1,6 +1,6 @@
 // Webcam driving: grab camera frames, encode them as JPEG and send `image` messages at a
-// capped rate. The server tracks them into parameters (or answers `unsupported` until the
-// tracker is in).
+// capped rate. The server tracks them into parameters (or answers `unsupported` when its
+// landmark models are missing).
 
 const MAX_FPS = 10;        // the tracker needs no more, and uplinks are often thin
 const WIDTH = 320;         // small frames: landmarks need little, the message stays small

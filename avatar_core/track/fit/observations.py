@@ -1,0 +1,85 @@
+"""Tracker output -> the fitter's targets: pixels [K, 2] and confidence weights [K].
+
+A landmark that is NaN, missing or below the visibility threshold gets weight 0; a group
+(face, a hand, the torso) with too few usable landmarks counts as not seen this frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..types import TrackResult
+from . import correspondence as cor
+
+MIN_VISIBILITY = 0.5  # BlazePose visibility below this: the landmark is guessed, not seen
+MIN_POINTS = {"face": 20, "left_hand": 8, "right_hand": 8, "pose": 2}
+# Pose landmarks that count toward "the torso is seen" (shoulders, elbows, wrists).
+POSE_ARM_IDS = (11, 12, 13, 14, 15, 16)
+
+
+@dataclass
+class Observations:
+    pixels: np.ndarray                     # [K, 2] image px (0 where unused)
+    weights: np.ndarray                    # [K] >= 0
+    image_size: tuple[int, int]            # (w, h)
+    seen: dict[str, bool] = field(default_factory=dict)  # group -> usable this frame
+
+    @property
+    def any_seen(self) -> bool:
+        return any(self.seen.values())
+
+
+def empty_observations(image_size: tuple[int, int]) -> Observations:
+    return Observations(np.zeros((cor.NUM_KEYPOINTS, 2)), np.zeros(cor.NUM_KEYPOINTS),
+                        image_size, {g: False for g in cor.GROUP_SLICES})
+
+
+def _put(obs: Observations, group: str, points: np.ndarray, weights: np.ndarray) -> None:
+    sl = cor.GROUP_SLICES[group]
+    pts = np.asarray(points, dtype=np.float64)[:, :2]
+    w = np.where(np.isfinite(pts).all(axis=1), np.asarray(weights, dtype=np.float64), 0.0)
+    obs.pixels[sl] = np.where(w[:, None] > 0, np.nan_to_num(pts), 0.0)
+    obs.weights[sl] = w
+    obs.seen[group] = int((w > 0).sum()) >= MIN_POINTS[group]
+    if not obs.seen[group]:
+        obs.weights[sl] = 0.0
+
+
+def from_landmarks(image_size: tuple[int, int], *, face: np.ndarray | None = None,
+                   left_hand: np.ndarray | None = None, right_hand: np.ndarray | None = None,
+                   pose: np.ndarray | None = None,
+                   pose_visibility: np.ndarray | None = None) -> Observations:
+    """Observations from raw landmark arrays: face [468, 2+] (MediaPipe face mesh), hands
+    [21, 2+], pose [33, 2+] with visibility [33]. None: not detected."""
+    obs = empty_observations(image_size)
+    if face is not None:
+        face = np.asarray(face, dtype=np.float64)
+        if face.shape[0] != 468:
+            raise ValueError(f"face landmarks must be [468, 2+], got {list(face.shape)}")
+        _put(obs, "face", cor.face_468_to_ibug68(face[:, :2]), np.ones(cor.NUM_FACE))
+    for group, hand in (("left_hand", left_hand), ("right_hand", right_hand)):
+        if hand is not None:
+            _put(obs, group, hand, np.ones(cor.NUM_HAND))
+    if pose is not None:
+        vis = np.ones(cor.NUM_POSE) if pose_visibility is None else np.asarray(pose_visibility)
+        mapped = np.array([name is not None for name in cor.POSE_MP_TO_SMPLX])
+        w = np.where(mapped & (vis >= MIN_VISIBILITY), vis, 0.0)
+        _put(obs, "pose", pose, w)
+        arms = obs.weights[cor.POSE_SLICE][list(POSE_ARM_IDS)]
+        obs.seen["pose"] = obs.seen["pose"] and int((arms > 0).sum()) >= 2
+    return obs
+
+
+def from_track_result(result: TrackResult) -> Observations:
+    """The best hand of each side (by score) and the face and pose, if any."""
+    hands: dict[str, np.ndarray] = {}
+    for hand in sorted(result.hands, key=lambda h: h.score):
+        hands[hand.handedness] = hand.points  # the higher score overwrites
+    pose = result.pose
+    return from_landmarks(
+        result.image_size, face=None if result.face is None else result.face.points,
+        left_hand=hands.get("left"), right_hand=hands.get("right"),
+        pose=None if pose is None else pose.points,
+        pose_visibility=None if pose is None else pose.visibility)

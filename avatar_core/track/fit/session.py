@@ -1,0 +1,129 @@
+"""A stream of frames -> a stream of SMPL-X parameters: warm starts, One Euro smoothing, and
+the lost-track policy.
+
+Each part of the body belongs to one landmark group (face, left hand, right hand, pose).
+While a group is seen its parameters come from the fit; when it is lost they hold their last
+fitted value for `hold_s`, then ease to the neutral stance over `relax_s`. A group never seen
+stays neutral. With nothing seen for longer than `hold_s` the next detection starts cold
+(placement solved again) instead of warm from a stale pose.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ...body.models import SMPLXModel
+from ...body.skeleton import JOINT
+from .camera import WebcamCamera
+from .fitter import FitConfig, FitResult, FrameFitter
+from .observations import Observations
+from .one_euro import ParamSmoother
+
+# Parameter -> owning group; body_pose rows listed separately (rows = joint index - 1).
+GROUP_OF_PARAM = {"expression": "face", "jaw_pose": "face", "leye_pose": "face",
+                  "reye_pose": "face", "left_hand_pose": "left_hand",
+                  "right_hand_pose": "right_hand", "global_orient": "pose", "transl": "pose"}
+GROUP_OF_BODY_JOINT = {"neck": "face", "head": "face", "left_wrist": "left_hand",
+                       "right_wrist": "right_hand"}  # other body joints: "pose"
+GROUPS = ("face", "left_hand", "right_hand", "pose")
+
+
+@dataclass
+class SessionConfig:
+    fov_x_deg: float = 60.0
+    hold_s: float = 0.5      # lost: keep the last fitted value this long
+    relax_s: float = 1.0     # ... then ease to neutral over this long
+    smoothing: bool = True
+    min_cutoff: float = 1.5  # One Euro: Hz at rest
+    beta: float = 0.3        # cutoff gain per unit/s of speed
+    fit: FitConfig = field(default_factory=FitConfig)
+
+
+@dataclass
+class FrameParams:
+    params: dict[str, np.ndarray]     # smplx names, per frame; what to drive with
+    seen: dict[str, bool]             # group -> seen in this frame
+    fit: FitResult | None             # None: nothing seen, params held / relaxing
+    t: float
+
+
+def _smoothstep(u: float) -> float:
+    u = min(max(u, 0.0), 1.0)
+    return u * u * (3 - 2 * u)
+
+
+def _body_rows(group: str) -> list[int]:
+    named = {JOINT[n] - 1: g for n, g in GROUP_OF_BODY_JOINT.items()}
+    return [r for r in range(21) if named.get(r, "pose") == group]
+
+
+class FitSession:
+    """Feed observations in time order: `step(obs, t) -> FrameParams`."""
+
+    def __init__(self, model: SMPLXModel, betas: np.ndarray | None = None,
+                 config: SessionConfig | None = None) -> None:
+        self.config = config or SessionConfig()
+        self.fitter = FrameFitter(model, betas, self.config.fit)
+        self.neutral = self.fitter.neutral
+        self.smoother = ParamSmoother(self.config.min_cutoff, self.config.beta)
+        self._rows = {g: _body_rows(g) for g in GROUPS}
+        self.reset()
+
+    def reset(self) -> None:
+        self.current: dict[str, np.ndarray] | None = None  # last output before smoothing
+        self.held: dict[str, dict[str, np.ndarray]] = {}  # group -> its last fitted values
+        self.last_seen: dict[str, float] = {}
+        self.smoother.reset()
+
+    def _group_values(self, params: dict[str, np.ndarray], group: str) -> dict[str, np.ndarray]:
+        out = {k: np.array(v) for k, v in params.items() if GROUP_OF_PARAM.get(k) == group}
+        out["body_rows"] = np.asarray(params["body_pose"])[self._rows[group]].copy()
+        return out
+
+    def _compose(self, fitted: dict[str, np.ndarray] | None, seen: dict[str, bool],
+                 t: float) -> dict[str, np.ndarray]:
+        out = {k: np.array(v, dtype=np.float64) for k, v in self.neutral.items()}
+        if self.current is not None:
+            out["transl"] = self.current["transl"].copy()  # placement is held, never relaxed
+        for group in GROUPS:
+            if seen.get(group) and fitted is not None:
+                values = self._group_values(fitted, group)
+                self.held[group], self.last_seen[group] = dict(values), t
+            elif group in self.held:
+                lost = t - self.last_seen[group] - self.config.hold_s
+                keep = 1.0 - _smoothstep(lost / max(self.config.relax_s, 1e-6))
+                neutral = self._group_values(self.neutral, group)
+                values = {k: neutral[k] + keep * (v - neutral[k]) if k != "transl" else v
+                          for k, v in self.held[group].items()}
+            else:
+                continue
+            rows = values.pop("body_rows")
+            out["body_pose"][self._rows[group]] = rows
+            out.update(values)
+        if fitted is not None:  # the placement is shared by every group
+            out["transl"] = np.array(fitted["transl"], dtype=np.float64)
+        return out
+
+    def step(self, obs: Observations, t: float) -> FrameParams:
+        camera = WebcamCamera(*obs.image_size, fov_x_deg=self.config.fov_x_deg)
+        seen = {g: bool(obs.seen.get(g)) for g in GROUPS}
+        fit = None
+        if any(seen.values()):
+            stale = not self.last_seen or t - max(self.last_seen.values()) > self.config.hold_s
+            start = None if self.current is None or stale else self.current
+            fit = self.fitter.fit(obs, camera, start)
+        params = self._compose(None if fit is None else fit.params, seen, t)
+        self.current = params
+        if self.config.smoothing:
+            params = self.smoother(params, t)
+        return FrameParams(params, seen, fit, t)
+
+
+def drive_params(params: dict[str, np.ndarray], with_transl: bool = False
+                 ) -> dict[str, np.ndarray]:
+    """The SMPL-X fields to drive an avatar with. `transl` is the subject's place in front of
+    the webcam, which would move the avatar out of its own view: left out by default."""
+    return {k: np.asarray(v, dtype=np.float64) for k, v in params.items()
+            if with_transl or k != "transl"}

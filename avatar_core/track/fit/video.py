@@ -1,0 +1,82 @@
+"""Frames from a video, a webcam or one image -> per-frame SMPL-X parameters -> a motion file.
+
+The file is what `telesplat render --motion` and `telesplat-client stream --motion` read:
+`.json`, a list of per-frame dicts of SMPL-X fields; or `.npz`, one array per field with the
+frame axis first.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .observations import from_track_result
+from .session import FitSession, SessionConfig, drive_params
+
+
+def frames_from(source: str | int, max_frames: int | None = None
+                ) -> Iterator[tuple[np.ndarray, float]]:
+    """(BGR frame, seconds) from a video path, a webcam index, or a still image (one frame)."""
+    if isinstance(source, str) and Path(source).suffix.lower() in (".jpg", ".jpeg", ".png"):
+        from ..image import decode_image
+
+        yield decode_image(Path(source).read_bytes()), 0.0
+        return
+    cap = cv2.VideoCapture(source)
+    if not cap.isOpened():
+        raise OSError(f"cannot open {'webcam' if isinstance(source, int) else 'video'} "
+                      f"{source!r}")
+    fps = cap.get(cv2.CAP_PROP_FPS) or 30.0
+    live, start, i = isinstance(source, int), time.monotonic(), 0
+    try:
+        while max_frames is None or i < max_frames:
+            ok, frame = cap.read()
+            if not ok:
+                return
+            yield frame, (time.monotonic() - start) if live else i / fps
+            i += 1
+    finally:
+        cap.release()
+
+
+def track_params(frames: Iterator[tuple[np.ndarray, float]], session: FitSession, tracker,
+                 with_transl: bool = False,
+                 progress: Callable[[], None] | None = None) -> list[dict[str, np.ndarray]]:
+    out = []
+    for frame, t in frames:
+        result = tracker.track(frame)
+        out.append(drive_params(session.step(from_track_result(result), t).params, with_transl))
+        if progress:
+            progress()
+    return out
+
+
+def write_params(frames: list[dict[str, np.ndarray]], path: Path) -> Path:
+    if not frames:
+        raise ValueError("no frames were tracked")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.suffix == ".json":
+        path.write_text(json.dumps([{k: np.asarray(v).tolist() for k, v in f.items()}
+                                    for f in frames]))
+    elif path.suffix == ".npz":
+        np.savez(path, **{k: np.stack([f[k] for f in frames]) for k in frames[0]})
+    else:
+        raise ValueError(f"{path}: parameter files are .json or .npz")
+    return path
+
+
+def default_session(fov_x_deg: float = 60.0, smoothing: bool = True,
+                    model_dir: Path | None = None) -> FitSession:
+    """A fit session on the synthetic avatar's body model (identity 0's shape)."""
+    from ...gaussians.animate import synthetic_package
+    from ...synth.body_demo import ensure_models
+
+    files = ensure_models(model_dir)
+    package, model = synthetic_package(files.root, 0)
+    return FitSession(model, np.asarray(package.body.betas),
+                      SessionConfig(fov_x_deg=fov_x_deg, smoothing=smoothing))

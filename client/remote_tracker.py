@@ -1,0 +1,63 @@
+"""The remote tracker: track a webcam or a video here, send the fitted parameters as drives.
+
+Tracking runs on this machine (``avatar_core.track``, imported only when used, so the client
+library itself never needs torch or onnxruntime); only parameters cross the network, not
+images. Frames that come back are counted, or saved when ``out`` is given.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from pathlib import Path
+
+
+async def drive_from_camera(server: str, token: str | None, avatar: str, source: str | int, *,
+                            max_frames: int | None = None, fov_x_deg: float = 60.0,
+                            out: Path | None = None, timeout: float = 30.0,
+                            progress: bool = True) -> dict[str, float]:
+    """Track ``source`` (a webcam index or a video path) and drive ``avatar`` with the fit.
+    Returns counts and the mean tracking time."""
+    from tqdm import tqdm
+
+    from avatar_core.track.fit.observations import from_track_result
+    from avatar_core.track.fit.session import drive_params
+    from avatar_core.track.fit.video import default_session, frames_from
+    from avatar_core.track.tracker import Tracker
+
+    from .images import save_frame
+    from .stream import StreamClient
+
+    tracker = Tracker()
+    session = default_session(fov_x_deg)
+    frames = frames_from(source, max_frames)
+
+    def track_next():
+        item = next(frames, None)
+        if item is None:
+            return None
+        frame, t = item
+        t0 = time.perf_counter()
+        params = drive_params(session.step(from_track_result(tracker.track(frame)), t).params)
+        return params, (time.perf_counter() - t0) * 1e3
+
+    sent, received, track_ms = 0, 0, 0.0
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+    async with await StreamClient.connect(server, avatar, token, timeout=timeout,
+                                          client_name="telesplat-client drive") as client:
+        with tqdm(total=max_frames, unit="frame", disable=not progress, desc="driving") as bar:
+            while True:
+                item = await asyncio.to_thread(track_next)  # the loop keeps reading frames
+                if item is None:
+                    break
+                params, ms = item
+                seq = await client.drive(params, reset=sent == 0)
+                sent, track_ms = sent + 1, track_ms + ms
+                if out is not None:
+                    frame = await client.wait_frame(seq, timeout=timeout)
+                    save_frame(frame, out / f"{received:05d}")
+                    received += 1
+                bar.update(1)
+    tracker.close()
+    return {"sent": sent, "saved": received, "track_ms": track_ms / max(sent, 1)}
