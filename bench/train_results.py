@@ -17,6 +17,10 @@ Accuracy against the number of Gaussians rendered (and render time) for a traine
 
     .venv/bin/python bench/train_results.py DATA --budget-curve AVATAR --out docs/results
 
+Render times of the curve snapshots, re-measured side by side after training:
+
+    .venv/bin/python bench/train_results.py DATA --render-times out/results_work --out docs/results
+
 Models can also be trained by separate runs (one --models each, own --out) and merged:
 
     .venv/bin/python bench/train_results.py --merge OUT_FULL OUT_NO_FUSION ... --out docs/results
@@ -103,6 +107,46 @@ def plot(curves: dict[str, list[dict]], out: Path) -> None:
     fig.savefig(out / "accuracy_vs_time.png", dpi=110)
 
 
+def render_times(work: Path, data, out: Path, rounds: int = 7) -> None:
+    """Render ms of every curve snapshot, re-measured side by side on a quiet machine: the
+    snapshots of all models posed once, then rendered in interleaved rounds (the training
+    runs' own timings were taken while three trainings shared the cores)."""
+    import numpy as np
+    import torch
+
+    from avatar_core.pipeline import load_avatar
+    from avatar_core.render.rasterize import rasterize
+    from avatar_core.render.types import RenderRequest
+
+    key = data.views("novel_view")[0]
+    camera = data.view(*key).camera
+    posed = {}
+    for snap in sorted(work.glob("*/snapshot_*")):
+        loaded = load_avatar(str(snap))
+        posed[(snap.parent.name, int(snap.name.split("_")[1]))] = loaded.animator.pose({})
+    times: dict = {k: [] for k in posed}
+    with torch.no_grad():
+        for p in posed.values():  # warm-up (numba compiles once)
+            rasterize(p.gaussians, camera, RenderRequest())
+        for _ in range(rounds):
+            for k, p in posed.items():
+                t0 = time.perf_counter()
+                rasterize(p.gaussians, camera, RenderRequest())
+                times[k].append((time.perf_counter() - t0) * 1e3)
+    js = json.loads((out / "results.json").read_text())
+    for name, rows in js["curves"].items():
+        for row in rows:
+            ms = times.get((name, row["iteration"]))
+            if ms:
+                row["render_ms"] = round(float(np.median(ms)), 2)
+    js["render_ms_note"] = (f"median of {rounds} interleaved renders per snapshot, 512x512, "
+                            "cpu backend, one process, after training")
+    (out / "results.json").write_text(json.dumps(js, indent=2))
+    plot(js["curves"], out)
+    for k, ms in times.items():
+        print(k, round(float(np.median(ms)), 2), "ms")
+
+
 BUDGETS = (0.05, 0.1, 0.2, 0.35, 0.5, 0.75, 1.0)
 
 
@@ -162,6 +206,8 @@ def main() -> None:
                     help="--out folders of earlier runs to merge into --out")
     ap.add_argument("--budget-curve", type=Path, default=None, metavar="AVATAR",
                     help="only the render-budget curve of this trained avatar")
+    ap.add_argument("--render-times", type=Path, default=None, metavar="WORK",
+                    help="re-time the curve snapshots under WORK into --out/results.json")
     ap.add_argument("--out", type=Path, default=Path("docs/results"))
     ap.add_argument("--work", type=Path, default=Path("out/results_work"))
     ap.add_argument("--preset", default="quick")
@@ -177,6 +223,9 @@ def main() -> None:
     if args.dataset is None:
         ap.error("give a dataset (or --merge)")
     data = load_dataset(args.dataset)
+    if args.render_times:
+        render_times(args.render_times, data, args.out)
+        return
     if args.budget_curve:
         budget_curve(args.budget_curve, data, args.out, args.curve_views * 2, args.eval_stride)
         return
