@@ -1,10 +1,10 @@
 """Streaming end to end on loopback: 1, 2, 4 and 8 concurrent sessions at 512x512.
 
-Starts its own server (``python -m server``, a subprocess on a free port, synthetic demo
-avatar, fresh data dir) and connects the sessions with ``client.StreamClient``. Each session
-drives a procedural talking-and-gesturing motion (jaw, expression, head, arms, fingers: every
-stage of the pipeline recomputes each frame) and measures, per frame, the time from sending
-the drive to receiving the frame that reflects it.
+Starts its own server (``python -m server``, a subprocess on a free port, the demo avatar
+of ``--avatar``, fresh data dir) and connects the sessions with ``client.StreamClient``. Each
+session drives a procedural talking-and-gesturing motion (jaw, expression, head, arms,
+fingers: every stage of the pipeline recomputes each frame) and measures, per frame, the
+time from sending the drive to receiving the frame that reflects it.
 
 Modes: ``lockstep`` (default): each session sends its next drive as soon as the frame for the
 previous one came back, so fps is what the server sustains and latency is the pipeline time
@@ -14,6 +14,7 @@ newest drive a frame reflects.
 
     .venv/bin/python bench/stream.py [--sessions 1,2,4,8] [--seconds 8] [--size 512]
                                      [--mode lockstep|paced] [--rate 30] [--render-threads 1]
+                                     [--avatar synthetic|trained|PACKAGE]
 
 Prints a Markdown table: per-session fps (mean over sessions), the min/max fps ratio across
 sessions (fairness), latency p50/p95 over all frames, and the server's median render time.
@@ -154,12 +155,12 @@ async def run_config(url: str, token: str, sessions: int, size: int, seconds: fl
 # -- the server ----------------------------------------------------------------------------
 
 
-def start_server(data_dir: Path, render_threads: int, max_sessions: int):
+def start_server(data_dir: Path, render_threads: int, max_sessions: int, avatar: str):
     env = {**os.environ, "TELESPLAT_RENDER_THREADS": str(render_threads),
            "TELESPLAT_MAX_SESSIONS": str(max_sessions), "PYTHONUNBUFFERED": "1"}
     proc = subprocess.Popen(
         [sys.executable, "-m", "server", "--port", "0", "--data-dir", str(data_dir),
-         "--demo-avatar", "synthetic", "--log-level", "warning"],
+         "--demo-avatar", avatar, "--log-level", "warning"],
         cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     deadline = time.monotonic() + START_TIMEOUT_S
     lines = []
@@ -188,11 +189,15 @@ def main() -> int:
     parser.add_argument("--mode", choices=("lockstep", "paced"), default="lockstep")
     parser.add_argument("--rate", type=float, default=30.0, help="drives per second (paced)")
     parser.add_argument("--render-threads", type=int, default=1)
+    parser.add_argument("--avatar", default="synthetic",
+                        help="the server's demo avatar: synthetic (untrained, 16k Gaussians), "
+                             "trained (make run's, built first if missing) or a package path")
     args = parser.parse_args()
     counts = [int(n) for n in args.sessions.split(",")]
 
     with tempfile.TemporaryDirectory(prefix="telesplat-bench-") as tmp:
-        proc, url, token = start_server(Path(tmp), args.render_threads, max(counts))
+        proc, url, token = start_server(Path(tmp), args.render_threads, max(counts),
+                                        args.avatar)
         try:
             rows = []
             for n in counts:
@@ -215,7 +220,7 @@ def main() -> int:
                 proc.kill()
 
     load = os.getloadavg() if hasattr(os, "getloadavg") else ("?",) * 3
-    print(f"\nStreaming on loopback, {args.size}x{args.size} JPEG, synthetic demo avatar, "
+    print(f"\nStreaming on loopback, {args.size}x{args.size} JPEG, {args.avatar} demo avatar, "
           f"mode {args.mode}" + (f" at {args.rate:g} Hz" if args.mode == "paced" else "")
           + f", {args.seconds:g} s per row, render threads {args.render_threads}; "
           f"{os.cpu_count()} CPUs ({platform.processor() or platform.machine()}), "
