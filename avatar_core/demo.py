@@ -19,7 +19,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 # Bump when DemoRecipe's defaults change: an old cache is rebuilt, never silently reused.
-DEMO_VERSION = 1
+DEMO_VERSION = 2
 
 # (stage, done, total) with stage "capture" | "train"
 Progress = Callable[[str, int, int], None]
