@@ -57,8 +57,11 @@ class Settings(BaseModel):
                                                             "all sessions (fair round-robin).")
     track_threads: int = Field(1, ge=1, le=64, description="Webcam-tracking worker threads "
                                                            "shared by all sessions.")
-    torch_threads: int = Field(1, ge=1, le=64, description="torch / numba threads per render "
-                                                           "worker (more oversubscribes cores).")
+    torch_threads: int = Field(
+        default_factory=lambda: min(2, os.cpu_count() or 1), ge=1, le=64,
+        description="torch / numba threads per render worker (default: 2, or 1 on one core). "
+                    "render_threads x torch_threads should not exceed the cores; training jobs "
+                    "run niced in their own process.")
     send_buffer_bytes: int = Field(
         64 * 1024, ge=0, description="Kernel send buffer per connection (SO_SNDBUF; Linux "
                                      "doubles it); bounds how many frames a slow client can "

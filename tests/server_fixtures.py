@@ -74,6 +74,7 @@ def run_server(data_dir: Path, **overrides: Any) -> Iterator[RunningServer]:
     updated by ``overrides``; stopped (with bounded waits) on exit."""
     fields = {"data_dir": data_dir, "demo_avatar": "synthetic", "default_width": TEST_SIZE,
               "default_height": TEST_SIZE, "auth": "local", "stats_interval_s": 0.5,
+              "torch_threads": 1,  # two xdist workers share the two cores
               **overrides}
     settings = Settings(**fields)
     app = create_app(settings)
