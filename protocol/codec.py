@@ -63,7 +63,7 @@ def _answers(obj: dict[str, Any]) -> dict[str, Any]:
 
 def _validate(adapter: TypeAdapter, known: dict, obj: dict[str, Any], limits: Limits):
     kind = obj.get("type")
-    if kind not in known:
+    if not isinstance(kind, str) or kind not in known:  # a list or map is unhashable
         raise ProtocolError("bad_message", f"unknown message type {kind!r}; expected one of "
                                            f"{sorted(known)}", _answers(obj))
     try:

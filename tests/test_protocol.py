@@ -1,0 +1,244 @@
+"""The wire protocol: every message round-trips, validation refuses what it must with the right
+code, and the codec never fails with anything but ProtocolError (hypothesis)."""
+
+import math
+
+import msgpack
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from protocol import (
+    CLIENT_TYPES,
+    SERVER_TYPES,
+    AvatarInfo,
+    CameraSpec,
+    Drive,
+    Error,
+    Frame,
+    Hello,
+    Image,
+    Limits,
+    Orbit,
+    Ping,
+    Pong,
+    ProtocolError,
+    Request,
+    Stats,
+    Timings,
+    View,
+    Welcome,
+    decode_client,
+    decode_server,
+    encode,
+    pack_array,
+    unpack_array,
+)
+from protocol.messages import Answers
+
+EYE = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+K = ((500.0, 0.0, 256.0), (0.0, 500.0, 256.0), (0.0, 0.0, 1.0))
+
+CLIENT_EXAMPLES = [
+    Hello(token="t" * 40, client="pytest"),
+    Drive(seq=7, smplx={"jaw_pose": [0.1, 0, 0], "body_pose": np.zeros((21, 3), np.float32),
+                        "expression": np.arange(10.0)},
+          flame={"expr": np.ones(50), "eyes_pose": np.zeros(6)},
+          mano_left={"hand_pose": np.zeros(45)}, mano_right={"hand_pose": np.zeros(6)},
+          reset=True),
+    View(orbit=Orbit(yaw_deg=30, pitch_deg=-10, distance=2.0, target=(0, 0.3, 0)),
+         moving=True),
+    View(camera=CameraSpec(K=K, R=EYE, t=(0, 0, 3), width=640, height=480)),
+    Request(outputs=["rgb", "alpha", "depth"], width=320, height=240, background=(1, 1, 1),
+            sh_degree=1, quality=0.5, jpeg_quality=70, codec="png", max_fps=24),
+    Image(seq=3, format="png", data=b"\x89PNG fake but non-empty"),
+    Ping(t=12.5),
+]
+SERVER_EXAMPLES = [
+    Welcome(session="abc", avatar=AvatarInfo(id="demo", name="ada", num_gaussians=5,
+                                             sh_degree=3, owner="public"),
+            limits=Limits(), codecs=["jpeg", "png", "h264"], request=Request(width=512)),
+    Frame(seq=7, frame=1, codec="jpeg", width=4, height=2, data=b"\xff\xd8",
+          depth=b"png", keyframe=False, timings=Timings(track=1, pose=2, render=3, encode=4)),
+    Error(code="invalid", message="nope", answers=Answers(type="drive", seq=3)),
+    Stats(fps=30, frames=10, dropped=1, coalesced=2, bytes_per_s=1e5, render_ms=12,
+          sessions=1),
+    Pong(t=1.0),
+]
+
+
+def _same(a, b):
+    if isinstance(a, dict):
+        assert a.keys() == b.keys()
+        for k in a:
+            _same(a[k], b[k])
+    elif isinstance(a, np.ndarray):
+        np.testing.assert_array_equal(a, b)
+    else:
+        assert a == b
+
+
+@pytest.mark.parametrize("message", CLIENT_EXAMPLES, ids=lambda m: m.type)
+def test_client_messages_round_trip(message):
+    back = decode_client(encode(message))
+    assert type(back) is type(message)
+    _same(message.model_dump(), back.model_dump())
+
+
+@pytest.mark.parametrize("message", SERVER_EXAMPLES, ids=lambda m: m.type)
+def test_server_messages_round_trip(message):
+    back = decode_server(encode(message))
+    assert type(back) is type(message) and back == message
+
+
+def test_every_message_type_has_an_example():
+    assert {m.type for m in CLIENT_EXAMPLES} == set(CLIENT_TYPES)
+    assert {m.type for m in SERVER_EXAMPLES} == set(SERVER_TYPES)
+
+
+@pytest.mark.parametrize("dtype", ["<f4", "<f8", "<i4", "<i8", "|u1", "<u2"])
+def test_arrays_pack_and_unpack_exactly(dtype):
+    arr = (np.arange(24) - 5).astype(np.dtype(dtype)).reshape(2, 3, 4)
+    packed = msgpack.unpackb(msgpack.packb(pack_array(arr), use_bin_type=True), raw=False)
+    back = unpack_array(packed, max_elements=100)
+    assert back.dtype == arr.dtype and back.shape == arr.shape
+    np.testing.assert_array_equal(back, arr)
+    big_endian = arr.astype(np.dtype(dtype).newbyteorder(">")) if arr.itemsize > 1 else arr
+    np.testing.assert_array_equal(unpack_array(pack_array(big_endian), 100), arr)
+
+
+def _raw(**fields):
+    return msgpack.packb(fields, use_bin_type=True)
+
+
+BAD_CLIENT = [
+    (b"", "bad_message"),
+    (b"\xc1", "bad_message"),                                     # reserved msgpack byte
+    (msgpack.packb([1, 2, 3]), "bad_message"),                    # not a map
+    (_raw(seq=1), "bad_message"),                                 # no type
+    (_raw(type="frame", seq=1), "bad_message"),                   # a server type
+    (_raw(type="drive"), "invalid"),                              # no seq
+    (_raw(type="drive", seq=-1), "invalid"),
+    (_raw(type="drive", seq=1, extra=True), "invalid"),           # unknown field
+    (_raw(type="drive", seq=1, smplx={"jaw_pose": [0, 0]}), "invalid"),
+    (_raw(type="drive", seq=1, smplx={"jaw_pose": [0, 0, math.nan]}), "invalid"),
+    (_raw(type="drive", seq=1, smplx={"jaw_pose": [0, 0, math.inf]}), "invalid"),
+    (_raw(type="drive", seq=1, smplx={"tail": [0, 0, 0]}), "invalid"),
+    (_raw(type="drive", seq=1, smplx={"jaw_pose": "abc"}), "invalid"),
+    (_raw(type="drive", seq=1, flame={"expr": list(range(101))}), "invalid"),
+    (_raw(type="drive", seq=1, smplx={"body_pose": {"nd": True, "dtype": "<f4",
+                                                    "shape": [21, 3], "data": b"\0" * 4}}),
+     "invalid"),                                                  # bytes do not fit the shape
+    (_raw(type="drive", seq=1, smplx={"body_pose": {"nd": True, "dtype": "|O",
+                                                    "shape": [1], "data": b"\0"}}), "invalid"),
+    (_raw(type="view"), "invalid"),                               # neither orbit nor camera
+    (_raw(type="view", orbit={"pitch_deg": 95}), "invalid"),
+    (_raw(type="view", camera={"K": K, "R": ((2, 0, 0), (0, 1, 0), (0, 0, 1)),
+                               "t": (0, 0, 1), "width": 4, "height": 4}), "invalid"),
+    (_raw(type="request", width=10**6), "too_large"),
+    (_raw(type="request", max_fps=1000), "too_large"),
+    (_raw(type="request", codec="gif"), "invalid"),
+    (_raw(type="request", background=(2, 0, 0)), "invalid"),
+    (_raw(type="request", outputs=[]), "invalid"),
+    (_raw(type="image", seq=1, data=b""), "invalid"),
+    (_raw(type="image", seq=1, data=b"x" * (5 * 1024 * 1024)), "too_large"),
+]
+
+
+@pytest.mark.parametrize("data,code", BAD_CLIENT)
+def test_bad_client_messages_get_the_right_code(data, code):
+    with pytest.raises(ProtocolError) as err:
+        decode_client(data)
+    assert err.value.code == code, err.value.message
+    assert err.value.message
+
+
+def test_errors_say_which_message_they_answer():
+    with pytest.raises(ProtocolError) as err:
+        decode_client(_raw(type="drive", seq=41, smplx={"jaw_pose": [1]}))
+    assert err.value.answers == {"type": "drive", "seq": 41}
+    assert "jaw_pose" in err.value.message
+
+
+def test_size_limits_come_before_parsing_and_are_configurable():
+    small = Limits(max_message_bytes=1024, max_array_elements=64)
+    big = encode(Drive(seq=1, smplx={"betas": np.zeros(200)}))
+    with pytest.raises(ProtocolError) as err:
+        decode_client(big, small)
+    assert err.value.code == "too_large"
+    with pytest.raises(ProtocolError) as err:  # the array-length limit of msgpack itself
+        decode_client(_raw(type="drive", seq=1, smplx={"betas": [0.0] * 100}), small)
+    assert err.value.code in ("bad_message", "too_large")
+    assert decode_client(big).smplx["betas"].shape == (200,)  # fine under the defaults
+
+
+def test_unbatched_shapes_are_normalised():
+    d = decode_client(encode(Drive(seq=0, smplx={"body_pose": np.zeros(63)},
+                                   mano_left={"hand_pose": np.zeros(45)})))
+    assert d.smplx["body_pose"].shape == (21, 3)
+    assert d.mano_left["hand_pose"].shape == (15, 3)
+
+
+# -- property tests --------------------------------------------------------------------------
+
+_finite = st.floats(-1e6, 1e6, allow_nan=False, allow_infinity=False, width=32)
+
+
+@st.composite
+def drives(draw):
+    smplx = {}
+    if draw(st.booleans()):
+        smplx["jaw_pose"] = draw(st.lists(_finite, min_size=3, max_size=3))
+    if draw(st.booleans()):
+        smplx["expression"] = draw(st.lists(_finite, min_size=1, max_size=100))
+    if draw(st.booleans()):
+        n = draw(st.integers(1, 45))
+        smplx["left_hand_pose"] = np.asarray(draw(st.lists(_finite, min_size=n, max_size=n)),
+                                             dtype=np.float32)
+    flame = {"jaw_pose": draw(st.lists(_finite, min_size=3, max_size=3))} \
+        if draw(st.booleans()) else None
+    return Drive(seq=draw(st.integers(0, 2**53 - 1)), smplx=smplx or None, flame=flame,
+                 reset=draw(st.booleans()))
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(drives())
+def test_valid_drives_round_trip(drive):
+    back = decode_client(encode(drive))
+    assert back.seq == drive.seq and back.reset == drive.reset
+    for fam, values in drive.families().items():
+        got = back.families()[fam]
+        assert got.keys() == values.keys()
+        for k, v in values.items():
+            np.testing.assert_allclose(got[k].reshape(-1), np.asarray(v, np.float64).reshape(-1))
+
+
+_msgpack_values = st.recursive(
+    st.none() | st.booleans() | st.integers(-2**63, 2**63 - 1) | st.floats() | st.text(max_size=20)
+    | st.binary(max_size=64),
+    lambda inner: st.lists(inner, max_size=5) | st.dictionaries(st.text(max_size=10), inner,
+                                                                max_size=5),
+    max_leaves=20)
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.dictionaries(st.sampled_from(["type", "seq", "smplx", "flame", "orbit", "camera",
+                                        "data", "outputs", "width", "t", "token", "reset"]),
+                       _msgpack_values, max_size=6),
+       st.sampled_from(sorted(CLIENT_TYPES)))
+def test_random_messages_fail_only_with_protocol_errors(fields, kind):
+    fields = {"type": kind, **fields} if "type" not in fields else fields
+    try:
+        decode_client(msgpack.packb(fields, use_bin_type=True))
+    except ProtocolError as exc:
+        assert exc.code in ("bad_message", "invalid", "too_large") and exc.message
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.binary(max_size=256))
+def test_random_bytes_fail_only_with_protocol_errors(data):
+    try:
+        decode_client(data)
+    except ProtocolError as exc:
+        assert exc.code in ("bad_message", "invalid", "too_large")
