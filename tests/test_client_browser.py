@@ -70,6 +70,8 @@ def page(server):  # noqa: F811
 def test_page_loads_and_shows_frames(page):
     assert page.title == "Telesplat"
     wait_for(page, "window.telesplat && window.telesplat.framesShown > 0", 60, "a frame")
+    # The first frames may be the server's default size, until the page's request lands.
+    wait_for(page, "document.getElementById('view').width === 512", 30, "a 512 px frame")
     avatars = page.execute_script(
         "return [...document.querySelectorAll('#avatar option')].map(o => o.value)")
     assert "demo" in avatars
