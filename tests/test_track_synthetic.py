@@ -1,0 +1,75 @@
+"""Recovery of known parameters from synthetic renders, within stated tolerances.
+
+The capture studio's textured actor (identity 0) is posed by library motions with known SMPL-X
+parameters and rendered by a 640x480 webcam (60 deg horizontal field of view, the fitter's
+camera) over a noisy background; the real `Tracker` (ONNX landmark models) and a `FitSession`
+run over a few consecutive frames (tracking mode). `bench/track_eval.py` is the full version
+and docs/tracking.md ("Synthetic renders with known parameters") has its numbers; the bounds
+here are those measurements with margin. Renders, landmarks and fits are deterministic (one
+thread everywhere), so a failure is a change in behaviour, not noise.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytest.importorskip("onnxruntime")
+
+from avatar_core.track.models import ModelFetchError, fetch_models  # noqa: E402
+from bench import track_eval as te  # noqa: E402
+
+FPS = 30.0
+FRAMES = 4
+# Bounds: the measured values of these exact frames (in brackets) with margin. The head
+# rotation is off by ~15 deg (mostly pitch) on every clip: MediaPipe's face oval and ears sit
+# 10-20 px from the synthetic model's contour landmarks and ear vertices and the fit tilts the
+# head to split the difference (docs/tracking.md); the bound guards against it getting worse.
+AKD_FACE_PX = 3.5     # mouth_open 2.2, peace 2.1 (51 static landmarks)
+HEAD_DEG = 22.0       # 16.7, 15.6
+JAW_DEG = 12.0        # 7.1 (true opening 20 deg)
+AKD_TORSO_PX = 30.0   # 21.2 (BlazePose hips sit 25 px outside the SMPL-X hip joints)
+AKD_HAND_PX = 22.0    # peace, right hand: 15.0
+WRIST_DEG = 45.0      # 30.9
+
+
+@pytest.fixture(scope="module")
+def scene():
+    try:
+        fetch_models()
+    except ModelFetchError as exc:
+        pytest.skip(f"cannot fetch the MediaPipe landmark models: {exc}")
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # deterministic reductions, and fair on a shared machine
+    scene = te.make_scene("noise")
+    tracker, session = te.make_tracker_and_session(scene)
+    yield scene, tracker, session
+    tracker.close()
+    torch.set_num_threads(threads)
+
+
+def test_face_parameters_from_renders_of_an_open_mouth(scene):
+    sc, tracker, session = scene
+    # mouth_open holds its pose (jaw 20 deg, lips parted) from 0.5 s to 1.5 s.
+    r = te.run_clip(sc, "mouth_open", tracker, session, FPS, FRAMES, start=0.6)
+    m = r.metrics
+    assert r.seen["face"].all() and r.seen["pose"].all(), r.seen
+    assert m["akd_face"] < AKD_FACE_PX, m
+    assert m["head_deg"] < HEAD_DEG, m
+    assert m["jaw_deg"] < JAW_DEG, m
+    assert m["akd_torso"] < AKD_TORSO_PX, m
+
+
+def test_hand_parameters_from_renders_of_a_peace_sign(scene):
+    sc, tracker, session = scene
+    # peace holds the raised right hand beside the chin from 0.7 s to 2.0 s.
+    r = te.run_clip(sc, "peace", tracker, session, FPS, FRAMES, start=1.0)
+    m = r.metrics
+    assert r.seen["face"].all(), r.seen
+    assert m["akd_face"] < AKD_FACE_PX and m["head_deg"] < HEAD_DEG, m
+    assert r.seen["right_hand"].all(), r.seen
+    assert m["akd_right_hand"] < AKD_HAND_PX, m
+    assert m["wrist_deg"] < WRIST_DEG, m
+    assert np.isfinite(m["finger_deg"]), m
