@@ -23,12 +23,12 @@ async def drive_from_camera(server: str, token: str | None, avatar: str, source:
     from avatar_core.track.fit.observations import from_track_result
     from avatar_core.track.fit.session import drive_params
     from avatar_core.track.fit.video import default_session, frames_from
-    from avatar_core.track.tracker import Tracker
+    from avatar_core.track.tracker import LIVE_PALM_INTERVAL, Tracker
 
     from .images import save_frame
     from .stream import StreamClient
 
-    tracker = Tracker()
+    tracker = Tracker(palm_interval=LIVE_PALM_INTERVAL)
     session = default_session(fov_x_deg)
     frames = frames_from(source, max_frames)
 

@@ -16,6 +16,11 @@ from .segmentation import SelfieSegmentation
 from .session import ModelSource
 from .types import TrackResult
 
+# Live driving (server-side webcam, remote tracker): a palm search every 5th frame while fewer
+# than two hands are tracked keeps face + hands + body at >= 30 fps on 2 cores (docs/tracking.md:
+# 31 fps, against 21 fps searching every frame); offline tracking keeps MediaPipe's 1.
+LIVE_PALM_INTERVAL = 5
+
 
 class Tracker:
     """Stateful monocular tracker on ONNX Runtime.
