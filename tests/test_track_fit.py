@@ -193,3 +193,30 @@ def test_degenerate_inputs_give_finite_params_or_no_detection(setup):
     assert out.fit is not None and out.fit.reprojection_px["face"] < 3.0
     sent = drive_params(out.params)
     assert "transl" not in sent and sent["body_pose"].shape == (21, 3)
+
+
+def test_hands_go_to_the_nearer_pose_wrist_not_their_label():
+    from avatar_core.track.fit.observations import hand_sides
+    from avatar_core.track.types import HandLandmarks, PoseLandmarks, TrackResult
+
+    def hand(x, label, score=0.9):
+        pts = np.zeros((21, 3), np.float32)
+        pts[:, 0], pts[:, 1] = x, 200.0  # point 0 is the wrist
+        return HandLandmarks(points=pts, handedness=label, score=score)
+
+    pose_pts = np.zeros((33, 3), np.float32)
+    pose_pts[15, :2], pose_pts[16, :2] = (400, 200), (100, 200)  # person's left on image right
+    vis = np.ones(33, np.float32)
+    pose = PoseLandmarks(points=pose_pts, visibility=vis, score=1.0)
+    both_wrong = TrackResult(None, (hand(110, "left"), hand(390, "right")), pose, None,
+                             image_size=(640, 480))
+    sides = hand_sides(both_wrong)
+    assert sides["left"][0, 0] == 390 and sides["right"][0, 0] == 110
+    one = hand_sides(TrackResult(None, (hand(395, "right"),), pose, None))
+    assert list(one) == ["left"]
+    # Without the body's wrists the labels decide; of two "left" hands the better one is kept.
+    unseen = PoseLandmarks(points=pose_pts, visibility=np.zeros(33, np.float32), score=1.0)
+    labelled = hand_sides(TrackResult(None, (hand(110, "left", 0.6), hand(390, "left", 0.95)),
+                                      unseen, None))
+    assert list(labelled) == ["left"] and labelled["left"][0, 0] == 390
+    assert hand_sides(TrackResult(None, (), pose, None)) == {}

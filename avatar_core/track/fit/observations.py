@@ -72,11 +72,41 @@ def from_landmarks(image_size: tuple[int, int], *, face: np.ndarray | None = Non
     return obs
 
 
+POSE_WRISTS = {"left": 15, "right": 16}  # BlazePose: the person's own left / right wrist
+
+
+def hand_sides(result: TrackResult) -> dict[str, np.ndarray]:
+    """Each hand's landmarks [21, 3] by the person's side. The hand model's handedness label
+    is wrong on ~20% of detections (docs/tracking.md: 58% while clapping), so when the body's
+    wrists are seen, a hand goes to the nearer wrist (two hands: the cheaper of the two
+    pairings); otherwise the best-scoring hand of each label is kept."""
+    hands = sorted(result.hands, key=lambda h: h.score, reverse=True)[:2]
+    pose = result.pose
+    wrists = {}
+    if pose is not None:
+        for side, i in POSE_WRISTS.items():
+            if pose.visibility[i] >= MIN_VISIBILITY and np.isfinite(pose.points[i, :2]).all():
+                wrists[side] = pose.points[i, :2]
+    if hands and len(wrists) == 2:
+        def dist(hand, side):
+            return float(np.linalg.norm(hand.points[0, :2] - wrists[side]))  # hand point 0: wrist
+
+        if len(hands) == 1:
+            side = min(wrists, key=lambda s: dist(hands[0], s))
+            return {side: hands[0].points}
+        a, b = hands
+        keep = dist(a, "left") + dist(b, "right") <= dist(a, "right") + dist(b, "left")
+        return {"left": a.points, "right": b.points} if keep else \
+            {"left": b.points, "right": a.points}
+    out: dict[str, np.ndarray] = {}
+    for hand in reversed(hands):
+        out[hand.handedness] = hand.points  # the higher score overwrites
+    return out
+
+
 def from_track_result(result: TrackResult) -> Observations:
-    """The best hand of each side (by score) and the face and pose, if any."""
-    hands: dict[str, np.ndarray] = {}
-    for hand in sorted(result.hands, key=lambda h: h.score):
-        hands[hand.handedness] = hand.points  # the higher score overwrites
+    """The hands by side (:func:`hand_sides`), and the face and pose, if any."""
+    hands = hand_sides(result)
     pose = result.pose
     return from_landmarks(
         result.image_size, face=None if result.face is None else result.face.points,
