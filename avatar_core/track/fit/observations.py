@@ -104,12 +104,24 @@ def hand_sides(result: TrackResult) -> dict[str, np.ndarray]:
     return out
 
 
+# MediaPipe landmarks whose definition differs from the model keypoint they map to, measured on
+# renders with known parameters (docs/tracking.md): the face-mesh jaw outline sits ~9 px wider
+# and ~11 px higher than the model's contour, BlazePose's ears ~16 px above the ear vertices
+# and its hips ~26 px wider than the hip joints. Fitting them tilts the head and leans the
+# spine (head error 14.6 deg); left out, 7.3 deg.
+MISMATCHED_ROWS = np.array([*range(cor.FACE_SLICE.start, cor.FACE_SLICE.start + 17),
+                            *(cor.POSE_SLICE.start + i for i in (7, 8, 23, 24))])
+
+
 def from_track_result(result: TrackResult) -> Observations:
-    """The hands by side (:func:`hand_sides`), and the face and pose, if any."""
+    """The hands by side (:func:`hand_sides`), and the face and pose, if any; landmarks that
+    MediaPipe defines differently from the model (`MISMATCHED_ROWS`) get weight 0."""
     hands = hand_sides(result)
     pose = result.pose
-    return from_landmarks(
+    obs = from_landmarks(
         result.image_size, face=None if result.face is None else result.face.points,
         left_hand=hands.get("left"), right_hand=hands.get("right"),
         pose=None if pose is None else pose.points,
         pose_visibility=None if pose is None else pose.visibility)
+    obs.weights[MISMATCHED_ROWS] = 0.0
+    return obs
