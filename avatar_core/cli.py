@@ -261,21 +261,16 @@ def _add_track(groups: argparse._SubParsersAction) -> None:
     fit.set_defaults(func=_track_fit)
 
 
-def _serve(args: argparse.Namespace) -> int:
-    from server.cli import serve  # lazy: the engine never imports the server at module level
-
-    return serve(args)
+COMMAND_PLUGINS = "telesplat.commands"
 
 
-def _add_serve(groups: argparse._SubParsersAction) -> None:
-    serve = groups.add_parser("serve", help="run the streaming server (FastAPI + uvicorn)")
-    try:
-        from server.cli import add_arguments
-    except ImportError:  # the server package is not installed: the command says so when run
-        serve.add_argument("args", nargs=argparse.REMAINDER)
-    else:
-        add_arguments(serve)
-    serve.set_defaults(func=_serve)
+def _add_plugins(groups: argparse._SubParsersAction) -> None:
+    """Subcommands that other packages register under the ``telesplat.commands`` entry-point
+    group (``serve`` comes from the server this way): the engine never imports them by name."""
+    from importlib.metadata import entry_points
+
+    for ep in sorted(entry_points(group=COMMAND_PLUGINS), key=lambda e: e.name):
+        ep.load()(groups)
 
 
 def _budget(text: str) -> int | float:
@@ -400,7 +395,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.set_defaults(func=_demo_avatar)
 
     _add_track(groups)
-    _add_serve(groups)
+    _add_plugins(groups)
     return parser
 
 

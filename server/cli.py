@@ -80,6 +80,14 @@ def serve(args: argparse.Namespace) -> int:
     return 0
 
 
+def register(groups: argparse._SubParsersAction) -> None:
+    """``telesplat serve``: registered with the engine's CLI as a ``telesplat.commands`` entry
+    point (pyproject.toml), so avatar_core never imports the server."""
+    parser = groups.add_parser("serve", help="run the streaming server (FastAPI + uvicorn)")
+    add_arguments(parser)
+    parser.set_defaults(func=serve)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="telesplat serve", description=__doc__)
     add_arguments(parser)
