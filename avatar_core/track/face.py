@@ -10,6 +10,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+from scipy.special import expit
 
 from .anchors import FACE_SHORT_RANGE
 from .detection import Detector
@@ -18,20 +19,16 @@ from .roi import (
     project,
     rect_from_box,
     rotation_between,
-    settle_rect,
     to_tensor,
     transform_rect,
 )
 from .session import ModelSource, OnnxModel
+from .single import SingleTargetPipeline
 from .types import FaceLandmarks, RotatedRect
 
 # Face detection keypoints: right eye, left eye, nose tip, mouth, right ear, left ear.
 # Landmark indices (face mesh): outer corners of the right and left eye.
 RIGHT_EYE_CORNER, LEFT_EYE_CORNER = 33, 263
-
-
-def _sigmoid(x: float) -> float:
-    return float(1.0 / (1.0 + np.exp(-x)))
 
 
 def roi_from_face_landmarks(points_px: np.ndarray) -> RotatedRect:
@@ -41,7 +38,7 @@ def roi_from_face_landmarks(points_px: np.ndarray) -> RotatedRect:
     return transform_rect(rect_from_box(np.concatenate([lo, hi]), rotation), 1.5, 1.5)
 
 
-class FacePipeline:
+class FacePipeline(SingleTargetPipeline):
     def __init__(self, models: ModelSource = None, providers: Sequence | None = None,
                  threads: int | None = None, min_detection: float = 0.5,
                  min_presence: float = 0.5):
@@ -50,10 +47,6 @@ class FacePipeline:
                                  min_score=min_detection, max_detections=1)
         self.landmarker = OnnxModel("face_landmark", models, providers, threads)
         self.min_presence = min_presence
-        self.roi: RotatedRect | None = None
-
-    def reset(self) -> None:
-        self.roi = None
 
     def detect_roi(self, frame_bgr: np.ndarray) -> RotatedRect | None:
         found = self.detector(frame_bgr)
@@ -63,25 +56,14 @@ class FacePipeline:
         rotation = rotation_between(det.keypoints[0], det.keypoints[1], 0.0)
         return transform_rect(rect_from_box(det.box, rotation), 1.5, 1.5)
 
-    def landmarks(self, frame_bgr: np.ndarray, roi: RotatedRect) -> FaceLandmarks | None:
+    def landmarks(self, frame_bgr: np.ndarray, roi: RotatedRect
+                  ) -> tuple[FaceLandmarks, RotatedRect] | None:
         w, h = self.landmarker.input_size
         x = to_tensor(crop_rgb(frame_bgr, roi, w, h), 0.0, 1.0)  # [1, 192, 192, 3]
         raw, flag = self.landmarker(x)  # [1, 1, 1, 1404], [1, 1, 1, 1]
-        score = _sigmoid(float(flag.reshape(-1)[0]))
+        score = float(expit(flag.reshape(-1)[0]))  # a logit
         if score < self.min_presence:
             return None
         points = raw.reshape(468, 3) / np.float32(w)  # normalised over the crop
-        return FaceLandmarks(project(points, roi), score, roi)
-
-    def __call__(self, frame_bgr: np.ndarray) -> FaceLandmarks | None:
-        tracked = self.roi is not None
-        roi = self.roi if tracked else self.detect_roi(frame_bgr)
-        face = self.landmarks(frame_bgr, roi) if roi is not None else None
-        if face is None and tracked:  # lost: detect again in this frame
-            roi = self.detect_roi(frame_bgr)
-            face = self.landmarks(frame_bgr, roi) if roi is not None else None
-        if face is None:
-            self.roi = None
-        else:
-            self.roi = settle_rect(roi if tracked else None, roi_from_face_landmarks(face.points))
-        return face
+        face = FaceLandmarks(project(points, roi), score, roi)
+        return face, roi_from_face_landmarks(face.points)

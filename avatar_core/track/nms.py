@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.special import expit
 
 
 @dataclass(frozen=True)
@@ -26,7 +27,7 @@ def decode_boxes(raw_boxes: np.ndarray, raw_scores: np.ndarray, anchors: np.ndar
     anchors [N, 2] normalised centres (fixed size 1).
     """
     logits = np.clip(raw_scores.reshape(-1).astype(np.float64), -score_clip, score_clip)
-    scores = 1.0 / (1.0 + np.exp(-logits))
+    scores = expit(logits)
     keep = np.flatnonzero(scores >= min_score)
     if keep.size == 0:
         return []

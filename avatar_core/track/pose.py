@@ -10,6 +10,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+from scipy.special import expit
 
 from .anchors import POSE_224
 from .detection import Detector
@@ -17,18 +18,18 @@ from .roi import (
     crop_rgb,
     project,
     rect_from_alignment_points,
-    settle_rect,
     to_tensor,
     transform_rect,
 )
 from .session import ModelSource, OnnxModel
+from .single import SingleTargetPipeline
 from .types import PoseLandmarks, RotatedRect
 
 NUM_LANDMARKS = 33  # BlazePose topology; the model outputs 39: + 2 ROI points + 4 unused
 
 
 def _sigmoid(x: np.ndarray) -> np.ndarray:
-    return (1.0 / (1.0 + np.exp(-np.clip(x.astype(np.float64), -80, 80)))).astype(np.float32)
+    return expit(x.astype(np.float64)).astype(np.float32)
 
 
 def roi_from_alignment(centre_px: np.ndarray, scale_px: np.ndarray) -> RotatedRect:
@@ -60,7 +61,7 @@ def refine_from_heatmap(points: np.ndarray, heatmap: np.ndarray, kernel: int = 7
     return out
 
 
-class PosePipeline:
+class PosePipeline(SingleTargetPipeline):
     def __init__(self, models: ModelSource = None, providers: Sequence | None = None,
                  threads: int | None = None, min_detection: float = 0.5,
                  min_presence: float = 0.5, refine: bool = True):
@@ -70,10 +71,6 @@ class PosePipeline:
         self.landmarker = OnnxModel("pose_landmark_full", models, providers, threads)
         self.min_presence = min_presence
         self.refine = refine
-        self.roi: RotatedRect | None = None
-
-    def reset(self) -> None:
-        self.roi = None
 
     def detect_roi(self, frame_bgr: np.ndarray) -> RotatedRect | None:
         found = self.detector(frame_bgr)
@@ -98,13 +95,3 @@ class PosePipeline:
         pose = PoseLandmarks(px[:NUM_LANDMARKS], _sigmoid(values[:NUM_LANDMARKS, 3]), score,
                              _sigmoid(values[:NUM_LANDMARKS, 4]), roi)
         return pose, roi_from_alignment(px[33], px[34])
-
-    def __call__(self, frame_bgr: np.ndarray) -> PoseLandmarks | None:
-        tracked = self.roi is not None
-        roi = self.roi if tracked else self.detect_roi(frame_bgr)
-        found = self.landmarks(frame_bgr, roi) if roi is not None else None
-        if found is None and tracked:  # lost: detect again in this frame
-            roi = self.detect_roi(frame_bgr)
-            found = self.landmarks(frame_bgr, roi) if roi is not None else None
-        self.roi = settle_rect(roi if tracked else None, found[1]) if found else None
-        return found[0] if found is not None else None
