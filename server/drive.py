@@ -17,13 +17,13 @@ import torch
 from avatar_core.body.fusion import fuse
 from avatar_core.body.models import MANOModel, SMPLXModel
 from protocol import Drive, ProtocolError
+from protocol.params import FAMILIES, FLAME_FIELDS
 
-FAMILY_NAMES = ("smplx", "flame", "mano_left", "mano_right")
+FAMILY_NAMES = tuple(FAMILIES)  # smplx, flame, mano_left, mano_right
 
-
-# FLAME fields fusion reads; per-frame shapes (expr is fitted to the body model's size).
-FLAME_SHAPES = {"expr": None, "rotation": (3,), "neck_pose": (3,), "jaw_pose": (3,),
-                "eyes_pose": (6,), "translation": (3,)}
+# FLAME fields fusion reads live: the protocol's fixed-shape ones, plus expr (fitted to the
+# body model's size below); `shape` (identity) is not driven live.
+FLAME_SHAPES = {name: shape for name, (kind, shape) in FLAME_FIELDS.items() if kind == "fixed"}
 
 
 def drive_shapes(model: SMPLXModel, manos: dict[str, MANOModel]

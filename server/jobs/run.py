@@ -22,6 +22,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from ..scheduler import limit_threads
 from .store import SQLiteJobStore
 
 EXIT_OK, EXIT_FAILED, EXIT_CANCELLED, EXIT_INTERRUPTED = 0, 1, 3, 4
@@ -41,7 +42,7 @@ class _Interrupted(Exception):
 def _limit_threads(threads: int) -> None:
     import torch
 
-    torch.set_num_threads(threads)
+    limit_threads(threads)  # torch and numba, as the render workers
     try:
         torch.set_num_interop_threads(1)
     except RuntimeError:  # already set (only possible once per process)
