@@ -73,6 +73,7 @@ class DriveState:
     families: dict[str, dict[str, np.ndarray]] = field(
         default_factory=lambda: {name: {} for name in FAMILY_NAMES})
     seq: int = -1
+    version: int = 0  # +1 per applied drive: equal versions pose the same mesh
 
     def apply(self, drive: Drive, fitted: dict[str, dict[str, np.ndarray]]) -> None:
         """Merge a drive (its families as :func:`fit_drive` returned them)."""
@@ -81,10 +82,12 @@ class DriveState:
         for name, values in fitted.items():
             self.families[name] = {**self.families[name], **values}
         self.seq = drive.seq
+        self.version += 1
 
     def copy(self) -> DriveState:
         # Arrays are never mutated in place (updates replace them), so a shallow copy is enough.
-        return DriveState({k: dict(v) for k, v in self.families.items()}, self.seq)
+        return DriveState({k: dict(v) for k, v in self.families.items()}, self.seq,
+                          self.version)
 
     def smplx_params(self, model: SMPLXModel, manos: dict[str, MANOModel]) -> dict[str, Any]:
         """SMPL-X parameters (no batch axis, or batch 1) with the face and hands fused in.

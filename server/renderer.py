@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from avatar_core.body.models import MANOModel
-from avatar_core.gaussians.animate import AvatarAnimator
+from avatar_core.gaussians.animate import AvatarAnimator, PosedAvatar
 from avatar_core.pipeline import LoadedAvatar
 from avatar_core.render.camera import Camera, orbit
 from avatar_core.render.rasterize import rasterize
@@ -60,6 +60,8 @@ class SessionRenderer:
         model = animator.body_model
         self.shapes = drive_shapes(model, manos)
         self.chest = model.joint_template[12].cpu().numpy() - np.array([0.0, CHEST_DROP_M, 0.0])
+        self._posed: PosedAvatar | None = None  # of the drive state version below
+        self._posed_version = -1
         self._h264: H264Encoder | None = None
         self._last_codec: str | None = None
         self._closed = threading.Event()
@@ -78,8 +80,11 @@ class SessionRenderer:
         req = job.request
         t0 = time.perf_counter()
         with torch.no_grad():
-            params = job.drive.smplx_params(self.animator.body_model, self.manos)
-            posed = self.animator.pose(params)
+            if self._posed is None or job.drive.version != self._posed_version:
+                params = job.drive.smplx_params(self.animator.body_model, self.manos)
+                self._posed = self.animator.pose(params)
+                self._posed_version = job.drive.version
+            posed = self._posed  # only the view or the request changed: no fusion, no pose
             t1 = time.perf_counter()
             cam = self.camera(job.view, req.width, req.height)
             outputs = tuple(dict.fromkeys(("rgb", *req.outputs)))  # rgb always: frame.data
