@@ -72,10 +72,18 @@ def test_teardown_while_rendering(srv):
     assert srv.ctx.scheduler.running == 0
 
 
-def test_inbound_rate_limit(srv):
+def test_inbound_rate_limit(tmp_path):
+    # The bucket counts messages as the server reads them, so a CPU-starved server reads
+    # slower; 20 / s (burst 20) stays far below any rate it reads 300 queued pings at.
+    limits = Limits(max_messages_per_s=20.0)
+    with run_server(tmp_path, limits=limits, default_width=64, default_height=64) as server:
+        _check_rate_limit(server)
+
+
+def _check_rate_limit(srv):
     async def run():
         async with stream(srv) as ws:
-            for i in range(300):  # far above 100 / s, burst 100
+            for i in range(300):  # far above 20 / s, burst 20
                 await ws.send(encode(Ping(t=float(i))))
             await ws.send(encode(Ping(t=-2.0)))  # rate-limited too, most likely
             pongs = limited = 0
@@ -87,9 +95,9 @@ def test_inbound_rate_limit(srv):
                     break
                 pongs += msg.type == "pong"
                 limited += msg.type == "error" and msg.code == "rate_limited"
-            assert limited > 0 and pongs >= 60, (pongs, limited)
+            assert limited > 0 and pongs >= 20, (pongs, limited)  # at least the burst
             assert pongs < 250
-            await asyncio.sleep(0.05)  # tokens refill: the session goes on
+            await asyncio.sleep(0.1)  # tokens refill: the session goes on
             await ws.send(encode(Ping(t=-1.0)))
             await recv_until(ws, is_type("pong", t=-1.0))
     asyncio.run(run())
