@@ -1,7 +1,7 @@
 """One frame's fit: SMPL-X parameters whose keypoints reproject onto the observed landmarks.
 
-Minimized by Levenberg-Marquardt (bounded iterations; the Jacobian by forward differences in
-one batched model pass, which the cut-down keypoint model makes cheap):
+Minimized by Levenberg-Marquardt (bounded iterations) with the exact Jacobian of the keypoints
+(`kinematics.KeypointKinematics`: one numpy pass gives the keypoints and their derivatives):
 
     sum_k w_k * pseudo_huber(|project(keypoint_k) - landmark_k|) / s^2   (data, s = max(W,H)/100)
   + pose prior (spine, neck, head, collars toward rest; arms and hands weakly toward neutral)
@@ -27,11 +27,12 @@ import torch
 from torch import Tensor
 
 from ...body.models import SMPLXModel
-from ...body.skeleton import JOINT, LEFT_HAND_JOINTS, SMPLX_JOINT_NAMES
+from ...body.skeleton import JOINT, LEFT_HAND_JOINTS, RIGHT_HAND_JOINTS, SMPLX_JOINT_NAMES
 from ...synth.motion import EXPRESSION_LIMIT, JOINT_LIMITS_DEG, RELAXED_ARMS
 from . import correspondence as cor
-from .camera import WebcamCamera
+from .camera import MIN_DEPTH_M, WebcamCamera
 from .keypoints import BodyKeypoints
+from .kinematics import KeypointKinematics
 from .observations import Observations
 
 # Body joints the fit moves (the rest of body_pose, i.e. the legs, stays 0).
@@ -59,8 +60,9 @@ LIMIT_WEIGHT = 100.0
 GROUP_WEIGHT = {"face": 1.0, "left_hand": 1.0, "right_hand": 1.0, "pose": 2.0}
 CONTOUR_WEIGHT = 0.3
 HUBER_PX = 8.0         # pseudo-Huber knee: larger errors grow linearly (outlier landmarks)
+MAX_ROTATION_STEP = 0.25  # rad: the most one LM step turns any joint (`_step_scale`)
+INITIAL_DAMPING = 1e-3   # Levenberg-Marquardt's, relative to diag(J^T J)
 NEUTRAL_DEPTH_M = 0.8  # a webcam subject's distance when nothing tells otherwise
-FD_STEP = 1e-5        # forward-difference step of the Jacobian (radians, metres, coeffs)
 
 
 def neutral_params(model: SMPLXModel) -> dict[str, np.ndarray]:
@@ -97,8 +99,15 @@ def _free_joint_rows() -> list[int]:
     return [JOINT[n] - 1 for n in FREE_BODY_JOINTS]
 
 
-def _limits_rad(names: list[str]) -> Tensor:
-    return torch.tensor([math.radians(JOINT_LIMITS_DEG.get(n, 180.0)) for n in names])
+def _limits_rad(names: list[str]) -> np.ndarray:
+    return np.array([math.radians(JOINT_LIMITS_DEG.get(n, 180.0)) for n in names])
+
+
+# The rotations among the free variables, in the free vector's order, and their joints.
+POSED_VARIABLES = ("global_orient", "body", "jaw_pose", "left_hand_pose", "right_hand_pose")
+POSE_JOINTS_OF_VARIABLES = [0, *(JOINT[n] for n in FREE_BODY_JOINTS), JOINT["jaw"],
+                            *LEFT_HAND_JOINTS, *RIGHT_HAND_JOINTS]
+HAND_JOINT_ROWS = [*LEFT_HAND_JOINTS, *RIGHT_HAND_JOINTS]
 
 
 class FrameFitter:
@@ -107,28 +116,50 @@ class FrameFitter:
     def __init__(self, model: SMPLXModel, betas: np.ndarray | None = None,
                  config: FitConfig | None = None) -> None:
         self.config = config or FitConfig()
-        dt = self.config.dtype
-        self.keypoints = BodyKeypoints(model, dtype=dt)
+        self.keypoints = BodyKeypoints(model, dtype=self.config.dtype)  # the reference model
         self.num_expression = model.num_expression
         n_betas = self.keypoints.model.num_betas
         b = np.zeros(n_betas) if betas is None else np.asarray(betas, dtype=np.float64)
-        self.betas = torch.as_tensor(np.pad(b[:n_betas], (0, max(0, n_betas - b.size))),
-                                     dtype=dt)[None]
+        b = np.pad(b[:n_betas], (0, max(0, n_betas - b.size)))
+        self.betas = torch.as_tensor(b, dtype=self.config.dtype)[None]
+        self.kinematics = KeypointKinematics(self.keypoints, b)
+        kp_model = self.keypoints.model
+        self.hand_mean = np.concatenate([kp_model.left_hand_mean.double().numpy(),
+                                         kp_model.right_hand_mean.double().numpy()])  # [30, 3]
         self.neutral = neutral_params(model)
         self.rows = _free_joint_rows()
-        self.body_prior = torch.tensor([BODY_PRIOR.get(n, ARM_PRIOR) for n in FREE_BODY_JOINTS],
-                                       dtype=dt)
-        self.body_limits = _limits_rad(list(FREE_BODY_JOINTS)).to(dt)
+        self.layout = self._layout()
+        lay = self.layout
+        n = lay["right_hand_pose"][0].stop
+        self.pose_joints = POSE_JOINTS_OF_VARIABLES
+        self.pose_columns = np.concatenate(
+            [np.arange(n)[lay[name][0]] for name in POSED_VARIABLES])
+        # Quadratic priors as sqrt-weights toward a rest value, per variable.
+        prior = np.zeros(n)
+        prior[lay["body"][0]] = np.repeat([np.sqrt(BODY_PRIOR.get(j, ARM_PRIOR))
+                                           for j in FREE_BODY_JOINTS], 3)
+        prior[lay["global_orient"][0]] = math.sqrt(GLOBAL_PRIOR)
+        prior[lay["left_hand_pose"][0].start:lay["right_hand_pose"][0].stop] = \
+            math.sqrt(HAND_PRIOR)
+        prior[lay["expression"][0]] = math.sqrt(EXPRESSION_PRIOR)
+        self.prior_sqrt = prior
+        self.prior_rest = np.zeros(n)
+        self.prior_rest[lay["body"][0]] = self.neutral["body_pose"][self.rows].reshape(-1)
+        # Hinges on rotation angles: (columns [R, 3], bound [R] rad).
+        columns = np.arange(n)
         hand_names = [SMPLX_JOINT_NAMES[j].removeprefix("left_") for j in LEFT_HAND_JOINTS]
-        self.hand_limits = _limits_rad([f"left_{n}" for n in hand_names]).to(dt)
-        self.jaw_limit = math.radians(JOINT_LIMITS_DEG["jaw"])
+        hand_limits = _limits_rad([f"left_{h}" for h in hand_names])
+        self.angle_limits = [
+            (columns[lay["body"][0]].reshape(-1, 3), _limits_rad(list(FREE_BODY_JOINTS))),
+            (columns[lay["left_hand_pose"][0].start:lay["right_hand_pose"][0].stop]
+             .reshape(-1, 3), np.tile(hand_limits, 2)),
+            (columns[lay["jaw_pose"][0]].reshape(1, 3), _limits_rad(["jaw"])),
+        ]
         weights = np.ones(cor.NUM_KEYPOINTS)
         weights[cor.FACE_SLICE][list(cor.IBUG_CONTOUR)] = CONTOUR_WEIGHT
         for group, sl in cor.GROUP_SLICES.items():
             weights[sl] *= GROUP_WEIGHT[group]
-        self.group_weights = torch.as_tensor(weights, dtype=dt)
-        self.body_rest = torch.as_tensor(self.neutral["body_pose"][self.rows], dtype=dt)
-        self.layout = self._layout()
+        self.group_weights = weights
         core = np.zeros(cor.NUM_KEYPOINTS)
         core[cor.FACE_SLICE] = 1.0
         arms = core.copy()
@@ -136,12 +167,10 @@ class FrameFitter:
         arms[cor.POSE_SLICE.start + np.array(ARM_POSE_LANDMARKS)] = 1.0
         for sl in (cor.LEFT_HAND_SLICE, cor.RIGHT_HAND_SLICE):
             arms[sl.start + np.array(HAND_PALM_LANDMARKS)] = 1.0
-        self.stage_masks = {"core": torch.as_tensor(core, dtype=dt),
-                            "arms": torch.as_tensor(arms, dtype=dt)}
-        temporal = np.full(sum(sl.stop - sl.start for sl, _ in self.layout.values()),
-                           self.config.temporal_weight)
-        temporal[self.layout["transl"][0]] *= 100.0  # 1 cm weighs as 0.1 rad
-        self.temporal_sqrt = torch.as_tensor(np.sqrt(temporal), dtype=dt)
+        self.stage_masks = {"core": core, "arms": arms}
+        temporal = np.full(n, self.config.temporal_weight)
+        temporal[lay["transl"][0]] *= 100.0  # 1 cm weighs as 0.1 rad
+        self.temporal_sqrt = np.sqrt(temporal)
 
     # -- parameters <-> the free-variable vector ----------------------------------------------
 
@@ -182,58 +211,105 @@ class FrameFitter:
             parts.append(a.reshape(-1))
         return np.concatenate(parts)
 
-    def unpack(self, x: Tensor) -> dict[str, Tensor]:
-        """Free variables [B, N] -> batched SMPL-X parameters."""
-        b = x.shape[0]
-        get = {name: x[:, sl].reshape(b, *shape) for name, (sl, shape) in self.layout.items()}
-        body = x.new_zeros(b, 21, 3)
-        body[:, self.rows] = get.pop("body")
-        zeros = x.new_zeros(b, 3)
-        return {**get, "betas": self.betas.expand(b, -1), "body_pose": body,
-                "leye_pose": zeros, "reye_pose": zeros}
-
     def to_params(self, x: np.ndarray) -> dict[str, np.ndarray]:
-        p = self.unpack(torch.as_tensor(x, dtype=self.config.dtype)[None])
-        return {k: t[0].double().numpy().copy() for k, t in p.items() if k != "betas"}
+        """The free-variable vector [N] -> SMPL-X parameters (no batch axis; eyes 0)."""
+        out = {name: np.array(x[sl].reshape(shape)) for name, (sl, shape) in self.layout.items()}
+        body = np.zeros((21, 3))
+        body[self.rows] = out.pop("body")
+        return {**out, "body_pose": body, "leye_pose": np.zeros(3), "reye_pose": np.zeros(3)}
 
     # -- the objective: a residual vector, cost = sum of squares -------------------------------
 
     def project(self, params: dict[str, Tensor], camera: WebcamCamera) -> Tensor:
-        """[B, K, 2] pixels."""
+        """[B, K, 2] pixels (the reference model, batched torch)."""
         return camera.project(self.keypoints(params))
 
-    def _prior_residuals(self, x: Tensor, previous: Tensor | None) -> Tensor:
-        """[B, P] residuals of the priors, bounds and temporal term."""
+    def full_pose(self, x: np.ndarray) -> np.ndarray:
+        """Free variables [N] -> the model's full axis-angle pose [55, 3] (hand mean added)."""
         lay = self.layout
-        b = x.shape[0]
-        body = x[:, lay["body"][0]].reshape(b, -1, 3)
-        hands = x[:, lay["left_hand_pose"][0].start:lay["right_hand_pose"][0].stop]
-        hands = hands.reshape(b, 30, 3)
-        expr = x[:, lay["expression"][0]]
-        jaw = x[:, lay["jaw_pose"][0]]
-        angle = lambda aa: torch.sqrt((aa ** 2).sum(-1) + 1e-12)  # noqa: E731
-        limit = math.sqrt(LIMIT_WEIGHT)
-        parts = [
-            (self.body_prior.sqrt()[:, None] * (body - self.body_rest)).reshape(b, -1),
-            math.sqrt(GLOBAL_PRIOR) * x[:, lay["global_orient"][0]],
-            math.sqrt(HAND_PRIOR) * hands.reshape(b, -1),
-            math.sqrt(EXPRESSION_PRIOR) * expr,
-            limit * torch.relu(expr.abs() - EXPRESSION_LIMIT),
-            limit * torch.relu(angle(body) - self.body_limits),
-            limit * torch.relu(angle(hands) - self.hand_limits.repeat(2)),
-            limit * torch.relu(angle(jaw) - self.jaw_limit)[:, None],
-        ]
-        if previous is not None:
-            parts.append(self.temporal_sqrt * (x - previous))
-        return torch.cat(parts, dim=1)
+        pose = np.zeros((55, 3))
+        pose[POSE_JOINTS_OF_VARIABLES] = np.concatenate(
+            [x[lay[name][0]].reshape(-1, 3) for name in POSED_VARIABLES])
+        pose[HAND_JOINT_ROWS] += self.hand_mean
+        return pose
 
-    def _residuals(self, x: Tensor, camera: WebcamCamera, target: Tensor, sqrt_w: Tensor,
-                   scale: float, previous: Tensor | None) -> tuple[Tensor, Tensor]:
-        """([B, M] residuals, [B, K, 2] projections) for free variables [B, N]."""
-        proj = self.project(self.unpack(x), camera)
-        data = (sqrt_w[None, :, None] * (torch.nan_to_num(proj) - target) / scale)
-        return torch.cat([data.reshape(x.shape[0], -1),
-                          self._prior_residuals(x, previous)], dim=1), proj
+    def _keypoints(self, x: np.ndarray, jacobian: bool
+                   ) -> tuple[np.ndarray, np.ndarray | None]:
+        """Model-space keypoints [K, 3] and, with `jacobian`, their derivatives [K, 3, N]."""
+        lay = self.layout
+        points, d_pose, d_expr = self.kinematics.evaluate(
+            self.full_pose(x), x[lay["expression"][0]], x[lay["transl"][0]],
+            self.pose_joints if jacobian else None, expression_jacobian=jacobian)
+        if not jacobian:
+            return points, None
+        k = points.shape[0]
+        jac = np.zeros((k, 3, x.size))
+        jac[:, :, self.pose_columns] = d_pose.reshape(k, 3, -1)
+        jac[:, :, lay["expression"][0]] = d_expr
+        jac[:, :, lay["transl"][0]] = np.eye(3)
+        jac[~self.kinematics.available] = 0.0
+        return points, jac
+
+    def _terms(self, x: np.ndarray, problem: _Problem, sqrt_w: np.ndarray, jacobian: bool
+               ) -> tuple[list[_Term], np.ndarray]:
+        """The objective's residual blocks at x (cost = the sum of their squares) and the
+        projections [K, 2]. Without `jacobian` the blocks carry no derivatives."""
+        proj, d_proj = self._data(x, problem.camera, jacobian)
+        used = sqrt_w > 0
+        data = sqrt_w[used, None] * (proj[used] - problem.target[used]) / problem.scale
+        d_data = None
+        if jacobian:
+            d_data = ((sqrt_w[used, None, None] / problem.scale) * d_proj[used]).reshape(
+                -1, x.size)
+        terms = [_Term(data.reshape(-1), d_data)]
+        # Quadratic priors toward rest, and the temporal term: diagonal Jacobians.
+        terms.append(_Term(self.prior_sqrt * (x - self.prior_rest), None, self.prior_sqrt))
+        if problem.previous is not None:
+            terms.append(_Term(self.temporal_sqrt * (x - problem.previous), None,
+                               self.temporal_sqrt))
+        # Hinges on expression coefficients and rotation angles: only active rows.
+        limit = math.sqrt(LIMIT_WEIGHT)
+        expr_cols = np.arange(x.size)[self.layout["expression"][0]]
+        over = np.abs(x[expr_cols]) - EXPRESSION_LIMIT
+        rows, cols, values, residuals = [], [], [], []
+        for k in np.flatnonzero(over > 0):
+            residuals.append(limit * over[k])
+            rows.append([len(rows)])
+            cols.append([expr_cols[k]])
+            values.append([limit * np.sign(x[expr_cols[k]])])
+        for joint_cols, bound in self.angle_limits:
+            aa = x[joint_cols]                                       # [R, 3]
+            angle = np.sqrt((aa ** 2).sum(-1) + 1e-12)
+            for k in np.flatnonzero(angle > bound):
+                residuals.append(limit * (angle[k] - bound[k]))
+                rows.append([len(rows)] * 3)
+                cols.append(list(joint_cols[k]))
+                values.append(list(limit * aa[k] / angle[k]))
+        if residuals:
+            d_hinge = None
+            if jacobian:
+                d_hinge = np.zeros((len(residuals), x.size))
+                for r, c, v in zip(rows, cols, values, strict=True):
+                    d_hinge[r, c] = v
+            terms.append(_Term(np.asarray(residuals), d_hinge))
+        return terms, proj
+
+    def _data(self, x: np.ndarray, camera: WebcamCamera, jacobian: bool
+              ) -> tuple[np.ndarray, np.ndarray | None]:
+        """Projections [K, 2] (NaN where the model has no keypoint) and d/dx [K, 2, N]."""
+        points, jac = self._keypoints(x, jacobian)
+        proj, d_proj = project_points(points, camera)
+        if not jacobian:
+            return proj, None
+        d_proj[~self.kinematics.available] = 0.0  # NaN rows: no keypoint, weight 0
+        return proj, np.einsum("kab,kbn->kan", d_proj, jac)
+
+    def dense_system(self, x: np.ndarray, problem: _Problem, sqrt_w: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
+        """All residuals [M] and their Jacobian [M, N] as one dense system (for tests)."""
+        terms, _ = self._terms(x, problem, sqrt_w, True)
+        jac = [t.jacobian if t.diagonal is None else np.diag(t.diagonal) for t in terms]
+        return np.concatenate([t.residuals for t in terms]), np.concatenate(jac)
 
     # -- fitting -------------------------------------------------------------------------------
 
@@ -242,9 +318,7 @@ class FrameFitter:
         """A transl that puts the observed landmarks' model counterparts at the right scale and
         place, from their spread and centroid (the model at `start`, transl 0)."""
         used = obs.weights > 0
-        x = torch.as_tensor(self.pack({**start, "transl": np.zeros(3)}), dtype=self.config.dtype)
-        with torch.no_grad():
-            model_pts = self.keypoints(self.unpack(x[None]))[0].double().numpy()
+        model_pts, _ = self._keypoints(self.pack({**start, "transl": np.zeros(3)}), False)
         used &= np.isfinite(model_pts).all(axis=1)
         if used.sum() < 2:
             return np.array([0.0, -0.55, -NEUTRAL_DEPTH_M])  # the head about centred
@@ -265,71 +339,128 @@ class FrameFitter:
         start = dict(start) if warm else dict(self.neutral)
         if not warm:
             start["transl"] = self.initial_placement(start, obs, camera)
-        dt = self.config.dtype
-        target = torch.as_tensor(obs.pixels, dtype=dt)
-        weight = torch.as_tensor(obs.weights, dtype=dt) * self.group_weights
-        weight = torch.where(self.keypoints.available, weight, 0.0)
-        scale = max(camera.width, camera.height) / 100.0
-        x = torch.as_tensor(self.pack(start), dtype=dt)
-        previous = x.clone() if warm else None
+        weight = np.asarray(obs.weights, dtype=np.float64) * self.group_weights
+        weight = np.where(self.kinematics.available, weight, 0.0)
+        x = self.pack(start)
+        problem = _Problem(camera, np.asarray(obs.pixels, dtype=np.float64),
+                           max(camera.width, camera.height) / 100.0,
+                           x.copy() if warm else None)
         stats = {"iterations": 0, "evaluations": 0}
         if not warm:  # coarse to fine: place the head and torso first, then the limbs
             n = self.config.placement_iterations
             for names, mask in ((PLACEMENT_VARIABLES, "core"), (CORE_VARIABLES, "core"),
                                 (ARM_VARIABLES, "arms")):
-                x = self._levenberg_marquardt(x, self._free_mask(names), n, camera, target,
-                                              weight * self.stage_masks[mask], scale,
-                                              previous, stats)
+                x = self._levenberg_marquardt(x, self._free_mask(names), n, problem,
+                                              weight * self.stage_masks[mask], stats)
         x = self._levenberg_marquardt(
-            x, np.ones(x.numel(), dtype=bool),
+            x, np.ones(x.size, dtype=bool),
             self.config.warm_iterations if warm else self.config.cold_iterations,
-            camera, target, weight, scale, previous, stats)
-        with torch.no_grad():
-            r, proj = self._residuals(x[None], camera, target, weight.sqrt(), scale, previous)
-        proj_np = proj[0].double().numpy()
-        return FitResult(self.to_params(x.numpy()), proj_np, reprojection_errors(proj_np, obs),
-                         float((r ** 2).sum()), (time.perf_counter() - t0) * 1e3, stats)
+            problem, weight, stats)
+        terms, proj = self._terms(x, problem, np.sqrt(weight), False)
+        return FitResult(self.to_params(x), proj, reprojection_errors(proj, obs),
+                         sum(float(t.residuals @ t.residuals) for t in terms),
+                         (time.perf_counter() - t0) * 1e3, stats)
 
-    @torch.no_grad()
-    def _levenberg_marquardt(self, x: Tensor, free: np.ndarray, iterations: int,
-                             camera: WebcamCamera, target: Tensor, weight: Tensor,
-                             scale: float, previous: Tensor | None, stats: dict) -> Tensor:
-        """Levenberg-Marquardt on the free entries of x; the Jacobian by batched forward
-        differences (one model pass of batch N + 1), the robust loss by reweighting."""
-        idx = torch.as_tensor(np.flatnonzero(free))
-        n = len(idx)
-        damping = 1e-3
+    def _levenberg_marquardt(self, x: np.ndarray, free: np.ndarray, iterations: int,
+                             problem: _Problem, weight: np.ndarray, stats: dict) -> np.ndarray:
+        """Levenberg-Marquardt on the free entries of x with the analytic Jacobian; the robust
+        loss by iterative reweighting (weights fixed within a step)."""
+        idx = np.flatnonzero(free)
+        damping, grow = INITIAL_DAMPING, 2.0
+        proj, _ = self._data(x, problem.camera, False)
         for _ in range(iterations):
-            r0, proj = self._residuals(x[None], camera, target, weight.sqrt(), scale, previous)
-            # Pseudo-Huber as iteratively reweighted least squares: weights fixed per step.
-            err2 = ((torch.nan_to_num(proj[0]) - target) ** 2).sum(-1)
-            sqrt_w = (weight / torch.sqrt(1 + err2 / HUBER_PX ** 2)).sqrt()
-            r0, _ = self._residuals(x[None], camera, target, sqrt_w, scale, previous)
-            batch = x.repeat(n, 1)
-            batch[torch.arange(n), idx] += FD_STEP
-            r, _ = self._residuals(batch, camera, target, sqrt_w, scale, previous)
-            stats["evaluations"] += n + 1
-            jac = ((r - r0) / FD_STEP).T  # [M, n]
-            res = r0[0]
-            jtj, jtr = jac.T @ jac, jac.T @ res
-            cost = float(res @ res)
+            err2 = ((np.nan_to_num(proj) - problem.target) ** 2).sum(-1)
+            sqrt_w = np.sqrt(weight / np.sqrt(1 + err2 / HUBER_PX ** 2))  # pseudo-Huber
+            terms, _ = self._terms(x, problem, sqrt_w, True)
+            stats["evaluations"] += 1
+            jtj, jtr, cost = _normal_equations(terms, idx)
+            scaling = np.diag(jtj.diagonal()) + 1e-6 * np.eye(len(idx))
             improved = False
-            eye = torch.eye(n, dtype=x.dtype)
             for _attempt in range(10):
-                a = jtj + damping * (torch.diag(jtj.diagonal()) + 1e-6 * eye)
-                step = torch.linalg.solve(a, -jtr)
-                trial = x.clone()
+                step = np.linalg.solve(jtj + damping * scaling, -jtr)
+                step *= self._step_scale(step, idx)
+                trial = x.copy()
                 trial[idx] += step
-                rt, _ = self._residuals(trial[None], camera, target, sqrt_w, scale, previous)
+                trial_terms, proj_t = self._terms(trial, problem, sqrt_w, False)
                 stats["evaluations"] += 1
-                if float((rt ** 2).sum()) < cost:
-                    x, damping, improved = trial, max(damping / 3, 1e-7), True
+                gain = cost - sum(float(t.residuals @ t.residuals) for t in trial_terms)
+                predicted = -2.0 * float(step @ jtr) - float(step @ jtj @ step)
+                if gain > 0:  # Nielsen's damping update, by how well the model predicted it
+                    rho = gain / max(predicted, 1e-300)
+                    damping *= max(1 / 3, 1 - (2 * rho - 1) ** 3)
+                    damping, grow = max(damping, 1e-9), 2.0
+                    x, proj, improved = trial, proj_t, True
                     break
-                damping *= 4
+                damping, grow = damping * grow, grow * 2
             stats["iterations"] += 1
-            if not improved or float(step.abs().max()) < 1e-6:
+            if not improved or float(np.abs(step).max()) < 1e-6:
                 break
         return x
+
+
+    def _step_scale(self, step: np.ndarray, idx: np.ndarray) -> float:
+        """Shrinks a step that turns any joint by more than `MAX_ROTATION_STEP`: the
+        linearization of a rotation is poor beyond that, and weakly observed rotations (a
+        finger's twist) otherwise take steps of a radian that fail the cost test."""
+        full = np.zeros(self.layout["right_hand_pose"][0].stop)
+        full[idx] = step
+        turns = np.linalg.norm(full[self.pose_columns].reshape(-1, 3), axis=1)
+        return min(1.0, MAX_ROTATION_STEP / max(float(turns.max()), 1e-12))
+
+
+@dataclass(frozen=True)
+class _Term:
+    """A block of residuals and their Jacobian: dense [R, N], or diagonal (`diagonal` [N]:
+    residual i depends on variable i only) for the quadratic priors."""
+    residuals: np.ndarray
+    jacobian: np.ndarray | None
+    diagonal: np.ndarray | None = None
+
+
+def _normal_equations(terms: list[_Term], idx: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray, float]:
+    """(J^T J, J^T r) over the free variables idx, and the cost sum r^2."""
+    n = len(idx)
+    jtj, jtr, cost = np.zeros((n, n)), np.zeros(n), 0.0
+    for t in terms:
+        cost += float(t.residuals @ t.residuals)
+        if t.diagonal is not None:
+            jtj[np.arange(n), np.arange(n)] += t.diagonal[idx] ** 2
+            jtr += t.diagonal[idx] * t.residuals[idx]
+        elif t.residuals.size:
+            j = t.jacobian[:, idx]
+            jtj += j.T @ j
+            jtr += j.T @ t.residuals
+    return jtj, jtr, cost
+
+
+@dataclass(frozen=True)
+class _Problem:
+    """What one frame's fit holds fixed."""
+    camera: WebcamCamera
+    target: np.ndarray               # [K, 2] px
+    scale: float                     # px per residual unit
+    previous: np.ndarray | None      # [N] the previous frame's variables (warm starts)
+
+
+def project_points(points: np.ndarray, camera: WebcamCamera
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Model-space points [K, 3] -> pixels [K, 2] and d pixels / d point [K, 2, 3]
+    (`WebcamCamera.project`; the depth clamp's derivative is 0)."""
+    depth_raw = -points[:, 2]
+    clamped = depth_raw < MIN_DEPTH_M
+    depth = np.where(clamped, MIN_DEPTH_M, depth_raw)
+    f = camera.focal
+    cx, cy = camera.center
+    u = f * points[:, 0] / depth + cx
+    v = -f * points[:, 1] / depth + cy
+    d = np.zeros((points.shape[0], 2, 3))
+    d[:, 0, 0] = f / depth
+    d[:, 1, 1] = -f / depth
+    dz = np.where(clamped, 0.0, 1.0 / depth ** 2)
+    d[:, 0, 2] = f * points[:, 0] * dz
+    d[:, 1, 2] = -f * points[:, 1] * dz
+    return np.stack([u, v], axis=-1), d
 
 
 def reprojection_errors(proj: np.ndarray, obs: Observations) -> dict[str, float]:
