@@ -221,7 +221,9 @@ def _track_fit(args: argparse.Namespace) -> int:
 
 
 def _add_track(groups: argparse._SubParsersAction) -> None:
-    track = groups.add_parser("track", help="monocular tracking (MediaPipe models as ONNX)")
+    track = groups.add_parser(
+        "track", help="monocular tracking (MediaPipe models as ONNX); "
+        "'telesplat track VIDEO|--webcam --out PARAMS' is short for 'telesplat track fit'")
     track_cmds = track.add_subparsers(dest="command", required=True)
     fetch = track_cmds.add_parser(
         "fetch-models", help="download the mediapipe wheel (pip download, never installed), "
@@ -248,7 +250,8 @@ def _add_track(groups: argparse._SubParsersAction) -> None:
         "frame, written as a motion file (.json or .npz) for render/stream --motion")
     src = fit.add_mutually_exclusive_group(required=True)
     src.add_argument("video", nargs="?", type=Path, help="video file")
-    src.add_argument("--webcam", type=int, metavar="INDEX", help="camera index (e.g. 0)")
+    src.add_argument("--webcam", type=int, nargs="?", const=0, metavar="INDEX",
+                     help="track the webcam (camera INDEX, default 0)")
     src.add_argument("--image", type=Path, help="one JPEG/PNG image")
     fit.add_argument("--out", type=Path, required=True, help="PARAMS.npz or PARAMS.json")
     fit.add_argument("--frames", type=int, default=None, help="at most this many frames")
@@ -399,7 +402,18 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+TRACK_COMMANDS = ("fetch-models", "landmarks", "fit", "-h", "--help")
+
+
+def _expand_shorthands(argv: list[str]) -> list[str]:
+    """`telesplat track VIDEO|--webcam ...` -> `telesplat track fit ...`."""
+    if len(argv) > 1 and argv[0] == "track" and argv[1] not in TRACK_COMMANDS:
+        return [argv[0], "fit", *argv[1:]]
+    return argv
+
+
 def main(argv: list[str] | None = None) -> int:
+    argv = _expand_shorthands(list(sys.argv[1:] if argv is None else argv))
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)

@@ -8,7 +8,6 @@ images. Frames that come back are counted, or saved when ``out`` is given.
 from __future__ import annotations
 
 import asyncio
-import time
 from pathlib import Path
 
 
@@ -20,9 +19,7 @@ async def drive_from_camera(server: str, token: str | None, avatar: str, source:
     Returns counts and the mean tracking time."""
     from tqdm import tqdm
 
-    from avatar_core.track.fit.observations import from_track_result
-    from avatar_core.track.fit.session import drive_params
-    from avatar_core.track.fit.video import default_session, frames_from
+    from avatar_core.track.fit.video import default_session, frames_from, tracked_frames
     from avatar_core.track.tracker import LIVE_PALM_INTERVAL, Tracker
 
     from .images import save_frame
@@ -30,16 +27,8 @@ async def drive_from_camera(server: str, token: str | None, avatar: str, source:
 
     tracker = Tracker(palm_interval=LIVE_PALM_INTERVAL)
     session = default_session(fov_x_deg)
-    frames = frames_from(source, max_frames)
-
-    def track_next():
-        item = next(frames, None)
-        if item is None:
-            return None
-        frame, t = item
-        t0 = time.perf_counter()
-        params = drive_params(session.step(from_track_result(tracker.track(frame)), t).params)
-        return params, (time.perf_counter() - t0) * 1e3
+    # Landmarks of the next frame are found while this one is fitted (two threads).
+    tracked = tracked_frames(frames_from(source, max_frames), session, tracker)
 
     sent, received, track_ms = 0, 0, 0.0
     if out is not None:
@@ -48,16 +37,16 @@ async def drive_from_camera(server: str, token: str | None, avatar: str, source:
                                           client_name="telesplat-client drive") as client:
         with tqdm(total=max_frames, unit="frame", disable=not progress, desc="driving") as bar:
             while True:
-                item = await asyncio.to_thread(track_next)  # the loop keeps reading frames
+                item = await asyncio.to_thread(next, tracked, None)  # off the event loop
                 if item is None:
                     break
-                params, ms = item
-                seq = await client.drive(params, reset=sent == 0)
-                sent, track_ms = sent + 1, track_ms + ms
+                seq = await client.drive(item.params, reset=sent == 0)
+                sent, track_ms = sent + 1, track_ms + item.track_ms + item.fit_ms
                 if out is not None:
                     frame = await client.wait_frame(seq, timeout=timeout)
                     save_frame(frame, out / f"{received:05d}")
                     received += 1
                 bar.update(1)
+    tracked.close()
     tracker.close()
     return {"sent": sent, "saved": received, "track_ms": track_ms / max(sent, 1)}

@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -44,13 +46,46 @@ def frames_from(source: str | int, max_frames: int | None = None
         cap.release()
 
 
-def track_params(frames: Iterator[tuple[np.ndarray, float]], session: FitSession, tracker,
+@dataclass
+class TrackedFrame:
+    params: dict[str, np.ndarray]  # the fitted SMPL-X fields (see `drive_params`)
+    seen: dict[str, bool]          # group -> seen in this frame
+    t: float
+    track_ms: float                # landmarks
+    fit_ms: float                  # FitSession.step
+
+
+def tracked_frames(frames: Iterable[tuple[np.ndarray, float]], session: FitSession, tracker,
+                   with_transl: bool = False) -> Iterator[TrackedFrame]:
+    """Track and fit frames in order, two stages overlapped: while frame i is fitted (a
+    second thread) frame i + 1's landmarks are found, so on two cores a frame costs the
+    slower stage, not their sum (docs/tracking.md). Every frame is kept, in order."""
+
+    def fit(result, t: float, track_ms: float) -> TrackedFrame:
+        t0 = time.perf_counter()
+        out = session.step(from_track_result(result), t)
+        return TrackedFrame(drive_params(out.params, with_transl), out.seen, t, track_ms,
+                            (time.perf_counter() - t0) * 1e3)
+
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="fit") as pool:
+        pending: Future | None = None
+        for frame, t in frames:
+            t0 = time.perf_counter()
+            result = tracker.track(frame)
+            track_ms = (time.perf_counter() - t0) * 1e3
+            if pending is not None:
+                yield pending.result()
+            pending = pool.submit(fit, result, t, track_ms)
+        if pending is not None:
+            yield pending.result()
+
+
+def track_params(frames: Iterable[tuple[np.ndarray, float]], session: FitSession, tracker,
                  with_transl: bool = False,
                  progress: Callable[[], None] | None = None) -> list[dict[str, np.ndarray]]:
     out = []
-    for frame, t in frames:
-        result = tracker.track(frame)
-        out.append(drive_params(session.step(from_track_result(result), t).params, with_transl))
+    for tracked in tracked_frames(frames, session, tracker, with_transl):
+        out.append(tracked.params)
         if progress:
             progress()
     return out
