@@ -13,6 +13,7 @@ from avatar_core.synth.body_demo import ensure_models
 from avatar_core.track.fit.camera import WebcamCamera
 from avatar_core.track.fit.fitter import FrameFitter, _Problem, neutral_params
 from avatar_core.track.fit.kinematics import rodrigues_and_left_jacobian
+from avatar_core.track.fit.observations import empty_observations
 
 CAMERA = WebcamCamera(640, 480, 60.0)
 
@@ -103,10 +104,13 @@ def test_objective_jacobian_matches_finite_differences(fitter):
     x[fitter.layout["transl"][0]] = p["transl"]
     x[fitter.layout["expression"][0].start] = 2.0  # past the +-1.5 bound: an active hinge
     x[fitter.layout["jaw_pose"][0]] = [0.8, 0.0, 0.0]  # past the jaw's 30 deg
-    pixels, _ = fitter._data(x + rng.normal(0, 0.02, x.size), CAMERA, False)
+    pixels = fitter._data(x + rng.normal(0, 0.02, x.size), CAMERA, False).pixels
     target = np.nan_to_num(pixels)
-    problem = _Problem(CAMERA, target, 6.4, x + 0.01)
     sqrt_w = np.where(fitter.kinematics.available, rng.uniform(0.5, 1.0, len(target)), 0.0)
+    obs = empty_observations((640, 480))
+    obs.depth[:] = rng.normal(0, 20.0, len(target))  # hand z: relative-depth pairs
+    problem = _Problem(CAMERA, target, 6.4, x + 0.01, fitter._depth_pairs(obs, sqrt_w ** 2))
+    assert problem.depth_pairs is not None and len(problem.depth_pairs[0]) == 40
     res, jac = fitter.dense_system(x, problem, sqrt_w)
     assert np.isfinite(res).all() and np.isfinite(jac).all()
     eps = 1e-6

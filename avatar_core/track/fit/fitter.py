@@ -59,6 +59,9 @@ LIMIT_WEIGHT = 100.0
 # Per keypoint group: a weight on its data term (the contour is loosely defined on any face).
 GROUP_WEIGHT = {"face": 1.0, "left_hand": 1.0, "right_hand": 1.0, "pose": 2.0}
 CONTOUR_WEIGHT = 0.3
+# MediaPipe's hand z is ~2.5x flatter than the true relative depth at the wrist's distance
+# (renders with known parameters, docs/tracking.md: correlation 0.90, slope 2.5).
+HAND_Z_SCALE = 2.5
 HUBER_PX = 8.0         # pseudo-Huber knee: larger errors grow linearly (outlier landmarks)
 MAX_ROTATION_STEP = 0.25  # rad: the most one LM step turns any joint (`_step_scale`)
 INITIAL_DAMPING = 1e-3   # Levenberg-Marquardt's, relative to diag(J^T J)
@@ -82,6 +85,10 @@ class FitConfig:
     warm_iterations: int = 4    # ... of a warm start
     placement_iterations: int = 6
     temporal_weight: float = 0.5  # per rad^2 (and per m^2 x 100 for transl), warm starts only
+    # A hand point's relative-depth residual against its 2D one (0: off). A trade-off measured
+    # on renders (docs/tracking.md): more weight, fewer palm / back flips of the wrist, worse
+    # 2D hand keypoints.
+    hand_depth_weight: float = 0.05
     dtype: torch.dtype = torch.float64
 
 
@@ -254,14 +261,17 @@ class FrameFitter:
                ) -> tuple[list[_Term], np.ndarray]:
         """The objective's residual blocks at x (cost = the sum of their squares) and the
         projections [K, 2]. Without `jacobian` the blocks carry no derivatives."""
-        proj, d_proj = self._data(x, problem.camera, jacobian)
+        seen = self._data(x, problem.camera, jacobian)
+        proj = seen.pixels
         used = sqrt_w > 0
         data = sqrt_w[used, None] * (proj[used] - problem.target[used]) / problem.scale
         d_data = None
         if jacobian:
-            d_data = ((sqrt_w[used, None, None] / problem.scale) * d_proj[used]).reshape(
+            d_data = ((sqrt_w[used, None, None] / problem.scale) * seen.d_pixels[used]).reshape(
                 -1, x.size)
         terms = [_Term(data.reshape(-1), d_data)]
+        if problem.depth_pairs is not None:
+            terms.append(self._depth_term(seen, problem, jacobian))
         # Quadratic priors toward rest, and the temporal term: diagonal Jacobians.
         terms.append(_Term(self.prior_sqrt * (x - self.prior_rest), None, self.prior_sqrt))
         if problem.previous is not None:
@@ -294,15 +304,30 @@ class FrameFitter:
             terms.append(_Term(np.asarray(residuals), d_hinge))
         return terms, proj
 
-    def _data(self, x: np.ndarray, camera: WebcamCamera, jacobian: bool
-              ) -> tuple[np.ndarray, np.ndarray | None]:
-        """Projections [K, 2] (NaN where the model has no keypoint) and d/dx [K, 2, N]."""
+    def _depth_term(self, seen: _Projected, problem: _Problem, jacobian: bool) -> _Term:
+        """Relative depth in pixels, f (d_k - d_ref) / d_ref, against MediaPipe's z (hands:
+        each point against its wrist): it tells the palm from the back of the hand, which the
+        2D landmarks of a flat hand leave ambiguous."""
+        k, ref, target, sqrt_w = problem.depth_pairs
+        f = problem.camera.focal
+        d_k, d_ref = seen.depth[k], np.maximum(seen.depth[ref], MIN_DEPTH_M)
+        r = sqrt_w * (f * (d_k / d_ref - 1.0) - target) / problem.scale
+        jac = None
+        if jacobian:
+            jac = (sqrt_w * f / problem.scale)[:, None] * (
+                seen.d_depth[k] / d_ref[:, None]
+                - (d_k / d_ref ** 2)[:, None] * seen.d_depth[ref])
+        return _Term(np.nan_to_num(r), jac)
+
+    def _data(self, x: np.ndarray, camera: WebcamCamera, jacobian: bool) -> _Projected:
+        """The keypoints seen by the camera at x, with derivatives when asked."""
         points, jac = self._keypoints(x, jacobian)
         proj, d_proj = project_points(points, camera)
         if not jacobian:
-            return proj, None
+            return _Projected(proj, -points[:, 2])
         d_proj[~self.kinematics.available] = 0.0  # NaN rows: no keypoint, weight 0
-        return proj, np.einsum("kab,kbn->kan", d_proj, jac)
+        return _Projected(proj, -points[:, 2], np.einsum("kab,kbn->kan", d_proj, jac),
+                          -jac[:, 2])
 
     def dense_system(self, x: np.ndarray, problem: _Problem, sqrt_w: np.ndarray
                      ) -> tuple[np.ndarray, np.ndarray]:
@@ -344,7 +369,7 @@ class FrameFitter:
         x = self.pack(start)
         problem = _Problem(camera, np.asarray(obs.pixels, dtype=np.float64),
                            max(camera.width, camera.height) / 100.0,
-                           x.copy() if warm else None)
+                           x.copy() if warm else None, self._depth_pairs(obs, weight))
         stats = {"iterations": 0, "evaluations": 0}
         if not warm:  # coarse to fine: place the head and torso first, then the limbs
             n = self.config.placement_iterations
@@ -361,13 +386,33 @@ class FrameFitter:
                          sum(float(t.residuals @ t.residuals) for t in terms),
                          (time.perf_counter() - t0) * 1e3, stats)
 
+    def _depth_pairs(self, obs: Observations, weight: np.ndarray):
+        """Each used hand point against its wrist, where MediaPipe gave z for both."""
+        w_depth = self.config.hand_depth_weight
+        if obs.depth is None or w_depth <= 0:
+            return None
+        k, ref = [], []
+        for sl in (cor.LEFT_HAND_SLICE, cor.RIGHT_HAND_SLICE):
+            wrist = sl.start
+            if weight[wrist] <= 0 or not np.isfinite(obs.depth[wrist]):
+                continue
+            rows = np.arange(sl.start + 1, sl.stop)
+            rows = rows[(weight[rows] > 0) & np.isfinite(obs.depth[rows])]
+            k.append(rows)
+            ref.append(np.full(len(rows), wrist))
+        if not k or not sum(len(r) for r in k):
+            return None
+        k, ref = np.concatenate(k), np.concatenate(ref)
+        target = HAND_Z_SCALE * (obs.depth[k] - obs.depth[ref])
+        return k, ref, target, np.sqrt(w_depth * weight[k])
+
     def _levenberg_marquardt(self, x: np.ndarray, free: np.ndarray, iterations: int,
                              problem: _Problem, weight: np.ndarray, stats: dict) -> np.ndarray:
         """Levenberg-Marquardt on the free entries of x with the analytic Jacobian; the robust
         loss by iterative reweighting (weights fixed within a step)."""
         idx = np.flatnonzero(free)
         damping, grow = INITIAL_DAMPING, 2.0
-        proj, _ = self._data(x, problem.camera, False)
+        proj = self._data(x, problem.camera, False).pixels
         for _ in range(iterations):
             err2 = ((np.nan_to_num(proj) - problem.target) ** 2).sum(-1)
             sqrt_w = np.sqrt(weight / np.sqrt(1 + err2 / HUBER_PX ** 2))  # pseudo-Huber
@@ -441,6 +486,17 @@ class _Problem:
     target: np.ndarray               # [K, 2] px
     scale: float                     # px per residual unit
     previous: np.ndarray | None      # [N] the previous frame's variables (warm starts)
+    # Relative-depth pairs: (keypoint [D], its reference [D], target z - z_ref px [D],
+    # sqrt weight [D]), or None.
+    depth_pairs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+
+
+@dataclass(frozen=True)
+class _Projected:
+    pixels: np.ndarray                  # [K, 2]
+    depth: np.ndarray                   # [K] m in front of the camera
+    d_pixels: np.ndarray | None = None  # [K, 2, N]
+    d_depth: np.ndarray | None = None   # [K, N]
 
 
 def project_points(points: np.ndarray, camera: WebcamCamera

@@ -25,6 +25,9 @@ class Observations:
     weights: np.ndarray                    # [K] >= 0
     image_size: tuple[int, int]            # (w, h)
     seen: dict[str, bool] = field(default_factory=dict)  # group -> usable this frame
+    # [K] MediaPipe's relative depth z (px, smaller is nearer; hands: 0 at the wrist), NaN
+    # where not given.
+    depth: np.ndarray | None = None
 
     @property
     def any_seen(self) -> bool:
@@ -33,14 +36,18 @@ class Observations:
 
 def empty_observations(image_size: tuple[int, int]) -> Observations:
     return Observations(np.zeros((cor.NUM_KEYPOINTS, 2)), np.zeros(cor.NUM_KEYPOINTS),
-                        image_size, {g: False for g in cor.GROUP_SLICES})
+                        image_size, {g: False for g in cor.GROUP_SLICES},
+                        np.full(cor.NUM_KEYPOINTS, np.nan))
 
 
 def _put(obs: Observations, group: str, points: np.ndarray, weights: np.ndarray) -> None:
     sl = cor.GROUP_SLICES[group]
-    pts = np.asarray(points, dtype=np.float64)[:, :2]
+    raw = np.asarray(points, dtype=np.float64)
+    pts = raw[:, :2]
     w = np.where(np.isfinite(pts).all(axis=1), np.asarray(weights, dtype=np.float64), 0.0)
     obs.pixels[sl] = np.where(w[:, None] > 0, np.nan_to_num(pts), 0.0)
+    if raw.shape[1] > 2:
+        obs.depth[sl] = np.where(w > 0, raw[:, 2], np.nan)
     obs.weights[sl] = w
     obs.seen[group] = int((w > 0).sum()) >= MIN_POINTS[group]
     if not obs.seen[group]:

@@ -11,7 +11,7 @@ import torch
 
 from . import correspondence as cor
 from .camera import WebcamCamera
-from .fitter import FrameFitter
+from .fitter import HAND_Z_SCALE, FrameFitter
 from .observations import Observations, from_landmarks
 
 
@@ -26,19 +26,41 @@ def project_params(fitter: FrameFitter, params: dict[str, np.ndarray],
         return fitter.project(p, camera)[0].double().numpy()
 
 
-def as_mediapipe(keypoints_px: np.ndarray) -> dict[str, np.ndarray]:
-    """Fitter-layout pixels [K, 2] -> MediaPipe arrays: face [468, 3] (NaN off the iBUG
-    correspondence), hands [21, 3], pose [33, 3] and its visibility [33] (0 where unmapped)."""
+def relative_depth_px(fitter: FrameFitter, params: dict[str, np.ndarray],
+                      camera: WebcamCamera) -> np.ndarray:
+    """[K] MediaPipe-style hand z: each hand point's depth minus its wrist's, in pixels at
+    the wrist's distance (f (d - d_wrist) / d_wrist); NaN outside the hands."""
+    dt = fitter.config.dtype
+    p = {k: torch.as_tensor(np.asarray(v, dtype=np.float64), dtype=dt)[None]
+         for k, v in params.items()}
+    p["betas"] = fitter.betas
+    with torch.no_grad():
+        depth = -fitter.keypoints(p)[0, :, 2].double().numpy()
+    out = np.full(cor.NUM_KEYPOINTS, np.nan)
+    for sl in (cor.LEFT_HAND_SLICE, cor.RIGHT_HAND_SLICE):
+        out[sl] = camera.focal * (depth[sl] / depth[sl.start] - 1.0)
+    return out
+
+
+def as_mediapipe(keypoints_px: np.ndarray, depth_px: np.ndarray | None = None
+                 ) -> dict[str, np.ndarray]:
+    """Fitter-layout pixels [K, 2] (and hand z [K], `relative_depth_px`) -> MediaPipe
+    arrays: face [468, 3] (NaN off the iBUG correspondence), hands [21, 3] (z 0 without
+    `depth_px`), pose [33, 3] and its visibility [33] (0 where unmapped)."""
     face = np.full((468, 3), np.nan)
     for ibug, ids in enumerate(cor.FACE_MP_TO_IBUG68):
         face[list(ids), :2] = keypoints_px[cor.FACE_SLICE][ibug]
         face[list(ids), 2] = 0.0
-    pad = lambda a: np.concatenate([a, np.zeros((len(a), 1))], axis=1)  # noqa: E731
-    pose = pad(keypoints_px[cor.POSE_SLICE])
+    z = np.zeros(cor.NUM_KEYPOINTS) if depth_px is None else np.nan_to_num(depth_px)
+
+    def pad(sl: slice) -> np.ndarray:
+        return np.concatenate([keypoints_px[sl], z[sl, None]], axis=1)
+
+    pose = pad(cor.POSE_SLICE)
     visibility = np.array([float(n is not None) for n in cor.POSE_MP_TO_SMPLX])
     visibility[~np.isfinite(pose).all(axis=1)] = 0.0
-    return {"face": face, "left_hand": pad(keypoints_px[cor.LEFT_HAND_SLICE]),
-            "right_hand": pad(keypoints_px[cor.RIGHT_HAND_SLICE]), "pose": pose,
+    return {"face": face, "left_hand": pad(cor.LEFT_HAND_SLICE),
+            "right_hand": pad(cor.RIGHT_HAND_SLICE), "pose": pose,
             "pose_visibility": visibility}
 
 
@@ -50,10 +72,13 @@ def synthetic_observations(fitter: FrameFitter, params: dict[str, np.ndarray],
     groups named in `drop` ("face", "left_hand", "right_hand", "pose"); and the noise-free
     keypoints [K, 2]."""
     clean = project_params(fitter, params, camera)
+    depth = relative_depth_px(fitter, params, camera) / HAND_Z_SCALE  # as flat as MediaPipe's
     noisy = clean.copy()
     if noise_px > 0:
-        noisy = noisy + (rng or np.random.default_rng(0)).normal(0, noise_px, noisy.shape)
-    mp = as_mediapipe(noisy)
+        rng = rng or np.random.default_rng(0)
+        noisy = noisy + rng.normal(0, noise_px, noisy.shape)
+        depth = depth + rng.normal(0, noise_px, depth.shape)
+    mp = as_mediapipe(noisy, depth)
     obs = from_landmarks(
         (camera.width, camera.height),
         face=None if "face" in drop else mp["face"],
