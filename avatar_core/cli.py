@@ -207,7 +207,7 @@ def _track_fit(args: argparse.Namespace) -> int:
 
     source = args.webcam if args.webcam is not None else str(args.image or args.video)
     try:
-        tracker = Tracker(models=args.cache)
+        tracker = Tracker(models=args.cache, iris=True)
         session = default_session(args.fov, smoothing=not args.no_smoothing)
         with tqdm(total=args.frames, unit="frame", desc="tracking") as bar:
             params = track_params(frames_from(source, args.frames), session, tracker,

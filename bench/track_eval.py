@@ -405,7 +405,7 @@ def make_tracker_and_session(scene: Scene, smoothing: bool = True):
     from avatar_core.track.fit.session import FitSession, SessionConfig
     from avatar_core.track.tracker import Tracker
 
-    tracker = Tracker(threads=1)
+    tracker = Tracker(threads=1, iris=True)
     package, model = synthetic_package(scene.model_dir, 0)
     session = FitSession(model, _np.asarray(package.body.betas),
                          SessionConfig(fov_x_deg=FOV_X_DEG, smoothing=smoothing))

@@ -25,7 +25,7 @@ async def drive_from_camera(server: str, token: str | None, avatar: str, source:
     from .images import save_frame
     from .stream import StreamClient
 
-    tracker = Tracker(palm_interval=LIVE_PALM_INTERVAL)
+    tracker = Tracker(palm_interval=LIVE_PALM_INTERVAL, iris=True)
     session = default_session(fov_x_deg)
     # Landmarks of the next frame are found while this one is fitted (two threads).
     tracked = tracked_frames(frames_from(source, max_frames), session, tracker)

@@ -54,7 +54,7 @@ class SessionTracker:
             from avatar_core.track.fit.session import FitSession
             from avatar_core.track.tracker import LIVE_PALM_INTERVAL, Tracker
 
-            tracker = Tracker(threads=1, palm_interval=LIVE_PALM_INTERVAL)
+            tracker = Tracker(threads=1, palm_interval=LIVE_PALM_INTERVAL, iris=True)
         except (ImportError, RuntimeError, OSError, ValueError) as exc:
             self.unavailable = f"server-side tracking is not available: {exc}"
             raise TrackingUnavailable(self.unavailable) from exc

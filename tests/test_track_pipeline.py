@@ -309,3 +309,110 @@ def test_cli_track_landmarks_draws_an_overlay(onnx_models, astronaut_bgr, tmp_pa
     image.write_bytes(b"\xff\xd8 not really a jpeg")
     args = build_parser().parse_args(["track", "landmarks", str(image), "--out", str(out)])
     assert args.func(args) == 2
+
+
+# ------------------------------------------------------------------ eyes (iris_landmark)
+
+def test_eye_roi_levels_the_corners_and_scales_their_box():
+    from avatar_core.track.iris import eye_roi
+
+    roi = eye_roi(np.array([100.0, 100.0]), np.array([120.0, 110.0]))
+    assert (roi.cx, roi.cy) == pytest.approx((110, 105))
+    assert roi.rotation == pytest.approx(math.atan2(10, 20))  # the corners' line made level
+    assert roi.width == roi.height == pytest.approx(2.3 * 20)  # the box's long side, 2.3x
+
+
+@pytest.fixture(scope="module")
+def astronaut_eyes(onnx_models, astronaut_bgr):
+    return _tracker(iris=True, hands=False, pose=False).track(astronaut_bgr)
+
+
+def test_irises_on_the_astronauts_eyes(astronaut_eyes):
+    from avatar_core.track.iris import EYE_CORNERS, EYELID
+
+    face = astronaut_eyes.face
+    assert face.iris.shape == (2, 5, 3) and face.eye_contour.shape == (2, 71, 3)
+    assert face.iris.dtype == np.float32 and np.isfinite(face.iris).all()
+    assert astronaut_eyes.timings_ms["iris"] > 0
+    centres = face.iris[:, 0, :2]
+    for k, (a, b) in enumerate(EYE_CORNERS):
+        start, end = face.points[a, :2], face.points[b, :2]
+        width = float(np.linalg.norm(end - start))
+        # Between the corners, inside the eyelid margin.
+        along = float((centres[k] - start) @ (end - start)) / width ** 2
+        assert 0.25 < along < 0.75, along
+        lids = face.eye_contour[k, list(EYELID), :2].astype(np.float32)
+        assert cv2.pointPolygonTest(lids, tuple(map(float, centres[k])), False) > 0
+        # The margin starts at the outer corner (33, 263) and reaches the inner one (133, 362)
+        # at point 8: the mirrored eye's points were flipped back.
+        outer, inner = (start, end) if k == 0 else (end, start)
+        assert np.linalg.norm(face.eye_contour[k, 0, :2] - outer) < 3.0
+        assert np.linalg.norm(face.eye_contour[k, 8, :2] - inner) < 3.0
+        # Iris radius ~6 mm on a ~30 mm wide eye (measured 0.20 of the corner distance).
+        radius = np.linalg.norm(face.iris[k, 1:, :2] - centres[k], axis=1)
+        assert (0.12 < radius / width).all() and (radius / width < 0.3).all(), radius / width
+    # Pupils ~63 mm apart, outer eye corners ~95 mm (measured 0.70).
+    outer_span = np.linalg.norm(face.points[263, :2] - face.points[33, :2])
+    assert 0.6 < np.linalg.norm(centres[1] - centres[0]) / outer_span < 0.8
+    assert centres[0, 0] < centres[1, 0]  # the person's right eye first (image left)
+
+
+def test_no_iris_unless_asked(astronaut_result):
+    assert astronaut_result.face.iris is None and "iris" not in astronaut_result.timings_ms
+
+
+def test_iris_with_the_stages_in_parallel(onnx_models, astronaut_bgr, astronaut_eyes):
+    tracker = _tracker(iris=True, hands=False, parallel=True)  # face + iris beside the body
+    result = tracker.track(astronaut_bgr)
+    tracker.close()
+    np.testing.assert_allclose(result.face.iris, astronaut_eyes.face.iris, atol=1e-3)
+    assert {"face", "iris", "pose", "total"} <= set(result.timings_ms)
+
+
+def test_eyes_at_the_frame_edge_or_too_small(onnx_models, astronaut_bgr, astronaut_eyes):
+    """Partly outside the frame: finite points; ROI centre off the frame or an eye a few
+    pixels wide: that eye is NaN; no readable eye: no iris at all. Never an exception."""
+    from dataclasses import replace
+
+    from avatar_core.track.iris import IrisPipeline, eye_roi
+
+    iris = IrisPipeline(threads=1)
+    face = replace(astronaut_eyes.face, iris=None, eye_contour=None)
+
+    def shifted(dx: float, scale: float = 1.0):
+        points = face.points * np.float32(scale)
+        points[:, 0] -= dx
+        return replace(face, points=points)
+
+    # The right eye's outer corner 3 px inside the left edge: its crop is half replicated.
+    x0 = int(face.points[33, 0]) - 3
+    edge = iris(np.ascontiguousarray(astronaut_bgr[:, x0:]), shifted(x0))
+    assert np.isfinite(edge.iris).all() and np.isfinite(edge.eye_contour).all()
+    # The right eye's ROI centre off the frame: that eye NaN, the other read.
+    x0 = int(eye_roi(face.points[33], face.points[133]).cx) + 2
+    half = iris(np.ascontiguousarray(astronaut_bgr[:, x0:]), shifted(x0))
+    assert np.isnan(half.iris[0]).all() and np.isfinite(half.iris[1]).all()
+    # A face a quarter the size (eyes ~5 px wide): read; an eighth (~2.4 px): no iris.
+    small = iris(cv2.resize(astronaut_bgr, (128, 128), interpolation=cv2.INTER_AREA),
+                 shifted(0, 0.25))
+    assert np.isfinite(small.iris).all()
+    near = np.linalg.norm(small.iris[:, 0, :2] - 0.25 * astronaut_eyes.face.iris[:, 0, :2], axis=1)
+    assert (near < 2.0).all(), near  # within the eye (~5 px wide)
+    tiny = iris(cv2.resize(astronaut_bgr, (64, 64), interpolation=cv2.INTER_AREA),
+                shifted(0, 0.125))
+    assert tiny.iris is None and tiny.eye_contour is None
+    nan_face = replace(face, points=np.full_like(face.points, np.nan))
+    assert iris(astronaut_bgr, nan_face).iris is None
+    # The whole tracker on the photo cut through the right eye: the face is still found; at
+    # 200 px the iris is read from a half-replicated crop (measured 0.3 px from the uncut
+    # photo's), at 215 px that eye's ROI centre is off the frame.
+    true_centres = astronaut_eyes.face.iris[:, 0, :2]
+    for x0, right_eye_read in ((200, True), (215, False)):
+        cut = _tracker(iris=True, hands=False, pose=False).track(
+            np.ascontiguousarray(astronaut_bgr[:, x0:])).face
+        assert cut is not None and cut.iris is not None
+        assert np.linalg.norm(cut.iris[1, 0, :2] + [x0, 0] - true_centres[1]) < 2.0
+        if right_eye_read:
+            assert np.linalg.norm(cut.iris[0, 0, :2] + [x0, 0] - true_centres[0]) < 2.0
+        else:
+            assert np.isnan(cut.iris[0]).all() and np.isnan(cut.eye_contour[0]).all()

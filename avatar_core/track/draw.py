@@ -49,6 +49,12 @@ def draw_result(frame_bgr: np.ndarray, result: TrackResult, rois: bool = True) -
     if result.face is not None:
         for q in result.face.points:
             cv2.circle(img, _pt(q), 1, (0, 255, 255), -1)
+        if result.face.iris is not None:  # centre and radius of each iris that was read
+            for eye in result.face.iris:
+                if np.isfinite(eye).all():
+                    radius = float(np.linalg.norm(eye[1:, :2] - eye[0, :2], axis=1).mean())
+                    cv2.circle(img, _pt(eye[0]), max(1, round(radius)), (0, 0, 255), 1,
+                               cv2.LINE_AA)
         if rois:
             _rect(img, result.face.roi, (0, 200, 255))
     for hand in result.hands:

@@ -5,12 +5,14 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from functools import partial
 
 import numpy as np
 
 from .face import FacePipeline
 from .hands import HandPipeline
 from .image import DEFAULT_MAX_PIXELS, check_frame
+from .iris import IrisPipeline
 from .pose import PosePipeline
 from .segmentation import SelfieSegmentation
 from .session import ModelSource
@@ -31,15 +33,19 @@ class Tracker:
     enabled stages concurrently in threads (worth it with one thread per model on a machine
     with a core per stage). hand_model: "full" or "lite". palm_interval: while fewer than two
     hands are tracked, look for new palms every this many frames (1 = MediaPipe's behaviour).
+    iris: read both eyes' iris and eyelid points after the face mesh (`FaceLandmarks.iris`,
+    `.eye_contour`; two iris_landmark runs per frame, timed as "iris"; off by default: ~6 ms
+    a frame on one core, docs/tracking.md).
     """
 
     def __init__(self, models: ModelSource = None, face: bool = True, hands: bool = True,
                  pose: bool = True, mask: bool = False, providers: Sequence | None = None,
                  threads: int | None = None, parallel: bool = False,
                  hand_model: str = "full", max_hands: int = 2, palm_interval: int = 1,
-                 max_pixels: int = DEFAULT_MAX_PIXELS):
+                 max_pixels: int = DEFAULT_MAX_PIXELS, iris: bool = False):
         args = (models, providers, threads)
         self.face = FacePipeline(*args) if face else None
+        self.iris = IrisPipeline(*args) if face and iris else None
         self.hands = HandPipeline(*args, max_hands=max_hands, variant=hand_model,
                                   palm_interval=palm_interval) if hands else None
         self.pose = PosePipeline(*args) if pose else None
@@ -66,20 +72,28 @@ class Tracker:
         frame = check_frame(frame_bgr, self.max_pixels)
         timings: dict[str, float] = {}
 
-        def timed(name: str, stage: Callable):
+        def timed(name: str, stage: Callable, *args):
             start = time.perf_counter()
-            out = stage(frame)
+            out = stage(*args)
             timings[name] = (time.perf_counter() - start) * 1e3
             return out
 
-        stages = {name: stage for name, stage in (("face", self.face), ("hands", self.hands),
-                                                  ("pose", self.pose), ("mask", self.mask))
+        def face_then_iris(frame: np.ndarray):
+            face = timed("face", self.face, frame)
+            return face if face is None or self.iris is None else timed(
+                "iris", self.iris, frame, face)
+
+        stages = {name: partial(timed, name, stage)
+                  for name, stage in (("face", self.face), ("hands", self.hands),
+                                      ("pose", self.pose), ("mask", self.mask))
                   if stage is not None}
+        if self.face is not None:
+            stages["face"] = face_then_iris  # the eyes need this frame's face mesh
         if self._pool is not None:
-            futures = {n: self._pool.submit(timed, n, s) for n, s in stages.items()}
+            futures = {n: self._pool.submit(s, frame) for n, s in stages.items()}
             out = {n: f.result() for n, f in futures.items()}
         else:
-            out = {n: timed(n, s) for n, s in stages.items()}
+            out = {n: s(frame) for n, s in stages.items()}
         timings["total"] = (time.perf_counter() - t0) * 1e3
         h, w = frame.shape[:2]
         return TrackResult(face=out.get("face"), hands=out.get("hands", ()),

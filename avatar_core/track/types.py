@@ -42,6 +42,11 @@ class FaceLandmarks:
     points: np.ndarray  # [468, 3] float32: x, y px; z relative depth in px scale
     score: float  # face presence, 0..1
     roi: RotatedRect  # the crop the landmarks were read from
+    # Eyes (`Tracker(iris=True)`), the person's right eye then left eye; rows of an eye that
+    # could not be read are NaN. iris: centre then 4 points on the iris edge; eye_contour:
+    # MediaPipe's 71 points, the first 16 the eyelid margin (`iris.EYELID`).
+    iris: np.ndarray | None = None  # [2, 5, 3] float32 px
+    eye_contour: np.ndarray | None = None  # [2, 71, 3] float32 px
 
 
 @dataclass(frozen=True)

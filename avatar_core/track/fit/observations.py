@@ -28,6 +28,8 @@ class Observations:
     # [K] MediaPipe's relative depth z (px, smaller is nearer; hands: 0 at the wrist), NaN
     # where not given.
     depth: np.ndarray | None = None
+    # [2, 2] iris centres px (the person's right eye, then left; NaN: not read), or None.
+    iris: np.ndarray | None = None
 
     @property
     def any_seen(self) -> bool:
@@ -131,4 +133,6 @@ def from_track_result(result: TrackResult) -> Observations:
         pose=None if pose is None else pose.points,
         pose_visibility=None if pose is None else pose.visibility)
     obs.weights[MISMATCHED_ROWS] = 0.0
+    if result.face is not None and result.face.iris is not None and obs.seen.get("face"):
+        obs.iris = np.asarray(result.face.iris[:, 0, :2], dtype=np.float64)
     return obs

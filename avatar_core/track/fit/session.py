@@ -18,6 +18,7 @@ from ...body.models import SMPLXModel
 from ...body.skeleton import JOINT
 from .camera import WebcamCamera
 from .fitter import FitConfig, FitResult, FrameFitter
+from .gaze import gaze_solver
 from .observations import Observations
 from .one_euro import ParamSmoother
 
@@ -36,6 +37,7 @@ class SessionConfig:
     hold_s: float = 0.5      # lost: keep the last fitted value this long
     relax_s: float = 1.0     # ... then ease to neutral over this long
     smoothing: bool = True
+    gaze: bool = True        # turn the eyes onto the iris centres, when the tracker reads them
     min_cutoff: float = 1.5  # One Euro: Hz at rest
     beta: float = 0.3        # cutoff gain per unit/s of speed
     fit: FitConfig = field(default_factory=FitConfig)
@@ -66,6 +68,7 @@ class FitSession:
                  config: SessionConfig | None = None) -> None:
         self.config = config or SessionConfig()
         self.fitter = FrameFitter(model, betas, self.config.fit)
+        self.gaze = gaze_solver(model) if self.config.gaze else None
         self.neutral = self.fitter.neutral
         self.smoother = ParamSmoother(self.config.min_cutoff, self.config.beta)
         self._rows = {g: _body_rows(g) for g in GROUPS}
@@ -114,6 +117,10 @@ class FitSession:
             stale = not self.last_seen or t - max(self.last_seen.values()) > self.config.hold_s
             start = None if self.current is None or stale else self.current
             fit = self.fitter.fit(obs, camera, start)
+            if self.gaze is not None and obs.iris is not None and seen["face"]:
+                eyes = self.gaze.fit(fit.params, obs.iris, camera, self.fitter.betas[0].numpy())
+                fit.params.update(eyes.params)
+                fit.stats["gaze_px"] = eyes.residual_px
         params = self._compose(None if fit is None else fit.params, seen, t)
         self.current = params
         if self.config.smoothing:
