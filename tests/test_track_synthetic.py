@@ -26,14 +26,11 @@ FRAMES = 4
 # 10-26 px from the model keypoints they map to); with them the head was ~16 deg off and the
 # torso AKD 21 px (the values before, in the second brackets).
 AKD_FACE_PX = 3.5     # mouth_open 2.3, peace 2.0 (51 static landmarks)
-HEAD_DEG = 12.0       # 7.2, 3.2 (16.7, 15.6)
+HEAD_DEG = 14.0       # 6.9, 10.7 (16.7, 15.6)
 JAW_DEG = 13.0        # 8.8 (7.1); true opening 20 deg
 AKD_TORSO_PX = 20.0   # 6.8, 12.0 (21.2)
-# The hand-depth term (FitConfig.hand_depth_weight) trades 2D hand keypoints for fewer palm /
-# back flips over whole clips; on these four peace frames it costs: 21.0 px, 33 deg with it,
-# 12.8 px, 27 deg without (docs/tracking.md).
-AKD_HAND_PX = 25.0    # peace, right hand: 21.0 (10.6 before the analytic fit, 15.0)
-WRIST_DEG = 60.0      # 33.2 (45.0, 30.9): the wrist's roll is poorly determined from one view
+AKD_HAND_PX = 16.0    # peace, right hand: 9.7 (21.0 with the hand prior at 0.05)
+WRIST_DEG = 45.0      # 16.5 (33.2, 45.0): the wrist's roll is poorly determined from one view
 
 
 @pytest.fixture(scope="module")

@@ -52,7 +52,6 @@ ARM_VARIABLES = (*CORE_VARIABLES, "left_collar", "right_collar", "left_shoulder"
 ARM_POSE_LANDMARKS = (*CORE_POSE_LANDMARKS, 13, 14, 15, 16)  # + elbows, wrists
 HAND_PALM_LANDMARKS = (0, 1, 5, 9, 13, 17)  # wrist and knuckles: the palm's placement
 ARM_PRIOR = 0.02
-HAND_PRIOR = 0.05
 EXPRESSION_PRIOR = 0.02
 GLOBAL_PRIOR = 0.5     # the body mostly faces the camera
 LIMIT_WEIGHT = 100.0
@@ -89,6 +88,11 @@ class FitConfig:
     # on renders (docs/tracking.md): more weight, fewer palm / back flips of the wrist, worse
     # 2D hand keypoints.
     hand_depth_weight: float = 0.05
+    # Finger joints toward the mean hand, per rad^2: on renders MediaPipe's finger points sit
+    # ~11 px from this model's joints, and a firmer prior keeps the fingers nearer the truth
+    # (docs/tracking.md: 0.05 -> 0.3, finger error 36 -> 30 deg) at a small cost on exact
+    # landmarks.
+    hand_prior: float = 0.3
     dtype: torch.dtype = torch.float64
 
 
@@ -147,7 +151,7 @@ class FrameFitter:
                                            for j in FREE_BODY_JOINTS], 3)
         prior[lay["global_orient"][0]] = math.sqrt(GLOBAL_PRIOR)
         prior[lay["left_hand_pose"][0].start:lay["right_hand_pose"][0].stop] = \
-            math.sqrt(HAND_PRIOR)
+            math.sqrt(self.config.hand_prior)
         prior[lay["expression"][0]] = math.sqrt(EXPRESSION_PRIOR)
         self.prior_sqrt = prior
         self.prior_rest = np.zeros(n)
@@ -277,32 +281,37 @@ class FrameFitter:
         if problem.previous is not None:
             terms.append(_Term(self.temporal_sqrt * (x - problem.previous), None,
                                self.temporal_sqrt))
-        # Hinges on expression coefficients and rotation angles: only active rows.
+        hinges = self._hinge_term(x, jacobian)
+        if hinges is not None:
+            terms.append(hinges)
+        return terms, proj
+
+    def _hinge_term(self, x: np.ndarray, jacobian: bool) -> _Term | None:
+        """Hinges on expression coefficients past their bound and rotation angles past
+        `JOINT_LIMITS_DEG`: only the active rows (None when none is)."""
         limit = math.sqrt(LIMIT_WEIGHT)
-        expr_cols = np.arange(x.size)[self.layout["expression"][0]]
-        over = np.abs(x[expr_cols]) - EXPRESSION_LIMIT
-        rows, cols, values, residuals = [], [], [], []
-        for k in np.flatnonzero(over > 0):
-            residuals.append(limit * over[k])
-            rows.append([len(rows)])
-            cols.append([expr_cols[k]])
-            values.append([limit * np.sign(x[expr_cols[k]])])
+        cols = np.arange(x.size)[self.layout["expression"][0]]
+        over = np.abs(x[cols]) - EXPRESSION_LIMIT
+        on = np.flatnonzero(over > 0)
+        residuals, jacobians = [limit * over[on]], []
+        if jacobian:
+            j = np.zeros((len(on), x.size))
+            j[np.arange(len(on)), cols[on]] = limit * np.sign(x[cols[on]])
+            jacobians.append(j)
         for joint_cols, bound in self.angle_limits:
             aa = x[joint_cols]                                       # [R, 3]
             angle = np.sqrt((aa ** 2).sum(-1) + 1e-12)
-            for k in np.flatnonzero(angle > bound):
-                residuals.append(limit * (angle[k] - bound[k]))
-                rows.append([len(rows)] * 3)
-                cols.append(list(joint_cols[k]))
-                values.append(list(limit * aa[k] / angle[k]))
-        if residuals:
-            d_hinge = None
+            on = np.flatnonzero(angle > bound)
+            residuals.append(limit * (angle[on] - bound[on]))
             if jacobian:
-                d_hinge = np.zeros((len(residuals), x.size))
-                for r, c, v in zip(rows, cols, values, strict=True):
-                    d_hinge[r, c] = v
-            terms.append(_Term(np.asarray(residuals), d_hinge))
-        return terms, proj
+                j = np.zeros((len(on), x.size))
+                j[np.arange(len(on))[:, None], joint_cols[on]] = \
+                    limit * aa[on] / angle[on, None]
+                jacobians.append(j)
+        r = np.concatenate(residuals)
+        if not r.size:
+            return None
+        return _Term(r, np.concatenate(jacobians) if jacobian else None)
 
     def _depth_term(self, seen: _Projected, problem: _Problem, jacobian: bool) -> _Term:
         """Relative depth in pixels, f (d_k - d_ref) / d_ref, against MediaPipe's z (hands:
