@@ -270,3 +270,20 @@ def test_pipelined_tracking_keeps_every_frame_in_order_and_fits_like_serial(setu
             np.testing.assert_allclose(got.params[name], want[name], atol=1e-12, err_msg=name)
     assert all(f.seen["face"] and f.fit_ms > 0 for f in piped)
     assert list(tracked_frames([], FitSession(model, betas), ReplayTracker())) == []
+
+
+@pytest.mark.parametrize("case", ["far_off_frame", "collapsed", "half_inf", "tiny_face"])
+def test_extreme_landmarks_give_finite_params(setup, case):
+    """Landmarks far outside the frame, all on one pixel, half infinite, or a face a pixel
+    wide: the fit returns finite parameters (or says the group is not seen), never NaN."""
+    model, betas, _ = setup
+    rng = np.random.default_rng(3)
+    face = {"far_off_frame": rng.normal(0, 1e7, (468, 3)) + 1e9,
+            "collapsed": np.full((468, 3), 320.0),
+            "half_inf": np.where(np.arange(468)[:, None] % 2, np.inf, 300.0) * np.ones((468, 3)),
+            "tiny_face": 320.0 + rng.normal(0, 0.01, (468, 3))}[case]
+    session = FitSession(model, betas)
+    for i in range(2):  # a cold fit, then a warm one from it
+        out = session.step(from_landmarks((640, 480), face=face,
+                                          left_hand=np.full((21, 3), -1e8)), i / 30)
+        assert all(np.isfinite(v).all() for v in out.params.values()), case

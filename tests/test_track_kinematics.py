@@ -54,6 +54,7 @@ POSES = {
     "tiny": lambda rng: rng.normal(0, 1e-6, (55, 3)),
     "near_pi": lambda rng: rng.normal(0, 1, (55, 3)) * (3.1 / np.linalg.norm(
         rng.normal(0, 1, (55, 1, 3)), axis=-1)),
+    "wound_many_turns": lambda rng: rng.normal(0, 20.0, (55, 3)),  # |theta| >> 2 pi
     "head_turned_far": lambda rng: np.pad(rng.normal(0, 0.2, (54, 3)), ((1, 0), (0, 0)))
     + np.array([0, 1.4, 0]),  # yaw past the contour table's end
 }
