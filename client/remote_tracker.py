@@ -33,20 +33,23 @@ async def drive_from_camera(server: str, token: str | None, avatar: str, source:
     sent, received, track_ms = 0, 0, 0.0
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
-    async with await StreamClient.connect(server, avatar, token, timeout=timeout,
-                                          client_name="telesplat-client drive") as client:
-        with tqdm(total=max_frames, unit="frame", disable=not progress, desc="driving") as bar:
-            while True:
-                item = await asyncio.to_thread(next, tracked, None)  # off the event loop
-                if item is None:
-                    break
-                seq = await client.drive(item.params, reset=sent == 0)
-                sent, track_ms = sent + 1, track_ms + item.track_ms + item.fit_ms
-                if out is not None:
-                    frame = await client.wait_frame(seq, timeout=timeout)
-                    save_frame(frame, out / f"{received:05d}")
-                    received += 1
-                bar.update(1)
-    tracked.close()
-    tracker.close()
+    try:
+        async with await StreamClient.connect(server, avatar, token, timeout=timeout,
+                                              client_name="telesplat-client drive") as client:
+            with tqdm(total=max_frames, unit="frame", disable=not progress,
+                      desc="driving") as bar:
+                while True:
+                    item = await asyncio.to_thread(next, tracked, None)  # off the event loop
+                    if item is None:
+                        break
+                    seq = await client.drive(item.params, reset=sent == 0)
+                    sent, track_ms = sent + 1, track_ms + item.track_ms + item.fit_ms
+                    if out is not None:
+                        frame = await client.wait_frame(seq, timeout=timeout)
+                        save_frame(frame, out / f"{received:05d}")
+                        received += 1
+                    bar.update(1)
+    finally:  # the fit thread and the ONNX sessions, also when the server goes away
+        tracked.close()
+        tracker.close()
     return {"sent": sent, "saved": received, "track_ms": track_ms / max(sent, 1)}
