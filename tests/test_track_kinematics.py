@@ -109,9 +109,9 @@ def test_objective_jacobian_matches_finite_differences(fitter):
     target = np.nan_to_num(pixels)
     sqrt_w = np.where(fitter.kinematics.available, rng.uniform(0.5, 1.0, len(target)), 0.0)
     obs = empty_observations((640, 480))
-    obs.depth[:] = rng.normal(0, 20.0, len(target))  # hand z: relative-depth pairs
+    obs.depth[:] = rng.normal(0, 20.0, len(target))  # hand and face z: relative-depth pairs
     problem = _Problem(CAMERA, target, 6.4, x + 0.01, fitter._depth_pairs(obs, sqrt_w ** 2))
-    assert problem.depth_pairs is not None and len(problem.depth_pairs[0]) == 40
+    assert problem.depth_pairs is not None and len(problem.depth_pairs[0]) == 2 * 20 + 50
     res, jac = fitter.dense_system(x, problem, sqrt_w)
     assert np.isfinite(res).all() and np.isfinite(jac).all()
     eps = 1e-6

@@ -21,16 +21,16 @@ from bench import track_eval as te  # noqa: E402
 
 FPS = 30.0
 FRAMES = 4
-# Bounds: the measured values of these exact frames (in brackets) with margin. MediaPipe's
+# Bounds: the measured values of these exact frames (after the #) with margin. MediaPipe's
 # face oval, ears and hips are left out of the fit (fit.observations.MISMATCHED_ROWS: they sit
 # 10-26 px from the model keypoints they map to); with them the head was ~16 deg off and the
-# torso AKD 21 px (the values before, in the second brackets).
-AKD_FACE_PX = 3.5     # mouth_open 2.3, peace 2.0 (51 static landmarks)
-HEAD_DEG = 14.0       # 6.9, 10.7 (16.7, 15.6)
-JAW_DEG = 13.0        # 8.8 (7.1); true opening 20 deg
-AKD_TORSO_PX = 20.0   # 6.8, 12.0 (21.2)
-AKD_HAND_PX = 16.0    # peace, right hand: 9.7 (21.0 with the hand prior at 0.05)
-WRIST_DEG = 45.0      # 16.5 (33.2, 45.0): the wrist's roll is poorly determined from one view
+# torso AKD 21 px (earlier values in brackets).
+AKD_FACE_PX = 3.5     # mouth_open 2.2, peace 2.4 (51 static landmarks)
+HEAD_DEG = 12.0       # 5.2, 4.9 (16.7, 15.6)
+JAW_DEG = 13.0        # 9.3 (7.1); true opening 20 deg
+AKD_TORSO_PX = 20.0   # mouth_open 10.0 (21.2)
+AKD_HAND_PX = 16.0    # peace, right hand: 10.2 (21.0 with the hand prior at 0.05)
+WRIST_DEG = 45.0      # 15.6 (33.2, 45.0): the wrist's roll is poorly determined from one view
 
 
 @pytest.fixture(scope="module")

@@ -61,6 +61,14 @@ CONTOUR_WEIGHT = 0.3
 # MediaPipe's hand z is ~2.5x flatter than the true relative depth at the wrist's distance
 # (renders with known parameters, docs/tracking.md: correlation 0.90, slope 2.5).
 HAND_Z_SCALE = 2.5
+# ... and its face z 1.4x deeper than the truth against the nose tip (correlation 0.83).
+FACE_Z_SCALE = 0.7
+# Relative-depth groups: each hand against its wrist (its first row); the face's static
+# landmarks (iBUG 17-67: brows, nose, eyes, mouth) against the nose tip (iBUG 30).
+DEPTH_HANDS = (np.arange(cor.LEFT_HAND_SLICE.start, cor.LEFT_HAND_SLICE.stop),
+               np.arange(cor.RIGHT_HAND_SLICE.start, cor.RIGHT_HAND_SLICE.stop))
+DEPTH_FACE = np.arange(cor.FACE_SLICE.start + 17, cor.FACE_SLICE.stop)
+FACE_DEPTH_REF = cor.FACE_SLICE.start + 30
 HUBER_PX = 8.0         # pseudo-Huber knee: larger errors grow linearly (outlier landmarks)
 MAX_ROTATION_STEP = 0.25  # rad: the most one LM step turns any joint (`_step_scale`)
 INITIAL_DAMPING = 1e-3   # Levenberg-Marquardt's, relative to diag(J^T J)
@@ -93,6 +101,9 @@ class FitConfig:
     # (docs/tracking.md: 0.05 -> 0.3, finger error 36 -> 30 deg) at a small cost on exact
     # landmarks.
     hand_prior: float = 0.3
+    # The same for the face's static landmarks against the nose tip: it pins the head's
+    # pitch, which the 2D landmarks leave loose (docs/tracking.md: head 7.8 -> 4.8 deg).
+    face_depth_weight: float = 0.3
     dtype: torch.dtype = torch.float64
 
 
@@ -314,9 +325,10 @@ class FrameFitter:
         return _Term(r, np.concatenate(jacobians) if jacobian else None)
 
     def _depth_term(self, seen: _Projected, problem: _Problem, jacobian: bool) -> _Term:
-        """Relative depth in pixels, f (d_k - d_ref) / d_ref, against MediaPipe's z (hands:
-        each point against its wrist): it tells the palm from the back of the hand, which the
-        2D landmarks of a flat hand leave ambiguous."""
+        """Relative depth in pixels, f (d_k - d_ref) / d_ref, against MediaPipe's z (each hand
+        point against its wrist, each face point against the nose tip): it tells the palm
+        from the back of a flat hand, and a head pitched up from one pitched down, where the
+        2D landmarks alone leave them ambiguous."""
         k, ref, target, sqrt_w = problem.depth_pairs
         f = problem.camera.focal
         d_k, d_ref = seen.depth[k], np.maximum(seen.depth[ref], MIN_DEPTH_M)
@@ -396,24 +408,24 @@ class FrameFitter:
                          (time.perf_counter() - t0) * 1e3, stats)
 
     def _depth_pairs(self, obs: Observations, weight: np.ndarray):
-        """Each used hand point against its wrist, where MediaPipe gave z for both."""
-        w_depth = self.config.hand_depth_weight
-        if obs.depth is None or w_depth <= 0:
+        """(keypoint, reference, target, sqrt weight) rows of the relative-depth term: each
+        used point of a group against the group's reference point (`DEPTH_GROUPS`), where
+        MediaPipe gave z for both; None when there is none."""
+        if obs.depth is None:
             return None
-        k, ref = [], []
-        for sl in (cor.LEFT_HAND_SLICE, cor.RIGHT_HAND_SLICE):
-            wrist = sl.start
-            if weight[wrist] <= 0 or not np.isfinite(obs.depth[wrist]):
+        cfg = self.config
+        parts = []
+        for rows, ref, z_scale, w in (
+                *((h, h[0], HAND_Z_SCALE, cfg.hand_depth_weight) for h in DEPTH_HANDS),
+                (DEPTH_FACE, FACE_DEPTH_REF, FACE_Z_SCALE, cfg.face_depth_weight)):
+            if w <= 0 or weight[ref] <= 0 or not np.isfinite(obs.depth[ref]):
                 continue
-            rows = np.arange(sl.start + 1, sl.stop)
-            rows = rows[(weight[rows] > 0) & np.isfinite(obs.depth[rows])]
-            k.append(rows)
-            ref.append(np.full(len(rows), wrist))
-        if not k or not sum(len(r) for r in k):
+            k = rows[(rows != ref) & (weight[rows] > 0) & np.isfinite(obs.depth[rows])]
+            parts.append((k, np.full(len(k), ref), z_scale * (obs.depth[k] - obs.depth[ref]),
+                          np.sqrt(w * weight[k])))
+        if not parts or not sum(len(p[0]) for p in parts):
             return None
-        k, ref = np.concatenate(k), np.concatenate(ref)
-        target = HAND_Z_SCALE * (obs.depth[k] - obs.depth[ref])
-        return k, ref, target, np.sqrt(w_depth * weight[k])
+        return tuple(np.concatenate(column) for column in zip(*parts, strict=True))
 
     def _levenberg_marquardt(self, x: np.ndarray, free: np.ndarray, iterations: int,
                              problem: _Problem, weight: np.ndarray, stats: dict) -> np.ndarray:

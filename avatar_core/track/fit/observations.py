@@ -67,7 +67,7 @@ def from_landmarks(image_size: tuple[int, int], *, face: np.ndarray | None = Non
         face = np.asarray(face, dtype=np.float64)
         if face.shape[0] != 468:
             raise ValueError(f"face landmarks must be [468, 2+], got {list(face.shape)}")
-        _put(obs, "face", cor.face_468_to_ibug68(face[:, :2]), np.ones(cor.NUM_FACE))
+        _put(obs, "face", cor.face_468_to_ibug68(face[:, :3]), np.ones(cor.NUM_FACE))
     for group, hand in (("left_hand", left_hand), ("right_hand", right_hand)):
         if hand is not None:
             _put(obs, group, hand, np.ones(cor.NUM_HAND))

@@ -11,7 +11,14 @@ import torch
 
 from . import correspondence as cor
 from .camera import WebcamCamera
-from .fitter import HAND_Z_SCALE, FrameFitter
+from .fitter import (
+    DEPTH_FACE,
+    DEPTH_HANDS,
+    FACE_DEPTH_REF,
+    FACE_Z_SCALE,
+    HAND_Z_SCALE,
+    FrameFitter,
+)
 from .observations import Observations, from_landmarks
 
 
@@ -28,8 +35,10 @@ def project_params(fitter: FrameFitter, params: dict[str, np.ndarray],
 
 def relative_depth_px(fitter: FrameFitter, params: dict[str, np.ndarray],
                       camera: WebcamCamera) -> np.ndarray:
-    """[K] MediaPipe-style hand z: each hand point's depth minus its wrist's, in pixels at
-    the wrist's distance (f (d - d_wrist) / d_wrist); NaN outside the hands."""
+    """[K] MediaPipe-style z as the fitter reads it: each hand point's depth minus its
+    wrist's and each face point's minus the nose tip's, in pixels at the reference's distance
+    (f (d - d_ref) / d_ref), divided by the fitter's z scales (MediaPipe's z is that much
+    flatter / deeper than the truth); NaN elsewhere."""
     dt = fitter.config.dtype
     p = {k: torch.as_tensor(np.asarray(v, dtype=np.float64), dtype=dt)[None]
          for k, v in params.items()}
@@ -37,21 +46,24 @@ def relative_depth_px(fitter: FrameFitter, params: dict[str, np.ndarray],
     with torch.no_grad():
         depth = -fitter.keypoints(p)[0, :, 2].double().numpy()
     out = np.full(cor.NUM_KEYPOINTS, np.nan)
-    for sl in (cor.LEFT_HAND_SLICE, cor.RIGHT_HAND_SLICE):
-        out[sl] = camera.focal * (depth[sl] / depth[sl.start] - 1.0)
+    for rows, ref, z_scale in ((DEPTH_HANDS[0], DEPTH_HANDS[0][0], HAND_Z_SCALE),
+                               (DEPTH_HANDS[1], DEPTH_HANDS[1][0], HAND_Z_SCALE),
+                               (DEPTH_FACE, FACE_DEPTH_REF, FACE_Z_SCALE)):
+        out[rows] = camera.focal * (depth[rows] / depth[ref] - 1.0) / z_scale
+    out[FACE_DEPTH_REF] = 0.0
     return out
 
 
 def as_mediapipe(keypoints_px: np.ndarray, depth_px: np.ndarray | None = None
                  ) -> dict[str, np.ndarray]:
-    """Fitter-layout pixels [K, 2] (and hand z [K], `relative_depth_px`) -> MediaPipe
-    arrays: face [468, 3] (NaN off the iBUG correspondence), hands [21, 3] (z 0 without
-    `depth_px`), pose [33, 3] and its visibility [33] (0 where unmapped)."""
+    """Fitter-layout pixels [K, 2] (and z [K], `relative_depth_px`) -> MediaPipe arrays:
+    face [468, 3] (NaN off the iBUG correspondence), hands [21, 3], pose [33, 3] (z 0
+    without `depth_px`) and the pose's visibility [33] (0 where unmapped)."""
+    z = np.zeros(cor.NUM_KEYPOINTS) if depth_px is None else np.nan_to_num(depth_px)
     face = np.full((468, 3), np.nan)
     for ibug, ids in enumerate(cor.FACE_MP_TO_IBUG68):
         face[list(ids), :2] = keypoints_px[cor.FACE_SLICE][ibug]
-        face[list(ids), 2] = 0.0
-    z = np.zeros(cor.NUM_KEYPOINTS) if depth_px is None else np.nan_to_num(depth_px)
+        face[list(ids), 2] = z[cor.FACE_SLICE][ibug]
 
     def pad(sl: slice) -> np.ndarray:
         return np.concatenate([keypoints_px[sl], z[sl, None]], axis=1)
@@ -72,7 +84,7 @@ def synthetic_observations(fitter: FrameFitter, params: dict[str, np.ndarray],
     groups named in `drop` ("face", "left_hand", "right_hand", "pose"); and the noise-free
     keypoints [K, 2]."""
     clean = project_params(fitter, params, camera)
-    depth = relative_depth_px(fitter, params, camera) / HAND_Z_SCALE  # as flat as MediaPipe's
+    depth = relative_depth_px(fitter, params, camera)
     noisy = clean.copy()
     if noise_px > 0:
         rng = rng or np.random.default_rng(0)
