@@ -18,6 +18,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from pydantic.json_schema import models_json_schema
+
 from .arrays import ND_KEY, WIRE_DTYPES
 from .errors import ERROR_CODES
 from .limits import DEFAULT_LIMITS
@@ -56,12 +58,19 @@ def _families() -> dict[str, dict[str, dict[str, Any]]]:
     return out
 
 
-def _schemas(types: dict[str, type]) -> dict[str, Any]:
-    return {name: model.model_json_schema(mode="validation") for name, model in types.items()}
+def _schemas() -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
+    """(shared $defs, client type -> {"$ref"}, server type -> {"$ref"}): one JSON schema for
+    every message, so a model used by several (e.g. a request inside welcome) is written once."""
+    models = {**CLIENT_TYPES, **SERVER_TYPES}
+    refs, top = models_json_schema([(m, "validation") for m in models.values()])
+    by_type = {name: refs[(m, "validation")] for name, m in models.items()}
+    return (top["$defs"], {name: by_type[name] for name in CLIENT_TYPES},
+            {name: by_type[name] for name in SERVER_TYPES})
 
 
 def render() -> str:
     """The complete text of protocol.js."""
+    defs, client_schemas, server_schemas = _schemas()
     constants = [
         ("PROTOCOL_VERSION", PROTOCOL_VERSION),
         ("MAX_SEQ", MAX_SEQ),
@@ -75,8 +84,9 @@ def render() -> str:
         ("FAMILIES", _families()),
         ("CLIENT_TYPES", sorted(CLIENT_TYPES)),
         ("SERVER_TYPES", sorted(SERVER_TYPES)),
-        ("CLIENT_SCHEMAS", _schemas(CLIENT_TYPES)),
-        ("SERVER_SCHEMAS", _schemas(SERVER_TYPES)),
+        ("SCHEMA_DEFS", defs),
+        ("CLIENT_SCHEMAS", client_schemas),
+        ("SERVER_SCHEMAS", server_schemas),
     ]
     parts = [HEADER.format(msgpack=MSGPACK_IMPORT)]
     parts += [f"export const {name} = Object.freeze({_js(value)});\n" for name, value in constants]
@@ -118,6 +128,7 @@ HELPERS = r"""
 // ---- hand-written helpers (kept in protocol/jsgen.py) ------------------------------------
 
 export const PARAM_FAMILIES = Object.freeze(Object.keys(FAMILIES));
+const SCHEMA_ROOT = { $defs: SCHEMA_DEFS }; // every message schema's $ref points in here
 
 /** An error a message fails with; `code` is one of ERROR_CODES. */
 export class ProtocolError extends Error {
@@ -413,7 +424,7 @@ export function validate(message, options = {}) {
   const schema = CLIENT_SCHEMAS[ready.type] || SERVER_SCHEMAS[ready.type];
   if (!schema) return [`unknown message type ${JSON.stringify(ready.type)}`];
   const errors = [];
-  check(schema, ready, schema, "", errors);
+  check(schema, ready, SCHEMA_ROOT, "", errors);
   checkRules(ready, limits, errors);
   return errors.map((e) => (e.startsWith(": ") ? `${ready.type}${e}` : `${ready.type}: ${e}`));
 }

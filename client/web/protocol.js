@@ -239,8 +239,239 @@ export const SERVER_TYPES = Object.freeze([
   "welcome"
 ]);
 
-export const CLIENT_SCHEMAS = Object.freeze({
-  "drive": {
+export const SCHEMA_DEFS = Object.freeze({
+  "Answers": {
+    "additionalProperties": false,
+    "properties": {
+      "seq": {
+        "anyOf": [
+          {
+            "type": "integer"
+          },
+          {
+            "type": "null"
+          }
+        ],
+        "default": null,
+        "title": "Seq"
+      },
+      "type": {
+        "anyOf": [
+          {
+            "type": "string"
+          },
+          {
+            "type": "null"
+          }
+        ],
+        "default": null,
+        "title": "Type"
+      }
+    },
+    "title": "Answers",
+    "type": "object"
+  },
+  "AvatarInfo": {
+    "additionalProperties": false,
+    "properties": {
+      "id": {
+        "title": "Id",
+        "type": "string"
+      },
+      "metadata": {
+        "additionalProperties": true,
+        "title": "Metadata",
+        "type": "object"
+      },
+      "name": {
+        "title": "Name",
+        "type": "string"
+      },
+      "num_gaussians": {
+        "title": "Num Gaussians",
+        "type": "integer"
+      },
+      "owner": {
+        "anyOf": [
+          {
+            "type": "string"
+          },
+          {
+            "type": "null"
+          }
+        ],
+        "default": null,
+        "title": "Owner"
+      },
+      "sh_degree": {
+        "title": "Sh Degree",
+        "type": "integer"
+      }
+    },
+    "required": [
+      "id",
+      "name",
+      "num_gaussians",
+      "sh_degree"
+    ],
+    "title": "AvatarInfo",
+    "type": "object"
+  },
+  "CameraSpec": {
+    "additionalProperties": false,
+    "description": "A full OpenCV camera: world -> camera ``[R|t]``, intrinsics ``K``, image size.",
+    "properties": {
+      "K": {
+        "maxItems": 3,
+        "minItems": 3,
+        "prefixItems": [
+          {
+            "maxItems": 3,
+            "minItems": 3,
+            "prefixItems": [
+              {
+                "type": "number"
+              },
+              {
+                "type": "number"
+              },
+              {
+                "type": "number"
+              }
+            ],
+            "type": "array"
+          },
+          {
+            "maxItems": 3,
+            "minItems": 3,
+            "prefixItems": [
+              {
+                "type": "number"
+              },
+              {
+                "type": "number"
+              },
+              {
+                "type": "number"
+              }
+            ],
+            "type": "array"
+          },
+          {
+            "maxItems": 3,
+            "minItems": 3,
+            "prefixItems": [
+              {
+                "type": "number"
+              },
+              {
+                "type": "number"
+              },
+              {
+                "type": "number"
+              }
+            ],
+            "type": "array"
+          }
+        ],
+        "title": "K",
+        "type": "array"
+      },
+      "R": {
+        "maxItems": 3,
+        "minItems": 3,
+        "prefixItems": [
+          {
+            "maxItems": 3,
+            "minItems": 3,
+            "prefixItems": [
+              {
+                "type": "number"
+              },
+              {
+                "type": "number"
+              },
+              {
+                "type": "number"
+              }
+            ],
+            "type": "array"
+          },
+          {
+            "maxItems": 3,
+            "minItems": 3,
+            "prefixItems": [
+              {
+                "type": "number"
+              },
+              {
+                "type": "number"
+              },
+              {
+                "type": "number"
+              }
+            ],
+            "type": "array"
+          },
+          {
+            "maxItems": 3,
+            "minItems": 3,
+            "prefixItems": [
+              {
+                "type": "number"
+              },
+              {
+                "type": "number"
+              },
+              {
+                "type": "number"
+              }
+            ],
+            "type": "array"
+          }
+        ],
+        "title": "R",
+        "type": "array"
+      },
+      "height": {
+        "exclusiveMinimum": 0,
+        "title": "Height",
+        "type": "integer"
+      },
+      "t": {
+        "maxItems": 3,
+        "minItems": 3,
+        "prefixItems": [
+          {
+            "type": "number"
+          },
+          {
+            "type": "number"
+          },
+          {
+            "type": "number"
+          }
+        ],
+        "title": "T",
+        "type": "array"
+      },
+      "width": {
+        "exclusiveMinimum": 0,
+        "title": "Width",
+        "type": "integer"
+      }
+    },
+    "required": [
+      "K",
+      "R",
+      "t",
+      "width",
+      "height"
+    ],
+    "title": "CameraSpec",
+    "type": "object"
+  },
+  "Drive": {
     "additionalProperties": false,
     "description": "Body-model parameters for the next frame; any subset of any family (partial update).\n\n``reset``: every parameter goes back to the rest pose before these are applied.",
     "properties": {
@@ -320,7 +551,115 @@ export const CLIENT_SCHEMAS = Object.freeze({
     "title": "Drive",
     "type": "object"
   },
-  "hello": {
+  "Error": {
+    "additionalProperties": false,
+    "properties": {
+      "answers": {
+        "anyOf": [
+          {
+            "$ref": "#/$defs/Answers"
+          },
+          {
+            "type": "null"
+          }
+        ],
+        "default": null
+      },
+      "code": {
+        "title": "Code",
+        "type": "string"
+      },
+      "message": {
+        "title": "Message",
+        "type": "string"
+      },
+      "type": {
+        "const": "error",
+        "default": "error",
+        "title": "Type",
+        "type": "string"
+      }
+    },
+    "required": [
+      "code",
+      "message"
+    ],
+    "title": "Error",
+    "type": "object"
+  },
+  "Frame": {
+    "additionalProperties": false,
+    "properties": {
+      "codec": {
+        "enum": [
+          "jpeg",
+          "png",
+          "h264"
+        ],
+        "title": "Codec",
+        "type": "string"
+      },
+      "data": {
+        "format": "binary",
+        "title": "Data",
+        "type": "string"
+      },
+      "depth": {
+        "anyOf": [
+          {
+            "format": "binary",
+            "type": "string"
+          },
+          {
+            "type": "null"
+          }
+        ],
+        "default": null,
+        "title": "Depth"
+      },
+      "frame": {
+        "title": "Frame",
+        "type": "integer"
+      },
+      "height": {
+        "title": "Height",
+        "type": "integer"
+      },
+      "keyframe": {
+        "default": true,
+        "title": "Keyframe",
+        "type": "boolean"
+      },
+      "seq": {
+        "title": "Seq",
+        "type": "integer"
+      },
+      "timings": {
+        "$ref": "#/$defs/Timings"
+      },
+      "type": {
+        "const": "frame",
+        "default": "frame",
+        "title": "Type",
+        "type": "string"
+      },
+      "width": {
+        "title": "Width",
+        "type": "integer"
+      }
+    },
+    "required": [
+      "seq",
+      "frame",
+      "codec",
+      "width",
+      "height",
+      "data"
+    ],
+    "title": "Frame",
+    "type": "object"
+  },
+  "Hello": {
     "additionalProperties": false,
     "description": "First message of a session (optional when the token came in the URL or a header).",
     "properties": {
@@ -365,7 +704,7 @@ export const CLIENT_SCHEMAS = Object.freeze({
     "title": "Hello",
     "type": "object"
   },
-  "image": {
+  "Image": {
     "additionalProperties": false,
     "description": "An encoded webcam frame for server-side tracking.",
     "properties": {
@@ -403,7 +742,130 @@ export const CLIENT_SCHEMAS = Object.freeze({
     "title": "Image",
     "type": "object"
   },
-  "ping": {
+  "Limits": {
+    "additionalProperties": false,
+    "description": "Upper bounds on what one session may send or ask for.",
+    "properties": {
+      "max_array_elements": {
+        "default": 4096,
+        "minimum": 64,
+        "title": "Max Array Elements",
+        "type": "integer"
+      },
+      "max_fps": {
+        "default": 60.0,
+        "exclusiveMinimum": 0,
+        "title": "Max Fps",
+        "type": "number"
+      },
+      "max_height": {
+        "default": 1080,
+        "minimum": 16,
+        "title": "Max Height",
+        "type": "integer"
+      },
+      "max_image_bytes": {
+        "default": 4194304,
+        "minimum": 1024,
+        "title": "Max Image Bytes",
+        "type": "integer"
+      },
+      "max_image_pixels": {
+        "default": 2073600,
+        "minimum": 4096,
+        "title": "Max Image Pixels",
+        "type": "integer"
+      },
+      "max_message_bytes": {
+        "default": 8388608,
+        "minimum": 1024,
+        "title": "Max Message Bytes",
+        "type": "integer"
+      },
+      "max_messages_per_s": {
+        "default": 240.0,
+        "exclusiveMinimum": 0,
+        "title": "Max Messages Per S",
+        "type": "number"
+      },
+      "max_string_chars": {
+        "default": 4096,
+        "minimum": 64,
+        "title": "Max String Chars",
+        "type": "integer"
+      },
+      "max_width": {
+        "default": 1920,
+        "minimum": 16,
+        "title": "Max Width",
+        "type": "integer"
+      }
+    },
+    "title": "Limits",
+    "type": "object"
+  },
+  "Orbit": {
+    "additionalProperties": false,
+    "description": "A camera on a sphere around ``target`` (the avatar's chest when None), looking at it.",
+    "properties": {
+      "distance": {
+        "default": 2.7,
+        "exclusiveMinimum": 0.05,
+        "maximum": 100,
+        "title": "Distance",
+        "type": "number"
+      },
+      "fov_y_deg": {
+        "default": 30.0,
+        "maximum": 120,
+        "minimum": 5,
+        "title": "Fov Y Deg",
+        "type": "number"
+      },
+      "pitch_deg": {
+        "default": 0.0,
+        "maximum": 89,
+        "minimum": -89,
+        "title": "Pitch Deg",
+        "type": "number"
+      },
+      "target": {
+        "anyOf": [
+          {
+            "maxItems": 3,
+            "minItems": 3,
+            "prefixItems": [
+              {
+                "type": "number"
+              },
+              {
+                "type": "number"
+              },
+              {
+                "type": "number"
+              }
+            ],
+            "type": "array"
+          },
+          {
+            "type": "null"
+          }
+        ],
+        "default": null,
+        "title": "Target"
+      },
+      "yaw_deg": {
+        "default": 0.0,
+        "maximum": 360,
+        "minimum": -360,
+        "title": "Yaw Deg",
+        "type": "number"
+      }
+    },
+    "title": "Orbit",
+    "type": "object"
+  },
+  "Ping": {
     "additionalProperties": false,
     "properties": {
       "t": {
@@ -421,7 +883,27 @@ export const CLIENT_SCHEMAS = Object.freeze({
     "title": "Ping",
     "type": "object"
   },
-  "request": {
+  "Pong": {
+    "additionalProperties": false,
+    "properties": {
+      "t": {
+        "title": "T",
+        "type": "number"
+      },
+      "type": {
+        "const": "pong",
+        "default": "pong",
+        "title": "Type",
+        "type": "string"
+      }
+    },
+    "required": [
+      "t"
+    ],
+    "title": "Pong",
+    "type": "object"
+  },
+  "Request": {
     "additionalProperties": false,
     "description": "What to render and how to send it; fields not sent keep their current value.",
     "properties": {
@@ -579,459 +1061,7 @@ export const CLIENT_SCHEMAS = Object.freeze({
     "title": "Request",
     "type": "object"
   },
-  "view": {
-    "$defs": {
-      "CameraSpec": {
-        "additionalProperties": false,
-        "description": "A full OpenCV camera: world -> camera ``[R|t]``, intrinsics ``K``, image size.",
-        "properties": {
-          "K": {
-            "maxItems": 3,
-            "minItems": 3,
-            "prefixItems": [
-              {
-                "maxItems": 3,
-                "minItems": 3,
-                "prefixItems": [
-                  {
-                    "type": "number"
-                  },
-                  {
-                    "type": "number"
-                  },
-                  {
-                    "type": "number"
-                  }
-                ],
-                "type": "array"
-              },
-              {
-                "maxItems": 3,
-                "minItems": 3,
-                "prefixItems": [
-                  {
-                    "type": "number"
-                  },
-                  {
-                    "type": "number"
-                  },
-                  {
-                    "type": "number"
-                  }
-                ],
-                "type": "array"
-              },
-              {
-                "maxItems": 3,
-                "minItems": 3,
-                "prefixItems": [
-                  {
-                    "type": "number"
-                  },
-                  {
-                    "type": "number"
-                  },
-                  {
-                    "type": "number"
-                  }
-                ],
-                "type": "array"
-              }
-            ],
-            "title": "K",
-            "type": "array"
-          },
-          "R": {
-            "maxItems": 3,
-            "minItems": 3,
-            "prefixItems": [
-              {
-                "maxItems": 3,
-                "minItems": 3,
-                "prefixItems": [
-                  {
-                    "type": "number"
-                  },
-                  {
-                    "type": "number"
-                  },
-                  {
-                    "type": "number"
-                  }
-                ],
-                "type": "array"
-              },
-              {
-                "maxItems": 3,
-                "minItems": 3,
-                "prefixItems": [
-                  {
-                    "type": "number"
-                  },
-                  {
-                    "type": "number"
-                  },
-                  {
-                    "type": "number"
-                  }
-                ],
-                "type": "array"
-              },
-              {
-                "maxItems": 3,
-                "minItems": 3,
-                "prefixItems": [
-                  {
-                    "type": "number"
-                  },
-                  {
-                    "type": "number"
-                  },
-                  {
-                    "type": "number"
-                  }
-                ],
-                "type": "array"
-              }
-            ],
-            "title": "R",
-            "type": "array"
-          },
-          "height": {
-            "exclusiveMinimum": 0,
-            "title": "Height",
-            "type": "integer"
-          },
-          "t": {
-            "maxItems": 3,
-            "minItems": 3,
-            "prefixItems": [
-              {
-                "type": "number"
-              },
-              {
-                "type": "number"
-              },
-              {
-                "type": "number"
-              }
-            ],
-            "title": "T",
-            "type": "array"
-          },
-          "width": {
-            "exclusiveMinimum": 0,
-            "title": "Width",
-            "type": "integer"
-          }
-        },
-        "required": [
-          "K",
-          "R",
-          "t",
-          "width",
-          "height"
-        ],
-        "title": "CameraSpec",
-        "type": "object"
-      },
-      "Orbit": {
-        "additionalProperties": false,
-        "description": "A camera on a sphere around ``target`` (the avatar's chest when None), looking at it.",
-        "properties": {
-          "distance": {
-            "default": 2.7,
-            "exclusiveMinimum": 0.05,
-            "maximum": 100,
-            "title": "Distance",
-            "type": "number"
-          },
-          "fov_y_deg": {
-            "default": 30.0,
-            "maximum": 120,
-            "minimum": 5,
-            "title": "Fov Y Deg",
-            "type": "number"
-          },
-          "pitch_deg": {
-            "default": 0.0,
-            "maximum": 89,
-            "minimum": -89,
-            "title": "Pitch Deg",
-            "type": "number"
-          },
-          "target": {
-            "anyOf": [
-              {
-                "maxItems": 3,
-                "minItems": 3,
-                "prefixItems": [
-                  {
-                    "type": "number"
-                  },
-                  {
-                    "type": "number"
-                  },
-                  {
-                    "type": "number"
-                  }
-                ],
-                "type": "array"
-              },
-              {
-                "type": "null"
-              }
-            ],
-            "default": null,
-            "title": "Target"
-          },
-          "yaw_deg": {
-            "default": 0.0,
-            "maximum": 360,
-            "minimum": -360,
-            "title": "Yaw Deg",
-            "type": "number"
-          }
-        },
-        "title": "Orbit",
-        "type": "object"
-      }
-    },
-    "additionalProperties": false,
-    "description": "Where to look from: an orbit or a full camera (exactly one).",
-    "properties": {
-      "camera": {
-        "anyOf": [
-          {
-            "$ref": "#/$defs/CameraSpec"
-          },
-          {
-            "type": "null"
-          }
-        ],
-        "default": null
-      },
-      "moving": {
-        "default": false,
-        "title": "Moving",
-        "type": "boolean"
-      },
-      "orbit": {
-        "anyOf": [
-          {
-            "$ref": "#/$defs/Orbit"
-          },
-          {
-            "type": "null"
-          }
-        ],
-        "default": null
-      },
-      "type": {
-        "const": "view",
-        "default": "view",
-        "title": "Type",
-        "type": "string"
-      }
-    },
-    "title": "View",
-    "type": "object"
-  }
-});
-
-export const SERVER_SCHEMAS = Object.freeze({
-  "error": {
-    "$defs": {
-      "Answers": {
-        "additionalProperties": false,
-        "properties": {
-          "seq": {
-            "anyOf": [
-              {
-                "type": "integer"
-              },
-              {
-                "type": "null"
-              }
-            ],
-            "default": null,
-            "title": "Seq"
-          },
-          "type": {
-            "anyOf": [
-              {
-                "type": "string"
-              },
-              {
-                "type": "null"
-              }
-            ],
-            "default": null,
-            "title": "Type"
-          }
-        },
-        "title": "Answers",
-        "type": "object"
-      }
-    },
-    "additionalProperties": false,
-    "properties": {
-      "answers": {
-        "anyOf": [
-          {
-            "$ref": "#/$defs/Answers"
-          },
-          {
-            "type": "null"
-          }
-        ],
-        "default": null
-      },
-      "code": {
-        "title": "Code",
-        "type": "string"
-      },
-      "message": {
-        "title": "Message",
-        "type": "string"
-      },
-      "type": {
-        "const": "error",
-        "default": "error",
-        "title": "Type",
-        "type": "string"
-      }
-    },
-    "required": [
-      "code",
-      "message"
-    ],
-    "title": "Error",
-    "type": "object"
-  },
-  "frame": {
-    "$defs": {
-      "Timings": {
-        "additionalProperties": false,
-        "description": "Milliseconds per stage of this frame (track is 0 unless a webcam frame drove it).",
-        "properties": {
-          "encode": {
-            "default": 0.0,
-            "title": "Encode",
-            "type": "number"
-          },
-          "pose": {
-            "default": 0.0,
-            "title": "Pose",
-            "type": "number"
-          },
-          "render": {
-            "default": 0.0,
-            "title": "Render",
-            "type": "number"
-          },
-          "track": {
-            "default": 0.0,
-            "title": "Track",
-            "type": "number"
-          }
-        },
-        "title": "Timings",
-        "type": "object"
-      }
-    },
-    "additionalProperties": false,
-    "properties": {
-      "codec": {
-        "enum": [
-          "jpeg",
-          "png",
-          "h264"
-        ],
-        "title": "Codec",
-        "type": "string"
-      },
-      "data": {
-        "format": "binary",
-        "title": "Data",
-        "type": "string"
-      },
-      "depth": {
-        "anyOf": [
-          {
-            "format": "binary",
-            "type": "string"
-          },
-          {
-            "type": "null"
-          }
-        ],
-        "default": null,
-        "title": "Depth"
-      },
-      "frame": {
-        "title": "Frame",
-        "type": "integer"
-      },
-      "height": {
-        "title": "Height",
-        "type": "integer"
-      },
-      "keyframe": {
-        "default": true,
-        "title": "Keyframe",
-        "type": "boolean"
-      },
-      "seq": {
-        "title": "Seq",
-        "type": "integer"
-      },
-      "timings": {
-        "$ref": "#/$defs/Timings"
-      },
-      "type": {
-        "const": "frame",
-        "default": "frame",
-        "title": "Type",
-        "type": "string"
-      },
-      "width": {
-        "title": "Width",
-        "type": "integer"
-      }
-    },
-    "required": [
-      "seq",
-      "frame",
-      "codec",
-      "width",
-      "height",
-      "data"
-    ],
-    "title": "Frame",
-    "type": "object"
-  },
-  "pong": {
-    "additionalProperties": false,
-    "properties": {
-      "t": {
-        "title": "T",
-        "type": "number"
-      },
-      "type": {
-        "const": "pong",
-        "default": "pong",
-        "title": "Type",
-        "type": "string"
-      }
-    },
-    "required": [
-      "t"
-    ],
-    "title": "Pong",
-    "type": "object"
-  },
-  "stats": {
+  "Stats": {
     "additionalProperties": false,
     "properties": {
       "bytes_per_s": {
@@ -1081,275 +1111,76 @@ export const SERVER_SCHEMAS = Object.freeze({
     "title": "Stats",
     "type": "object"
   },
-  "welcome": {
-    "$defs": {
-      "AvatarInfo": {
-        "additionalProperties": false,
-        "properties": {
-          "id": {
-            "title": "Id",
-            "type": "string"
-          },
-          "metadata": {
-            "additionalProperties": true,
-            "title": "Metadata",
-            "type": "object"
-          },
-          "name": {
-            "title": "Name",
-            "type": "string"
-          },
-          "num_gaussians": {
-            "title": "Num Gaussians",
-            "type": "integer"
-          },
-          "owner": {
-            "anyOf": [
-              {
-                "type": "string"
-              },
-              {
-                "type": "null"
-              }
-            ],
-            "default": null,
-            "title": "Owner"
-          },
-          "sh_degree": {
-            "title": "Sh Degree",
-            "type": "integer"
-          }
-        },
-        "required": [
-          "id",
-          "name",
-          "num_gaussians",
-          "sh_degree"
-        ],
-        "title": "AvatarInfo",
-        "type": "object"
+  "Timings": {
+    "additionalProperties": false,
+    "description": "Milliseconds per stage of this frame (track is 0 unless a webcam frame drove it).",
+    "properties": {
+      "encode": {
+        "default": 0.0,
+        "title": "Encode",
+        "type": "number"
       },
-      "Limits": {
-        "additionalProperties": false,
-        "description": "Upper bounds on what one session may send or ask for.",
-        "properties": {
-          "max_array_elements": {
-            "default": 4096,
-            "minimum": 64,
-            "title": "Max Array Elements",
-            "type": "integer"
-          },
-          "max_fps": {
-            "default": 60.0,
-            "exclusiveMinimum": 0,
-            "title": "Max Fps",
-            "type": "number"
-          },
-          "max_height": {
-            "default": 1080,
-            "minimum": 16,
-            "title": "Max Height",
-            "type": "integer"
-          },
-          "max_image_bytes": {
-            "default": 4194304,
-            "minimum": 1024,
-            "title": "Max Image Bytes",
-            "type": "integer"
-          },
-          "max_image_pixels": {
-            "default": 2073600,
-            "minimum": 4096,
-            "title": "Max Image Pixels",
-            "type": "integer"
-          },
-          "max_message_bytes": {
-            "default": 8388608,
-            "minimum": 1024,
-            "title": "Max Message Bytes",
-            "type": "integer"
-          },
-          "max_messages_per_s": {
-            "default": 240.0,
-            "exclusiveMinimum": 0,
-            "title": "Max Messages Per S",
-            "type": "number"
-          },
-          "max_string_chars": {
-            "default": 4096,
-            "minimum": 64,
-            "title": "Max String Chars",
-            "type": "integer"
-          },
-          "max_width": {
-            "default": 1920,
-            "minimum": 16,
-            "title": "Max Width",
-            "type": "integer"
-          }
-        },
-        "title": "Limits",
-        "type": "object"
+      "pose": {
+        "default": 0.0,
+        "title": "Pose",
+        "type": "number"
       },
-      "Request": {
-        "additionalProperties": false,
-        "description": "What to render and how to send it; fields not sent keep their current value.",
-        "properties": {
-          "background": {
-            "anyOf": [
-              {
-                "maxItems": 3,
-                "minItems": 3,
-                "prefixItems": [
-                  {
-                    "type": "number"
-                  },
-                  {
-                    "type": "number"
-                  },
-                  {
-                    "type": "number"
-                  }
-                ],
-                "type": "array"
-              },
-              {
-                "type": "null"
-              }
-            ],
-            "default": null,
-            "title": "Background"
-          },
-          "codec": {
-            "anyOf": [
-              {
-                "enum": [
-                  "jpeg",
-                  "png",
-                  "h264"
-                ],
-                "type": "string"
-              },
-              {
-                "type": "null"
-              }
-            ],
-            "default": null,
-            "title": "Codec"
-          },
-          "height": {
-            "anyOf": [
-              {
-                "minimum": 16,
-                "type": "integer"
-              },
-              {
-                "type": "null"
-              }
-            ],
-            "default": null,
-            "title": "Height"
-          },
-          "jpeg_quality": {
-            "anyOf": [
-              {
-                "maximum": 100,
-                "minimum": 1,
-                "type": "integer"
-              },
-              {
-                "type": "null"
-              }
-            ],
-            "default": null,
-            "title": "Jpeg Quality"
-          },
-          "max_fps": {
-            "anyOf": [
-              {
-                "exclusiveMinimum": 0,
-                "type": "number"
-              },
-              {
-                "type": "null"
-              }
-            ],
-            "default": null,
-            "title": "Max Fps"
-          },
-          "outputs": {
-            "anyOf": [
-              {
-                "items": {
-                  "enum": [
-                    "rgb",
-                    "alpha",
-                    "depth"
-                  ],
-                  "type": "string"
-                },
-                "minItems": 1,
-                "type": "array"
-              },
-              {
-                "type": "null"
-              }
-            ],
-            "default": null,
-            "title": "Outputs"
-          },
-          "quality": {
-            "anyOf": [
-              {
-                "exclusiveMinimum": 0,
-                "maximum": 1,
-                "type": "number"
-              },
-              {
-                "type": "null"
-              }
-            ],
-            "default": null,
-            "title": "Quality"
-          },
-          "sh_degree": {
-            "anyOf": [
-              {
-                "maximum": 3,
-                "minimum": 0,
-                "type": "integer"
-              },
-              {
-                "type": "null"
-              }
-            ],
-            "default": null,
-            "title": "Sh Degree"
-          },
-          "type": {
-            "const": "request",
-            "default": "request",
-            "title": "Type",
-            "type": "string"
-          },
-          "width": {
-            "anyOf": [
-              {
-                "minimum": 16,
-                "type": "integer"
-              },
-              {
-                "type": "null"
-              }
-            ],
-            "default": null,
-            "title": "Width"
-          }
-        },
-        "title": "Request",
-        "type": "object"
+      "render": {
+        "default": 0.0,
+        "title": "Render",
+        "type": "number"
+      },
+      "track": {
+        "default": 0.0,
+        "title": "Track",
+        "type": "number"
       }
     },
+    "title": "Timings",
+    "type": "object"
+  },
+  "View": {
+    "additionalProperties": false,
+    "description": "Where to look from: an orbit or a full camera (exactly one).",
+    "properties": {
+      "camera": {
+        "anyOf": [
+          {
+            "$ref": "#/$defs/CameraSpec"
+          },
+          {
+            "type": "null"
+          }
+        ],
+        "default": null
+      },
+      "moving": {
+        "default": false,
+        "title": "Moving",
+        "type": "boolean"
+      },
+      "orbit": {
+        "anyOf": [
+          {
+            "$ref": "#/$defs/Orbit"
+          },
+          {
+            "type": "null"
+          }
+        ],
+        "default": null
+      },
+      "type": {
+        "const": "view",
+        "default": "view",
+        "title": "Type",
+        "type": "string"
+      }
+    },
+    "title": "View",
+    "type": "object"
+  },
+  "Welcome": {
     "additionalProperties": false,
     "properties": {
       "avatar": {
@@ -1396,10 +1227,50 @@ export const SERVER_SCHEMAS = Object.freeze({
   }
 });
 
+export const CLIENT_SCHEMAS = Object.freeze({
+  "drive": {
+    "$ref": "#/$defs/Drive"
+  },
+  "hello": {
+    "$ref": "#/$defs/Hello"
+  },
+  "image": {
+    "$ref": "#/$defs/Image"
+  },
+  "ping": {
+    "$ref": "#/$defs/Ping"
+  },
+  "request": {
+    "$ref": "#/$defs/Request"
+  },
+  "view": {
+    "$ref": "#/$defs/View"
+  }
+});
+
+export const SERVER_SCHEMAS = Object.freeze({
+  "error": {
+    "$ref": "#/$defs/Error"
+  },
+  "frame": {
+    "$ref": "#/$defs/Frame"
+  },
+  "pong": {
+    "$ref": "#/$defs/Pong"
+  },
+  "stats": {
+    "$ref": "#/$defs/Stats"
+  },
+  "welcome": {
+    "$ref": "#/$defs/Welcome"
+  }
+});
+
 
 // ---- hand-written helpers (kept in protocol/jsgen.py) ------------------------------------
 
 export const PARAM_FAMILIES = Object.freeze(Object.keys(FAMILIES));
+const SCHEMA_ROOT = { $defs: SCHEMA_DEFS }; // every message schema's $ref points in here
 
 /** An error a message fails with; `code` is one of ERROR_CODES. */
 export class ProtocolError extends Error {
@@ -1695,7 +1566,7 @@ export function validate(message, options = {}) {
   const schema = CLIENT_SCHEMAS[ready.type] || SERVER_SCHEMAS[ready.type];
   if (!schema) return [`unknown message type ${JSON.stringify(ready.type)}`];
   const errors = [];
-  check(schema, ready, schema, "", errors);
+  check(schema, ready, SCHEMA_ROOT, "", errors);
   checkRules(ready, limits, errors);
   return errors.map((e) => (e.startsWith(": ") ? `${ready.type}${e}` : `${ready.type}: ${e}`));
 }
