@@ -33,6 +33,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -87,6 +88,29 @@ class SessionResult:
         return self.frames / self.seconds if self.seconds else 0.0
 
 
+async def paced(rate: float, end: float, sent: dict[int, float],
+                send: Callable[[int], Awaitable[int]]) -> None:
+    """`send(i)` (returning the message's seq) at `rate` Hz until the monotonic deadline
+    `end`; `sent[seq]` is when each was sent."""
+    t0, i = time.monotonic(), 0
+    while time.monotonic() < end:
+        delay = t0 + i / rate - time.monotonic()
+        if delay > 0:
+            await asyncio.sleep(delay)
+        now = time.monotonic()
+        sent[await send(i)] = now
+        i += 1
+
+
+async def frames_until(client: StreamClient, end: float) -> AsyncIterator:
+    """The frames as they arrive, until the monotonic deadline `end`."""
+    while time.monotonic() < end:
+        try:
+            yield await client.next_frame(timeout=max(0.01, end - time.monotonic()))
+        except TimeoutError:
+            return
+
+
 async def run_session(url: str, token: str, index: int, size: int, seconds: float,
                       mode: str, rate: float, start: asyncio.Event) -> SessionResult:
     result = SessionResult()
@@ -112,24 +136,11 @@ async def run_session(url: str, token: str, index: int, size: int, seconds: floa
                     result.frames += 1
                     result.latencies_ms.append(1000 * (got - sent[frame.seq]))
         else:
-            async def pace():
-                i = 0
-                while time.monotonic() < end:
-                    delay = t0 + i / rate - time.monotonic()
-                    if delay > 0:
-                        await asyncio.sleep(delay)
-                    now = time.monotonic()
-                    seq = await client.drive(motion_frame(now - t0, phase))
-                    sent[seq] = now
-                    i += 1
-
-            driver = asyncio.create_task(pace())
+            driver = asyncio.create_task(paced(
+                rate, end, sent,
+                lambda _: client.drive(motion_frame(time.monotonic() - t0, phase))))
             try:
-                while time.monotonic() < end:
-                    try:
-                        frame = await client.next_frame(timeout=max(0.01, end - time.monotonic()))
-                    except TimeoutError:
-                        break
+                async for frame in frames_until(client, end):
                     got = time.monotonic()
                     if got >= measure_from and frame.seq in sent:
                         result.frames += 1

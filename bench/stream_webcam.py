@@ -33,7 +33,7 @@ for path in (ROOT, ROOT / "bench"):
     if str(path) not in sys.path:
         sys.path.insert(0, str(path))
 
-from stream import percentile, start_server  # noqa: E402
+from stream import frames_until, paced, percentile, start_server  # noqa: E402
 
 from client import StreamClient  # noqa: E402
 
@@ -61,26 +61,12 @@ async def run(url: str, token: str, jpegs: list[bytes], seconds: float, rate: fl
                              codec="jpeg")
         sent: dict[int, float] = {}
         end = time.monotonic() + seconds
-
-        async def send_images() -> None:
-            t0, i = time.monotonic(), 0
-            while time.monotonic() < end:  # bounded by the deadline
-                delay = t0 + i / rate - time.monotonic()
-                if delay > 0:
-                    await asyncio.sleep(delay)
-                seq = await client.image(jpegs[i % len(jpegs)])
-                sent[seq] = time.monotonic()
-                i += 1
-
         frames, tracked, track_ms, latency_ms = 0, 0, [], []
-        sender = asyncio.create_task(send_images())
+        sender = asyncio.create_task(
+            paced(rate, end, sent, lambda i: client.image(jpegs[i % len(jpegs)])))
         start = time.monotonic()
         try:
-            while time.monotonic() < end:
-                try:
-                    frame = await client.next_frame(timeout=max(0.01, end - time.monotonic()))
-                except TimeoutError:
-                    break
+            async for frame in frames_until(client, end):
                 frames += 1
                 if frame.timings.track > 0:
                     tracked += 1

@@ -62,18 +62,7 @@ def _argmax3(a, b, c):
 @njit(cache=True, nogil=True, inline="always")
 def _argmin3(a, b, c):
     """torch.argmin over 3 values: the first NaN, else the first minimum."""
-    if a != a:
-        return 0
-    if b != b:
-        return 1
-    if c != c:
-        return 2
-    i, m = 0, a
-    if b < m:
-        i, m = 1, b
-    if c < m:
-        i = 2
-    return i
+    return _argmax3(-a, -b, -c)  # negation keeps NaN and the order of ties
 
 
 @njit(cache=True, nogil=True, inline="always")

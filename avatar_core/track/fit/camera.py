@@ -49,3 +49,23 @@ class WebcamCamera:
         x = (pixels[..., 0] - cx) * depth / self.focal
         y = -(pixels[..., 1] - cy) * depth / self.focal
         return np.stack([x, y, np.full_like(x, -depth)], axis=-1)
+
+
+def project_points(points: np.ndarray, camera: WebcamCamera
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Model-space points [K, 3] -> pixels [K, 2] and d pixels / d point [K, 2, 3]
+    (`WebcamCamera.project`; the depth clamp's derivative is 0)."""
+    depth_raw = -points[:, 2]
+    clamped = depth_raw < MIN_DEPTH_M
+    depth = np.where(clamped, MIN_DEPTH_M, depth_raw)
+    f = camera.focal
+    cx, cy = camera.center
+    u = f * points[:, 0] / depth + cx
+    v = -f * points[:, 1] / depth + cy
+    d = np.zeros((points.shape[0], 2, 3))
+    d[:, 0, 0] = f / depth
+    d[:, 1, 1] = -f / depth
+    dz = np.where(clamped, 0.0, 1.0 / depth ** 2)
+    d[:, 0, 2] = f * points[:, 0] * dz
+    d[:, 1, 2] = -f * points[:, 1] * dz
+    return np.stack([u, v], axis=-1), d

@@ -24,13 +24,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
-from torch import Tensor
 
 from ...body.models import SMPLXModel
 from ...body.skeleton import JOINT, LEFT_HAND_JOINTS, RIGHT_HAND_JOINTS, SMPLX_JOINT_NAMES
 from ...synth.motion import EXPRESSION_LIMIT, JOINT_LIMITS_DEG, RELAXED_ARMS
 from . import correspondence as cor
-from .camera import MIN_DEPTH_M, WebcamCamera
+from .camera import MIN_DEPTH_M, WebcamCamera, project_points
 from .keypoints import BodyKeypoints
 from .kinematics import KeypointKinematics
 from .observations import Observations
@@ -241,10 +240,6 @@ class FrameFitter:
         return {**out, "body_pose": body, "leye_pose": np.zeros(3), "reye_pose": np.zeros(3)}
 
     # -- the objective: a residual vector, cost = sum of squares -------------------------------
-
-    def project(self, params: dict[str, Tensor], camera: WebcamCamera) -> Tensor:
-        """[B, K, 2] pixels (the reference model, batched torch)."""
-        return camera.project(self.keypoints(params))
 
     def full_pose(self, x: np.ndarray) -> np.ndarray:
         """Free variables [N] -> the model's full axis-angle pose [55, 3] (hand mean added)."""
@@ -518,26 +513,6 @@ class _Projected:
     depth: np.ndarray                   # [K] m in front of the camera
     d_pixels: np.ndarray | None = None  # [K, 2, N]
     d_depth: np.ndarray | None = None   # [K, N]
-
-
-def project_points(points: np.ndarray, camera: WebcamCamera
-                   ) -> tuple[np.ndarray, np.ndarray]:
-    """Model-space points [K, 3] -> pixels [K, 2] and d pixels / d point [K, 2, 3]
-    (`WebcamCamera.project`; the depth clamp's derivative is 0)."""
-    depth_raw = -points[:, 2]
-    clamped = depth_raw < MIN_DEPTH_M
-    depth = np.where(clamped, MIN_DEPTH_M, depth_raw)
-    f = camera.focal
-    cx, cy = camera.center
-    u = f * points[:, 0] / depth + cx
-    v = -f * points[:, 1] / depth + cy
-    d = np.zeros((points.shape[0], 2, 3))
-    d[:, 0, 0] = f / depth
-    d[:, 1, 1] = -f / depth
-    dz = np.where(clamped, 0.0, 1.0 / depth ** 2)
-    d[:, 0, 2] = f * points[:, 0] * dz
-    d[:, 1, 2] = -f * points[:, 1] * dz
-    return np.stack([u, v], axis=-1), d
 
 
 def reprojection_errors(proj: np.ndarray, obs: Observations) -> dict[str, float]:

@@ -44,7 +44,7 @@ from ...body import lbs
 from ...body.models import SMPLXModel
 from ...body.skeleton import JOINT
 from ...synth.motion import JOINT_LIMITS_DEG
-from .camera import MIN_DEPTH_M, WebcamCamera
+from .camera import MIN_DEPTH_M, WebcamCamera, project_points
 
 EYES = ("right", "left")  # rows of iris_px: the person's right eye, then left eye
 EYE_JOINT = {"right": JOINT["right_eye_smplhf"], "left": JOINT["left_eye_smplhf"]}
@@ -81,10 +81,6 @@ class _Eye:
 
 def _rotation(axis_angle: np.ndarray) -> np.ndarray:
     return cv2.Rodrigues(axis_angle)[0]  # [3, 3]; a tenth of the torch version's time here
-
-
-def _project(camera: WebcamCamera, points: np.ndarray) -> np.ndarray:
-    return camera.project(torch.as_tensor(points, dtype=torch.float64)).numpy()
 
 
 def pupil_vertices(model: SMPLXModel) -> dict[str, int] | str:
@@ -186,7 +182,7 @@ class GazeSolver:
 
         def residual(x: np.ndarray) -> np.ndarray:
             points = np.stack([e.iris(x) for e in eyes])  # [n, 3]
-            return (_project(camera, points) - px).ravel()  # [2n]
+            return (project_points(points, camera)[0] - px).ravel()  # [2n]
 
         x = self.clamp(np.asarray(start, dtype=np.float64))
         r = residual(x)

@@ -22,15 +22,20 @@ from .fitter import (
 from .observations import Observations, from_landmarks
 
 
-def project_params(fitter: FrameFitter, params: dict[str, np.ndarray],
-                   camera: WebcamCamera) -> np.ndarray:
-    """[K, 2] pixels of the model's keypoints (NaN where the model has none)."""
+def model_keypoints(fitter: FrameFitter, params: dict[str, np.ndarray]) -> torch.Tensor:
+    """[K, 3] model-space keypoints of `params` from the reference (torch) model."""
     dt = fitter.config.dtype
     p = {k: torch.as_tensor(np.asarray(v, dtype=np.float64), dtype=dt)[None]
          for k, v in params.items()}
     p["betas"] = fitter.betas
     with torch.no_grad():
-        return fitter.project(p, camera)[0].double().numpy()
+        return fitter.keypoints(p)[0].double()
+
+
+def project_params(fitter: FrameFitter, params: dict[str, np.ndarray],
+                   camera: WebcamCamera) -> np.ndarray:
+    """[K, 2] pixels of the model's keypoints (NaN where the model has none)."""
+    return camera.project(model_keypoints(fitter, params)).numpy()
 
 
 def relative_depth_px(fitter: FrameFitter, params: dict[str, np.ndarray],
@@ -39,12 +44,7 @@ def relative_depth_px(fitter: FrameFitter, params: dict[str, np.ndarray],
     wrist's and each face point's minus the nose tip's, in pixels at the reference's distance
     (f (d - d_ref) / d_ref), divided by the fitter's z scales (MediaPipe's z is that much
     flatter / deeper than the truth); NaN elsewhere."""
-    dt = fitter.config.dtype
-    p = {k: torch.as_tensor(np.asarray(v, dtype=np.float64), dtype=dt)[None]
-         for k, v in params.items()}
-    p["betas"] = fitter.betas
-    with torch.no_grad():
-        depth = -fitter.keypoints(p)[0, :, 2].double().numpy()
+    depth = -model_keypoints(fitter, params)[:, 2].numpy()
     out = np.full(cor.NUM_KEYPOINTS, np.nan)
     for rows, ref, z_scale in ((DEPTH_HANDS[0], DEPTH_HANDS[0][0], HAND_Z_SCALE),
                                (DEPTH_HANDS[1], DEPTH_HANDS[1][0], HAND_Z_SCALE),
