@@ -14,6 +14,7 @@ import hashlib
 import io
 import json
 import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import Any
@@ -21,11 +22,14 @@ from typing import Any
 import numpy as np
 import torch
 
+from ..bounded_npz import NpzError, NpzLimits, check_zip_members, open_zip, read_npz
 from .avatar import GaussianAvatar
 
 SCHEMA_VERSION = 1
 MANIFEST, GAUSSIANS = "avatar.json", "gaussians.npz"
 MAX_PACKAGE_BYTES = 512 * 2**20  # uncompressed; configurable per call
+MAX_PACKAGE_MEMBERS = 16  # a package zip holds two files (and maybe their folder)
+MAX_MANIFEST_BYTES = 4 * 2**20  # avatar.json: metadata and config, sent to clients
 
 
 class PackageError(ValueError):
@@ -86,7 +90,7 @@ def save_package(package: AvatarPackage, path: str | Path) -> Path:
     return path
 
 
-def _read_members(path: Path, max_bytes: int) -> tuple[bytes, bytes]:
+def _read_members(path: Path, max_bytes: int, limits: NpzLimits) -> tuple[bytes, bytes]:
     if path.is_dir():
         files = [path / MANIFEST, path / GAUSSIANS]
         for f in files:
@@ -97,8 +101,9 @@ def _read_members(path: Path, max_bytes: int) -> tuple[bytes, bytes]:
         return files[0].read_bytes(), files[1].read_bytes()
     if not zipfile.is_zipfile(path):
         raise PackageError(f"{path}: not an avatar package (a directory or a .zip)")
-    with zipfile.ZipFile(path) as z:
+    with open_zip(path, MAX_PACKAGE_MEMBERS, what="package") as z:
         infos = z.infolist()
+        check_zip_members(infos, limits, what="package")
         for info in infos:  # nothing is extracted to disk, but refuse suspicious archives
             name = PurePosixPath(info.filename)
             if name.is_absolute() or ".." in name.parts or "\\" in info.filename:
@@ -109,20 +114,43 @@ def _read_members(path: Path, max_bytes: int) -> tuple[bytes, bytes]:
         for required in (MANIFEST, GAUSSIANS):
             if required not in names:
                 raise PackageError(f"{path}: missing {required}")
+        if names[MANIFEST].file_size > MAX_MANIFEST_BYTES:
+            raise PackageError(f"{path}: {MANIFEST} is larger than {MAX_MANIFEST_BYTES} bytes")
         return z.read(names[MANIFEST]), z.read(names[GAUSSIANS])
 
 
+def _check_manifest_types(path: Path, manifest: dict, body: BodyReference) -> None:
+    """JSON types a loader relies on (a wrong one would fail later, far from its cause)."""
+    ok = (isinstance(body.model, str) and isinstance(body.faces_sha256, str)
+          and isinstance(body.parts, list) and all(isinstance(p, str) for p in body.parts)
+          and type(body.num_faces) is int and body.num_faces >= 0
+          and isinstance(body.betas, list)
+          and all(type(b) in (int, float) for b in body.betas))
+    if not ok:
+        raise PackageError(f"{path}: body_model in {MANIFEST} has a field of the wrong type")
+    for key in ("metadata", "metrics", "training"):
+        if not isinstance(manifest.get(key, {}), dict):
+            raise PackageError(f"{path}: '{key}' in {MANIFEST} must be an object")
+
+
 def load_package(path: str | Path, *, max_bytes: int = MAX_PACKAGE_BYTES,
-                 dtype: torch.dtype = torch.float32) -> AvatarPackage:
-    """Read and validate a package directory or zip."""
+                 dtype: torch.dtype = torch.float32,
+                 npz_limits: NpzLimits | None = None) -> AvatarPackage:
+    """Read and validate a package directory or zip. ``max_bytes`` bounds the files, and
+    (unless ``npz_limits`` says otherwise) each array and all of them, unpacked."""
     path = Path(path)
     if not path.exists():
         raise PackageError(f"no avatar package at {path}")
-    manifest_bytes, npz_bytes = _read_members(path, max_bytes)
+    limits = npz_limits or NpzLimits(max_array_bytes=max_bytes, max_total_bytes=max_bytes)
+    try:
+        manifest_bytes, npz_bytes = _read_members(path, max_bytes, limits)
+    except (NpzError, zipfile.BadZipFile, zlib.error, EOFError, OSError, NotImplementedError,
+            RuntimeError) as exc:  # a damaged zip: bad CRC, truncated stream, odd method
+        raise PackageError(f"{path}: unreadable: {exc}") from None
     try:
         manifest = json.loads(manifest_bytes)
-    except ValueError as exc:
-        raise PackageError(f"{path}: {MANIFEST} is not valid JSON: {exc}") from exc
+    except (ValueError, RecursionError) as exc:
+        raise PackageError(f"{path}: {MANIFEST} is not valid JSON: {exc}") from None
     version = manifest.get("schema_version") if isinstance(manifest, dict) else None
     if not isinstance(version, int) or not 1 <= version <= SCHEMA_VERSION:
         raise PackageError(f"{path}: unsupported schema_version {version!r} "
@@ -131,11 +159,11 @@ def load_package(path: str | Path, *, max_bytes: int = MAX_PACKAGE_BYTES,
         body = BodyReference(**manifest["body_model"])
     except (KeyError, TypeError) as exc:
         raise PackageError(f"{path}: bad or missing body_model in {MANIFEST}: {exc}") from exc
+    _check_manifest_types(path, manifest, body)
     try:
-        with np.load(io.BytesIO(npz_bytes), allow_pickle=False) as npz:
-            arrays = {k: npz[k] for k in npz.files}
-    except (ValueError, OSError, zipfile.BadZipFile) as exc:
-        raise PackageError(f"{path}: {GAUSSIANS} is unreadable: {exc}") from exc
+        arrays = read_npz(npz_bytes, limits)  # shapes and sizes checked before reading
+    except NpzError as exc:
+        raise PackageError(f"{path}: {GAUSSIANS} is unreadable: {exc}") from None
     tensors = {}
     for name in ("parents", "local_means", "log_scales", "quats", "opacity_logits", "sh"):
         if name not in arrays:
