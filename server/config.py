@@ -34,6 +34,36 @@ class Settings(BaseModel):
                            description="Where avatars, tokens and job data live.")
     max_sessions: int = Field(8, ge=1, description="Concurrent streaming sessions; past it a "
                                                    "new session gets error 'busy' and is closed.")
+    max_sessions_per_user: int = Field(
+        4, ge=1, description="Concurrent streaming sessions per token subject (admin tokens "
+                             "are exempt); past it a new session gets error 'busy', close "
+                             "code 4429.")
+    hello_timeout_s: float = Field(
+        5.0, gt=0, description="Seconds a WebSocket without a token in its header or URL may "
+                               "take to send its 'hello'; then error 'unauthorized', close 4408.")
+    hello_max_bytes: int = Field(
+        4096, ge=1024, description="Largest first message before authentication, bytes; checked "
+                                   "on the frame's length before any decoding (close 4413).")
+    max_unauthenticated: int = Field(
+        64, ge=1, description="WebSocket connections waiting to authenticate, in total; past it "
+                              "a new one gets error 'busy', close code 1013.")
+    max_unauthenticated_per_address: int = Field(
+        8, ge=1, description="WebSocket connections waiting to authenticate from one client "
+                             "address; past it error 'busy', close code 4429.")
+    max_message_objects: int = Field(
+        16384, ge=256, description="msgpack objects in one client message, counted before it "
+                                   "is unpacked (bounds the decode time); past it 'too_large'.")
+    decode_offload_bytes: int = Field(
+        64 * 1024, ge=0, description="Client messages of at least this many bytes are decoded "
+                                     "in a worker thread, off the event loop.")
+    max_inbound_bytes_per_s: float = Field(
+        32 * 2**20, gt=0, description="Bytes per second one session may send (token bucket, "
+                                      "burst max(16 MiB, limits.max_message_bytes)); past it "
+                                      "messages are dropped with 'rate_limited'.")
+    tokens_reload_interval_s: float = Field(
+        1.0, ge=0, description="How often, at most, the token file's mtime and size are "
+                               "checked; a change (e.g. telesplat serve --issue-token) is "
+                               "loaded without a restart.")
     limits: Limits = Field(default_factory=Limits,
                            description="Per-session protocol limits (sent in 'welcome').")
     jpeg_quality: int = Field(85, ge=1, le=100, description="JPEG quality of still views.")
@@ -70,6 +100,16 @@ class Settings(BaseModel):
     warmup: bool = Field(True, description="Render one frame at start-up (numba compiles once).")
     backend: Literal["auto", "torch", "cpu", "gsplat"] = Field(
         "auto", description="Rasterizer backend (auto: gsplat on CUDA, else cpu).")
+    job_max_attempts: int = Field(
+        3, ge=1, description="Runs of one training job (retries after a killed or crashed "
+                             "training process and server restarts included) before it fails; "
+                             "a resume grants as many more.")
+    job_max_active_per_user: int = Field(
+        4, ge=1, description="Queued + running training jobs per user; past it a submission "
+                             "is 429 (admins exempt).")
+    job_max_stored_per_user: int = Field(
+        200, ge=1, description="Training jobs kept per user, finished ones included; past it a "
+                               "submission is 429 until some are deleted (admins exempt).")
 
     @field_validator("demo_avatar")
     @classmethod

@@ -1,7 +1,8 @@
 """The worker with real training processes (the successful run is in test_jobs_api): a clean
 stop checkpoints and re-queues, the next start resumes, cancel stops a running process; after
 a real crash (the old server killed with SIGKILL) a running job resumes from its checkpoint
-and the queued one stays queued; running jobs that cannot be resumed fail with the reason."""
+and the queued one stays queued; a running job left without a checkpoint starts again, one
+out of attempts fails with the reason. (A killed training process: test_jobs_retry.)"""
 
 import os
 import shutil
@@ -135,8 +136,8 @@ def test_a_restart_resumes_the_running_job_and_keeps_the_queued_one(tmp_path, ca
 
 
 @pytest.mark.parametrize("case", ["no_checkpoint", "cancel_requested", "too_many_attempts"])
-def test_running_jobs_that_cannot_resume_are_finished_at_start(tmp_path, synthetic_files,
-                                                                case):
+def test_running_jobs_left_by_a_dead_server_are_settled_at_start(tmp_path, synthetic_files,
+                                                                  case):
     store = SQLiteJobStore(tmp_path / "jobs" / "jobs.db")
     job = store.create(NewJob("alice", "upload", str(tmp_path), {"iterations": 5}, 5))
     for _ in range(3 if case == "too_many_attempts" else 1):
@@ -151,15 +152,19 @@ def test_running_jobs_that_cannot_resume_are_finished_at_start(tmp_path, synthet
         store.request_cancel(job.id)
     store.close()
     service = make_service(tmp_path, synthetic_files)
-    service.start()
-    try:
-        got = service.store.get(job.id)
-    finally:
-        service.stop(grace_s=1)
-    expected = {"no_checkpoint": ("failed", "nothing to resume from"),
+    service.worker.recover()  # what start() does first (without then running the job)
+    got = service.store.get(job.id)
+    service.store.close()
+    expected = {"no_checkpoint": ("queued", None),  # attempts left: from the start
                 "cancel_requested": ("cancelled", "cancelled"),
-                "too_many_attempts": ("failed", "given up")}[case]
-    assert got.state == expected[0] and expected[1] in got.error
+                "too_many_attempts": ("failed", "no attempts left")}[case]
+    assert got.state == expected[0]
+    assert got.error is None if expected[1] is None else expected[1] in got.error
+    if case != "cancel_requested":
+        (end,) = got.attempt_log
+        assert end["reason"] == "the server restarted" and end["attempt"] == got.attempts
+        assert end["resume_from"] == (None if case == "no_checkpoint" else "iter_000002.pt")
+        assert end["outcome"] == ("requeued" if case == "no_checkpoint" else "failed")
 
 
 def test_one_worker_per_data_dir(tmp_path, synthetic_files):
@@ -179,7 +184,8 @@ def test_one_worker_per_data_dir(tmp_path, synthetic_files):
         second.stop(grace_s=1)
     third = make_service(tmp_path, synthetic_files)
     third.start()
-    try:
-        assert third.store.get(job.id).state == "failed"
+    try:  # recovered: re-queued to start again (its dataset then fails it)
+        assert any(e.data.get("reason") == "the server restarted"
+                   for e in third.store.events(job.id))
     finally:
         third.stop(grace_s=1)

@@ -25,7 +25,7 @@ from .service import JobService, SubmitError
 from .store import InvalidTransition, Job, JobNotFound
 from .worker import LOG_FILE
 
-__all__ = ["JobList", "JobOut", "JobResult", "JobSubmit", "lifespan", "router"]
+__all__ = ["AttemptEnd", "JobList", "JobOut", "JobResult", "JobSubmit", "lifespan", "router"]
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 _TRAIN = require_scope("train")  # every route: the caller's Principal, 401 / 403 otherwise
@@ -48,6 +48,21 @@ _ERRORS: dict[int | str, dict[str, Any]] = {
 }
 
 
+class AttemptEnd(BaseModel):
+    """How one run of a job ended."""
+
+    attempt: int = Field(description="Which run (1, 2, ...).")
+    reason: str = Field(description="Why it ended, e.g. 'killed by SIGKILL (likely out of "
+                                    "memory)'.")
+    exit_code: int | None = Field(None, description="The process's exit status (negative: "
+                                                    "the signal); None when unknown.")
+    resume_from: str | None = Field(None, description="The checkpoint the next run starts "
+                                                      "from (None: from the start).")
+    resume_iteration: int | None = Field(None, description="That checkpoint's iteration.")
+    outcome: str | None = Field(None, description="'requeued' or 'failed'.")
+    time: float = Field(description="Unix seconds.")
+
+
 class JobOut(BaseModel):
     """A job as clients see it."""
 
@@ -66,6 +81,9 @@ class JobOut(BaseModel):
     error: str | None = Field(description="Why the job failed or was cancelled.")
     avatar_id: str | None = Field(description="The registered avatar, once succeeded.")
     attempts: int = Field(description="Runs so far (a resume after a restart is one more).")
+    max_attempts: int | None = Field(description="Runs allowed before the job fails (None: "
+                                                 "the server's default).")
+    attempt_log: list[AttemptEnd] = Field(description="How earlier runs ended, oldest first.")
     cancel_requested: bool
     config: dict[str, Any] = Field(description="The resolved training config.")
 
@@ -73,6 +91,9 @@ class JobOut(BaseModel):
     def of(cls, job: Job) -> JobOut:
         d = job.to_dict()
         d.pop("dataset_path")  # a server path
+        # fields a newer server may add to a record are not an error for this one
+        d["attempt_log"] = [{k: v for k, v in a.items() if k in AttemptEnd.model_fields}
+                            for a in d["attempt_log"]]
         return cls(**d)
 
 
@@ -174,7 +195,8 @@ def _form_config(text: str | None) -> Any:
         raise HTTPException(422, "config must be JSON (an object or a preset name)") from None
 
 
-async def _submit_upload(request: Request, service: JobService, owner: str) -> Job:
+async def _submit_upload(request: Request, service: JobService, owner: str,
+                         exempt: bool) -> Job:
     limit = service.limits.max_upload_bytes
     limited = await _limited_body(request, limit + MULTIPART_SLACK)
     form = await limited.form(max_files=1, max_fields=8)
@@ -189,19 +211,20 @@ async def _submit_upload(request: Request, service: JobService, owner: str) -> J
             raise HTTPException(400, "config and name must be text fields")
         config = _form_config(fields["config"])
         return await run_in_threadpool(service.submit_archive, owner, archive.file, config,
-                                       fields["name"])
+                                       fields["name"], exempt=exempt)
     finally:
         await form.close()
 
 
-async def _submit_named(request: Request, service: JobService, owner: str) -> Job:
+async def _submit_named(request: Request, service: JobService, owner: str,
+                        exempt: bool) -> Job:
     limited = await _limited_body(request, MAX_JSON_BODY)
     try:
         body = JobSubmit.model_validate_json(await limited.body())
     except ValidationError as exc:
         raise HTTPException(422, json.loads(exc.json(include_url=False))) from None
     return await run_in_threadpool(service.submit_named, owner, body.dataset, body.config,
-                                   body.name)
+                                   body.name, exempt=exempt)
 
 
 @router.post("", status_code=201, response_model=JobOut, openapi_extra=_SUBMIT_BODY,
@@ -212,18 +235,25 @@ async def _submit_named(request: Request, service: JobService, owner: str) -> Jo
                         413: {"description": "Upload larger than the limits."},
                         415: {"description": "Neither JSON nor multipart/form-data."},
                         422: {"description": "Bad training config (the detail names the "
-                                             "key)."}})
+                                             "key)."},
+                        429: {"description": "The owner's job quota is used up (the detail "
+                                             "says which)."}})
 async def submit_job(request: Request, response: Response,
                      principal: Principal = _TRAIN) -> JobOut:
     """Train an avatar: on a dataset on the server (JSON ``{"dataset", "config", "name"}``)
-    or on an uploaded zip (multipart: ``archive``, ``config``, ``name``)."""
+    or on an uploaded zip (multipart: ``archive``, ``config``, ``name``). Past the per-user
+    job quotas (admins exempt): 429."""
     service = _service(request)
     kind = request.headers.get("content-type", "").split(";")[0].strip().lower()
     try:
+        # before reading (and unpacking) a body that would be refused anyway
+        await run_in_threadpool(service.check_quota, principal.subject, principal.is_admin)
         if kind == "application/json":
-            job = await _submit_named(request, service, principal.subject)
+            job = await _submit_named(request, service, principal.subject,
+                                      principal.is_admin)
         elif kind == "multipart/form-data":
-            job = await _submit_upload(request, service, principal.subject)
+            job = await _submit_upload(request, service, principal.subject,
+                                       principal.is_admin)
         else:
             raise HTTPException(415, "send application/json (a dataset on the server) or "
                                      "multipart/form-data (an 'archive' zip)")
@@ -263,6 +293,39 @@ def cancel_job(job_id: str, request: Request,
         return JobOut.of(service.cancel(job_id))
     except InvalidTransition as exc:
         raise HTTPException(409, str(exc)) from None
+
+
+@router.post("/{job_id}/resume", status_code=202, response_model=JobOut,
+             summary="Run a failed job again from its last checkpoint",
+             responses={**_ERRORS,
+                        409: {"description": "The job is not failed, or its dataset is gone."},
+                        429: {"description": "The owner has the most active jobs allowed."}})
+def resume_job(job_id: str, request: Request, principal: Principal = _TRAIN) -> JobOut:
+    """A failed job goes back to the queue and goes on from its latest checkpoint (from the
+    start without one), with a fresh budget of attempts."""
+    service = _service(request)
+    _visible(service, principal, job_id)
+    try:
+        return JobOut.of(service.resume(job_id, exempt=principal.is_admin))
+    except InvalidTransition as exc:
+        raise HTTPException(409, str(exc)) from None
+    except SubmitError as exc:
+        raise HTTPException(exc.status, str(exc)) from None
+
+
+@router.delete("/{job_id}", status_code=204, summary="Delete a finished job",
+               responses={**_ERRORS, 409: {"description": "The job is queued or running."}})
+def delete_job(job_id: str, request: Request, principal: Principal = _TRAIN) -> Response:
+    """Forgets the job, its events, log and files; its avatar, if any, stays registered."""
+    service = _service(request)
+    _visible(service, principal, job_id)
+    try:
+        service.delete(job_id)
+    except InvalidTransition as exc:
+        raise HTTPException(409, str(exc)) from None
+    except JobNotFound:
+        raise HTTPException(404, _NOT_FOUND) from None
+    return Response(status_code=204)
 
 
 @router.get("/{job_id}/result", response_model=JobResult, summary="The trained avatar",

@@ -2,7 +2,8 @@
 
 Started and stopped with the app (its lifespan). Submissions are validated here, not in the
 worker: the dataset is loaded (and so validated) and the config resolved before a job row
-exists, so a bad submission creates nothing.
+exists, so a bad submission creates nothing. Per-owner quotas (:class:`JobQuota`) are checked
+before an upload is unpacked and again, atomically, when the row is inserted.
 """
 
 from __future__ import annotations
@@ -10,19 +11,32 @@ from __future__ import annotations
 import re
 import shutil
 import tempfile
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, BinaryIO
 
 from avatar_core.dataset import DatasetError, load_dataset
+from avatar_core.train.checkpoint import latest_checkpoint
 from avatar_core.train.config import TrainConfig, config_from_dict, config_to_dict, preset
 from avatar_core.train.posing import SYNTHETIC_PREFIX
 
 from .archive import ArchiveError, UploadLimits, extract_archive
-from .store import Job, JobStore, NewJob, SQLiteJobStore, new_job_id
+from .run import OUT_DIR
+from .store import (
+    RESUMABLE,
+    InvalidTransition,
+    Job,
+    JobStore,
+    NewJob,
+    QuotaExceeded,
+    SQLiteJobStore,
+    check_quota,
+    new_job_id,
+)
 from .worker import UPLOADED_DATASET, Register, Worker, WorkerConfig
 
-__all__ = ["DATASETS_DIR", "JOBS_DIR", "JobService", "SubmitError", "resolve_config"]
+__all__ = ["DATASETS_DIR", "JOBS_DIR", "JobQuota", "JobService", "SubmitError",
+           "resolve_config"]
 
 JOBS_DIR, DATASETS_DIR, DB_FILE = "jobs", "datasets", "jobs.db"
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
@@ -37,6 +51,18 @@ class SubmitError(ValueError):
     def __init__(self, message: str, status: int = 400) -> None:
         super().__init__(message)
         self.status = status
+
+
+@dataclass(frozen=True)
+class JobQuota:
+    """Per-owner caps on jobs (None: no cap); admins are exempt."""
+
+    max_active: int | None = 4    # queued + running jobs of one owner
+    max_stored: int | None = 200  # jobs of one owner kept in the store, finished ones included
+
+    def __post_init__(self) -> None:
+        if any(v is not None and v < 1 for v in (self.max_active, self.max_stored)):
+            raise ValueError("job quotas must be >= 1 (or None: no cap)")
 
 
 def resolve_config(value: Any) -> TrainConfig:
@@ -94,20 +120,22 @@ class JobService:
 
     def __init__(self, data_dir: str | Path, register: Register, *,
                  worker: WorkerConfig | None = None, limits: UploadLimits | None = None,
-                 store: JobStore | None = None) -> None:
+                 store: JobStore | None = None, quota: JobQuota | None = None) -> None:
         self.data_dir = Path(data_dir)
         self.jobs_dir = self.data_dir / JOBS_DIR
         self.datasets_dir = self.data_dir / DATASETS_DIR
         self.jobs_dir.mkdir(parents=True, exist_ok=True)
         self.limits = limits or UploadLimits()
+        self.quota = quota or JobQuota()
         self.store = store or SQLiteJobStore(self.jobs_dir / DB_FILE)
         self.worker = Worker(self.store, self.jobs_dir, register, worker)
 
     @classmethod
     def from_settings(cls, settings: Any, registry: Any) -> JobService:
         """From the server's Settings and AvatarRegistry. Optional settings (defaults when
-        absent): job_max_concurrent, job_threads, job_nice, body_model_dir,
-        max_dataset_unpacked_bytes, max_dataset_files."""
+        absent): job_max_concurrent, job_threads, job_nice, job_max_attempts, body_model_dir,
+        max_dataset_unpacked_bytes, max_dataset_files, job_max_active_per_user,
+        job_max_stored_per_user."""
 
         def register(job: Job, package: Path) -> str:
             record = registry.add_package(package, job.owner, job.name,
@@ -120,13 +148,17 @@ class JobService:
             max_concurrent=getattr(settings, "job_max_concurrent", defaults.max_concurrent),
             threads=getattr(settings, "job_threads", defaults.threads),
             nice=getattr(settings, "job_nice", defaults.nice),
+            max_attempts=getattr(settings, "job_max_attempts", defaults.max_attempts),
             body_model_dir=None if body is None else str(body))
         upload = UploadLimits(
             max_upload_bytes=getattr(settings, "max_upload_bytes", limits.max_upload_bytes),
             max_unpacked_bytes=getattr(settings, "max_dataset_unpacked_bytes",
                                        limits.max_unpacked_bytes),
             max_files=getattr(settings, "max_dataset_files", limits.max_files))
-        return cls(settings.data_dir, register, worker=worker, limits=upload)
+        quota = JobQuota(
+            max_active=getattr(settings, "job_max_active_per_user", JobQuota.max_active),
+            max_stored=getattr(settings, "job_max_stored_per_user", JobQuota.max_stored))
+        return cls(settings.data_dir, register, worker=worker, limits=upload, quota=quota)
 
     def start(self) -> None:
         for leftover in self.jobs_dir.glob(".upload-*"):  # a crash mid-upload
@@ -149,18 +181,31 @@ class JobService:
             raise SubmitError(f"no dataset named {name!r} on this server", 404)
         return path
 
+    def check_quota(self, owner: str, exempt: bool = False) -> None:
+        """SubmitError (429) when ``owner`` may not add a job now (``exempt``: admins)."""
+        if exempt:
+            return
+        try:
+            check_quota(self.store.count(owner), owner, self.quota.max_active,
+                        self.quota.max_stored)
+        except QuotaExceeded as exc:
+            raise SubmitError(str(exc), 429) from exc
+
     def submit_named(self, owner: str, dataset: str, config: Any = None,
-                     name: str | None = None) -> Job:
+                     name: str | None = None, *, exempt: bool = False) -> Job:
+        self.check_quota(owner, exempt)
         path = self.dataset_path(dataset)
         resolved = resolve_config(config)
         name = _check_avatar_name(name)
         _validated(path, self.worker.config.body_model_dir)
-        return self._create(owner, f"dataset:{dataset}", path, resolved, name)
+        return self._create(owner, f"dataset:{dataset}", path, resolved, name,
+                            exempt=exempt)
 
     def submit_archive(self, owner: str, archive: str | Path | BinaryIO, config: Any = None,
-                       name: str | None = None) -> Job:
+                       name: str | None = None, *, exempt: bool = False) -> Job:
         """Check, unpack and validate an uploaded zip, then queue a job training on it.
         Nothing stays behind when it is refused."""
+        self.check_quota(owner, exempt)  # before the work of unpacking
         resolved = resolve_config(config)
         name = _check_avatar_name(name)
         job_id = new_job_id()
@@ -176,7 +221,8 @@ class JobService:
             target = folder / UPLOADED_DATASET
             root.rename(target)
             try:
-                return self._create(owner, "upload", target, resolved, name, job_id)
+                return self._create(owner, "upload", target, resolved, name, job_id,
+                                    exempt=exempt)
             except BaseException:
                 shutil.rmtree(folder, ignore_errors=True)
                 raise
@@ -184,13 +230,48 @@ class JobService:
             shutil.rmtree(scratch, ignore_errors=True)
 
     def _create(self, owner: str, dataset: str, path: Path, config: TrainConfig,
-                name: str | None, job_id: str | None = None) -> Job:
-        job = self.store.create(NewJob(owner=owner, dataset=dataset,
-                                       dataset_path=str(path.resolve()),
-                                       config=config_to_dict(config),
-                                       total=config.iterations, name=name, id=job_id))
+                name: str | None, job_id: str | None = None, *, exempt: bool = False) -> Job:
+        new = NewJob(owner=owner, dataset=dataset, dataset_path=str(path.resolve()),
+                     config=config_to_dict(config), total=config.iterations, name=name,
+                     id=job_id, max_attempts=self.worker.config.max_attempts)
+        caps = {} if exempt else {"max_active": self.quota.max_active,
+                                  "max_stored": self.quota.max_stored}
+        try:
+            job = self.store.create(new, **caps)
+        except QuotaExceeded as exc:  # another submission got in since check_quota
+            raise SubmitError(str(exc), 429) from exc
         self.worker.wake()
         return job
+
+    def resume(self, job_id: str, *, exempt: bool = False) -> Job:
+        """A failed job queued again, to go on from its latest checkpoint (from the start
+        without one) with a fresh budget of ``max_attempts`` runs. InvalidTransition when it
+        is not failed; SubmitError when its dataset is gone (409) or its owner is at the
+        active-jobs quota (429)."""
+        job = self.store.get(job_id)
+        if job.state not in RESUMABLE:
+            raise InvalidTransition(f"job {job_id} is {job.state}; only a failed job can be "
+                                    "resumed")
+        if not Path(job.dataset_path).is_dir():
+            raise SubmitError(f"job {job_id}'s dataset is no longer on the server", 409)
+        if not exempt:
+            try:  # it is stored already: only the active cap applies
+                check_quota(self.store.count(job.owner), job.owner, self.quota.max_active, None)
+            except QuotaExceeded as exc:
+                raise SubmitError(str(exc), 429) from exc
+        ckpt = latest_checkpoint(self.worker.job_dir(job_id) / OUT_DIR)
+        resumed = self.store.resume(
+            job_id, job.attempts + self.worker.config.max_attempts,
+            note={"reason": "resumed on request",
+                  "resume_from": None if ckpt is None else ckpt.name})
+        self.worker.wake()
+        return resumed
+
+    def delete(self, job_id: str) -> None:
+        """Forget a finished job and free its folder (its avatar stays registered);
+        InvalidTransition while it is queued or running."""
+        self.store.delete(job_id)
+        shutil.rmtree(self.worker.job_dir(job_id), ignore_errors=True)
 
     def cancel(self, job_id: str) -> Job:
         """InvalidTransition when the job has finished already."""

@@ -6,6 +6,10 @@ opens the same database file, so a store must be safe across processes: every wr
 ``BEGIN IMMEDIATE`` transaction, and each state change appends its ``state`` event in the same
 transaction, so the event order is the order things happened. Another backend (a Ray
 cluster's, say) implements the same interface.
+
+Each run of a job is an attempt; how an attempt ended (exit code or signal, the checkpoint
+the next attempt resumes from) is appended to the job's ``attempt_log``. Databases written
+before a column existed are migrated on open (``ALTER TABLE ... ADD COLUMN``).
 """
 
 from __future__ import annotations
@@ -22,12 +26,17 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-__all__ = ["ACTIVE", "STATES", "TERMINAL", "Event", "InvalidTransition", "Job", "JobNotFound",
-           "JobStore", "NewJob", "SQLiteJobStore"]
+__all__ = ["ACTIVE", "MAX_ATTEMPT_LOG", "RESUMABLE", "STATES", "TERMINAL", "Event",
+           "InvalidTransition", "Job", "JobNotFound", "JobStore", "NewJob", "QuotaExceeded",
+           "SQLiteJobStore", "check_quota"]
 
 STATES = ("queued", "running", "succeeded", "failed", "cancelled")
 ACTIVE = ("queued", "running")
 TERMINAL = ("succeeded", "failed", "cancelled")
+# Only failed jobs resume on request: a cancelled one was stopped on purpose and its
+# checkpoints and upload are deleted.
+RESUMABLE = ("failed",)
+MAX_ATTEMPT_LOG = 50  # attempt records kept per job (the newest): resumes can add many
 # Allowed transitions; running -> queued is the requeue of an interrupted run.
 _NEXT = {"queued": {"running", "cancelled", "failed"},
          "running": {"succeeded", "failed", "cancelled", "queued"}}
@@ -41,6 +50,10 @@ class InvalidTransition(ValueError):
     pass
 
 
+class QuotaExceeded(ValueError):
+    """A submission past the owner's job quota (the message says which)."""
+
+
 @dataclass(frozen=True)
 class NewJob:
     """What a submission gives the store."""
@@ -52,6 +65,7 @@ class NewJob:
     total: int            # config["iterations"]
     name: str | None = None
     id: str | None = None  # None: a fresh random id
+    max_attempts: int | None = None  # None: the worker's default
 
 
 @dataclass(frozen=True)
@@ -73,6 +87,8 @@ class Job:
     avatar_id: str | None
     attempts: int
     cancel_requested: bool
+    max_attempts: int | None = None  # runs allowed; None: the worker's default
+    attempt_log: tuple[dict[str, Any], ...] = ()  # how earlier attempts ended, oldest first
 
     @property
     def progress(self) -> float:
@@ -83,7 +99,8 @@ class Job:
         return self.state in TERMINAL
 
     def to_dict(self) -> dict[str, Any]:
-        return {**asdict(self), "progress": self.progress}
+        return {**asdict(self), "attempt_log": [dict(a) for a in self.attempt_log],
+                "progress": self.progress}
 
 
 @dataclass(frozen=True)
@@ -107,7 +124,15 @@ class JobStore(ABC):
     InvalidTransition for a state change the lifecycle does not allow."""
 
     @abstractmethod
-    def create(self, new: NewJob) -> Job: ...
+    def create(self, new: NewJob, *, max_active: int | None = None,
+               max_stored: int | None = None) -> Job:
+        """A queued job; QuotaExceeded (nothing created) when the owner already has
+        ``max_active`` queued or running jobs, or ``max_stored`` jobs in all (None: no cap).
+        The count and the insert are one transaction."""
+
+    @abstractmethod
+    def count(self, owner: str) -> dict[str, int]:
+        """The owner's jobs per state (states without jobs absent)."""
 
     @abstractmethod
     def get(self, job_id: str) -> Job: ...
@@ -123,8 +148,23 @@ class JobStore(ABC):
 
     @abstractmethod
     def transition(self, job_id: str, state: str, *, error: str | None = None,
-                   avatar_id: str | None = None, note: dict[str, Any] | None = None) -> Job:
-        """Change the state (with a ``state`` event carrying ``note``)."""
+                   avatar_id: str | None = None, note: dict[str, Any] | None = None,
+                   attempt_end: dict[str, Any] | None = None,
+                   iteration: int | None = None) -> Job:
+        """Change the state (with a ``state`` event carrying ``note``). ``attempt_end``: how
+        the run ended, appended to ``attempt_log`` and put in the event; ``iteration``: the
+        job's iteration from now on (where a re-queued job resumes). Back to ``queued``
+        clears ``error`` and ``finished``."""
+
+    @abstractmethod
+    def resume(self, job_id: str, max_attempts: int,
+               note: dict[str, Any] | None = None) -> Job:
+        """A failed job back to ``queued`` with ``max_attempts`` runs allowed in all;
+        InvalidTransition when it is not in RESUMABLE."""
+
+    @abstractmethod
+    def delete(self, job_id: str) -> None:
+        """Forget a finished job and its events; InvalidTransition while it is active."""
 
     @abstractmethod
     def request_cancel(self, job_id: str) -> Job:
@@ -164,7 +204,9 @@ CREATE TABLE IF NOT EXISTS jobs (
     error TEXT,
     avatar_id TEXT,
     attempts INTEGER NOT NULL DEFAULT 0,
-    cancel_requested INTEGER NOT NULL DEFAULT 0
+    cancel_requested INTEGER NOT NULL DEFAULT 0,
+    max_attempts INTEGER,
+    attempt_log TEXT NOT NULL DEFAULT '[]'
 );
 CREATE INDEX IF NOT EXISTS jobs_state ON jobs (state, created);
 CREATE INDEX IF NOT EXISTS jobs_owner ON jobs (owner, created);
@@ -176,14 +218,18 @@ CREATE TABLE IF NOT EXISTS events (
     PRIMARY KEY (job_id, seq)
 );
 """
+# Columns added after the first release: (name, declaration), added to older databases.
+_ADDED_COLUMNS = (("max_attempts", "INTEGER"), ("attempt_log", "TEXT NOT NULL DEFAULT '[]'"))
 _COLUMNS = ("id, owner, name, state, dataset, dataset_path, config, created, started, "
-            "finished, iteration, total, loss, error, avatar_id, attempts, cancel_requested")
+            "finished, iteration, total, loss, error, avatar_id, attempts, cancel_requested, "
+            "max_attempts, attempt_log")
 
 
 def _job(row: sqlite3.Row) -> Job:
     values = dict(row)
     values["config"] = json.loads(values["config"])
     values["cancel_requested"] = bool(values["cancel_requested"])
+    values["attempt_log"] = tuple(json.loads(values["attempt_log"] or "[]"))
     return Job(**values)
 
 
@@ -206,6 +252,7 @@ class SQLiteJobStore(JobStore):
         self._all: list[sqlite3.Connection] = []
         self._lock = threading.Lock()
         self._db().executescript(_SCHEMA)  # its own transaction (IF NOT EXISTS: idempotent)
+        self._migrate()
 
     # -- connections -----------------------------------------------------------------------
 
@@ -234,6 +281,15 @@ class SQLiteJobStore(JobStore):
             db.execute("ROLLBACK")
             raise
         db.execute("COMMIT")
+
+    def _migrate(self) -> None:
+        """Add the columns a database from an older release lacks. Under the write lock, so
+        the server and a training process opening it at once do not both add one."""
+        with self._write() as db:
+            have = {row["name"] for row in db.execute("PRAGMA table_info(jobs)")}
+            for name, declaration in _ADDED_COLUMNS:
+                if name not in have:
+                    db.execute(f"ALTER TABLE jobs ADD COLUMN {name} {declaration}")
 
     def close(self) -> None:
         with self._lock:
@@ -268,6 +324,9 @@ class SQLiteJobStore(JobStore):
         columns["state"] = state
         if state in TERMINAL:
             columns["finished"] = now
+        elif state == "queued":  # to run again: no longer finished nor failing
+            columns.setdefault("error", None)
+            columns["finished"] = None
         sets = ", ".join(f"{k} = ?" for k in columns)
         db.execute(f"UPDATE jobs SET {sets} WHERE id = ?", (*columns.values(), job.id))
         event = {"type": "state", "state": state, **(note or {})}
@@ -279,20 +338,31 @@ class SQLiteJobStore(JobStore):
 
     # -- the interface ---------------------------------------------------------------------
 
-    def create(self, new: NewJob) -> Job:
+    def create(self, new: NewJob, *, max_active: int | None = None,
+               max_stored: int | None = None) -> Job:
         job_id = new.id or new_job_id()
         now = time.time()
         with self._write() as db:
+            check_quota(self._count(db, new.owner), new.owner, max_active, max_stored)
             db.execute(
                 "INSERT INTO jobs (id, owner, name, state, dataset, dataset_path, config, "
-                "created, total) VALUES (?, ?, ?, 'queued', ?, ?, ?, ?, ?)",
+                "created, total, max_attempts) VALUES (?, ?, ?, 'queued', ?, ?, ?, ?, ?, ?)",
                 (job_id, new.owner, new.name, new.dataset, new.dataset_path,
-                 json.dumps(new.config), now, int(new.total)))
+                 json.dumps(new.config), now, int(new.total), new.max_attempts))
             self._append(db, job_id, {"type": "state", "state": "queued"}, now)
             return self._get(db, job_id)
 
     def get(self, job_id: str) -> Job:
         return self._get(self._db(), job_id)
+
+    @staticmethod
+    def _count(db: sqlite3.Connection, owner: str) -> dict[str, int]:
+        rows = db.execute("SELECT state, COUNT(*) FROM jobs WHERE owner = ? GROUP BY state",
+                          (owner,))
+        return {state: int(n) for state, n in rows}
+
+    def count(self, owner: str) -> dict[str, int]:
+        return self._count(self._db(), owner)
 
     def list(self, owner: str | None = None, state: str | None = None,
              limit: int = 100) -> list[Job]:
@@ -322,16 +392,49 @@ class SQLiteJobStore(JobStore):
             return self._get(db, job.id)
 
     def transition(self, job_id: str, state: str, *, error: str | None = None,
-                   avatar_id: str | None = None, note: dict[str, Any] | None = None) -> Job:
+                   avatar_id: str | None = None, note: dict[str, Any] | None = None,
+                   attempt_end: dict[str, Any] | None = None,
+                   iteration: int | None = None) -> Job:
         now = time.time()
         columns: dict[str, Any] = {}
         if error is not None:
             columns["error"] = error
         if avatar_id is not None:
             columns["avatar_id"] = avatar_id
+        if iteration is not None:
+            columns["iteration"] = int(iteration)
         with self._write() as db:
-            self._move(db, self._get(db, job_id), state, now, note=note, **columns)
+            job = self._get(db, job_id)
+            if attempt_end is not None:
+                record = {**attempt_end, "time": now}
+                kept = [*job.attempt_log, record][-MAX_ATTEMPT_LOG:]
+                columns["attempt_log"] = json.dumps(kept, allow_nan=False)
+                note = {**(note or {}), "attempt_end": record}
+            self._move(db, job, state, now, note=note, **columns)
             return self._get(db, job_id)
+
+    def resume(self, job_id: str, max_attempts: int,
+               note: dict[str, Any] | None = None) -> Job:
+        now = time.time()
+        with self._write() as db:
+            job = self._get(db, job_id)
+            if job.state not in RESUMABLE:
+                raise InvalidTransition(f"job {job_id} is {job.state}; only a failed job can "
+                                        "be resumed")
+            db.execute("UPDATE jobs SET state = 'queued', error = NULL, finished = NULL, "
+                       "cancel_requested = 0, max_attempts = ? WHERE id = ?",
+                       (int(max_attempts), job_id))
+            self._append(db, job_id, {"type": "state", "state": "queued",
+                                      "max_attempts": int(max_attempts), **(note or {})}, now)
+            return self._get(db, job_id)
+
+    def delete(self, job_id: str) -> None:
+        with self._write() as db:
+            job = self._get(db, job_id)
+            if not job.done:
+                raise InvalidTransition(f"job {job_id} is {job.state}; cancel it first")
+            db.execute("DELETE FROM events WHERE job_id = ?", (job_id,))
+            db.execute("DELETE FROM jobs WHERE id = ?", (job_id,))
 
     def request_cancel(self, job_id: str) -> Job:
         now = time.time()
@@ -370,3 +473,16 @@ class SQLiteJobStore(JobStore):
             "SELECT job_id, seq, time, data FROM events WHERE job_id = ? AND seq > ? "
             "ORDER BY seq LIMIT ?", (job_id, int(after), int(limit)))
         return [Event(r["job_id"], r["seq"], r["time"], json.loads(r["data"])) for r in rows]
+
+
+def check_quota(counts: dict[str, int], owner: str, max_active: int | None,
+                max_stored: int | None) -> None:
+    """QuotaExceeded when ``owner``, with ``counts`` jobs per state, may not add one."""
+    active = sum(counts.get(state, 0) for state in ACTIVE)
+    if max_active is not None and active >= max_active:
+        raise QuotaExceeded(f"{owner} already has {active} queued or running jobs (at most "
+                            f"{max_active}): wait for one to finish or cancel one")
+    stored = sum(counts.values())
+    if max_stored is not None and stored >= max_stored:
+        raise QuotaExceeded(f"{owner} already has {stored} jobs stored (at most {max_stored}):"
+                            " delete finished ones (DELETE /v1/jobs/{id})")

@@ -7,6 +7,13 @@ when a process ends, finishes its job: on success the avatar package is register
 ``register`` (the registry, with the job's owner) before the job is marked succeeded, so its
 avatar id is servable at once.
 
+Faults: a process that dies abnormally (a signal such as the out-of-memory killer's SIGKILL,
+or an exit code the training process never uses) ends an attempt, recorded in the job's
+``attempt_log`` with the reason; while the job's attempts last it is re-queued to resume from
+its latest checkpoint (from the start when there is none), then it fails with the reason. A
+process that reports its own error (exit code 1) fails at once: running it again would fail
+the same way; ``resume`` after a fix.
+
 Restarts: :meth:`Worker.recover` (run by :meth:`start`) re-queues jobs left ``running`` by a
 server that died, to resume from their last checkpoint, and fails those with none. A clean
 :meth:`stop` asks each process to checkpoint (SIGTERM), kills it after a grace period, and
@@ -36,7 +43,7 @@ except ImportError:  # pragma: no cover - not POSIX
 
 from avatar_core.train.checkpoint import CHECKPOINT_DIR, latest_checkpoint
 
-from .run import EXIT_CANCELLED, EXIT_INTERRUPTED, EXIT_OK, OUT_DIR
+from .run import EXIT_CANCELLED, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, OUT_DIR
 from .store import InvalidTransition, Job, JobNotFound, JobStore
 
 __all__ = ["LOG_FILE", "UPLOADED_DATASET", "Register", "Worker", "WorkerConfig"]
@@ -58,7 +65,8 @@ class WorkerConfig:
     threads: int = 1             # torch / numba / BLAS threads per training process
     nice: int = 10               # CPU priority increment of a training process
     body_model_dir: str | None = None  # None: the synthetic models from the cache
-    max_attempts: int = 3        # runs of one job (restarts included) before it is failed
+    max_attempts: int = 3        # runs of one job (restarts and retries after a crash
+    #                              included) before it is failed; a resume grants as many more
     poll_s: float = 0.2          # how often processes and cancels are checked
     cancel_grace_s: float = 5.0  # after a cancel, kill the process if still running (at
     #                              once while it has not trained an iteration yet)
@@ -100,6 +108,16 @@ class Worker:
     def running(self) -> list[str]:
         with self._lock:
             return list(self._runs)
+
+    def process_id(self, job_id: str) -> int | None:
+        """The pid of the job's training process while this worker runs it."""
+        with self._lock:
+            run = self._runs.get(job_id)
+        return None if run is None else run.process.pid
+
+    def budget(self, job: Job) -> int:
+        """The runs the job may have in all."""
+        return job.max_attempts or self.config.max_attempts
 
     def cleanup(self, job_id: str) -> None:
         """Free the disk of a job that succeeded or was cancelled: its checkpoints and its
@@ -172,29 +190,20 @@ class Worker:
             self._lock_file = None
 
     def recover(self) -> None:
-        """Jobs left ``running`` by a server that died: re-queued to resume from their last
-        checkpoint, or failed with the reason."""
+        """Jobs left ``running`` by a server that died: that attempt ended; re-queued to
+        resume from their last checkpoint (from the start without one) while attempts
+        remain, failed with the reason otherwise."""
         with self._lock:
             mine = set(self._runs)
         for job in self.store.list(state="running", limit=1_000_000):
             if job.id in mine:
                 continue
-            ckpt = latest_checkpoint(self.job_dir(job.id) / OUT_DIR)
             try:
                 if job.cancel_requested:
                     self.store.transition(job.id, "cancelled", error="cancelled")
                     self.cleanup(job.id)
-                elif job.attempts >= self.config.max_attempts:
-                    self.store.transition(job.id, "failed", error=(
-                        f"interrupted {job.attempts} times (the server stopped while it ran); "
-                        "given up"))
-                elif ckpt is not None:
-                    self.store.transition(job.id, "queued", note={
-                        "reason": "the server restarted", "resume_from": ckpt.name})
                 else:
-                    self.store.transition(job.id, "failed", error=(
-                        "the server stopped while the job was running, before its first "
-                        "checkpoint: nothing to resume from"))
+                    self._retry_or_fail(job, "the server restarted")
             except (InvalidTransition, JobNotFound):  # changed meanwhile: leave it
                 continue
 
@@ -312,14 +321,56 @@ class Worker:
             self.store.transition(job.id, "cancelled", error="cancelled")
             self.cleanup(job.id)
         elif self._stopping.is_set():
-            # re-queued: the next start resumes it from its checkpoint
-            ckpt = latest_checkpoint(self.job_dir(job.id) / OUT_DIR)
-            self.store.transition(job.id, "queued", note={
-                "reason": "the server stopped",
-                "resume_from": None if ckpt is None else ckpt.name})
-        elif rc == EXIT_INTERRUPTED:  # someone else sent SIGTERM: run it again
-            self.store.transition(job.id, "queued", note={"reason": "interrupted"})
-        else:
-            why = f"signal {-rc}" if rc < 0 else f"exit code {rc}"
-            error = job.error or f"the training process ended with {why}; see the log"
-            self.store.transition(job.id, "failed", error=error)
+            # a planned stop is no fault of the job: re-queued whatever its attempts, the
+            # next start resumes it from its checkpoint
+            self._retry_or_fail(job, "the server stopped", rc, always=True)
+        elif rc == EXIT_FAILED:  # the trainer's own error (in job.error): it would repeat
+            error = job.error or "the training process failed; see the log"
+            self.store.transition(job.id, "failed", error=error, attempt_end={
+                "attempt": job.attempts, "exit_code": rc, "reason": error[:500]})
+        else:  # SIGTERM from someone else (it checkpointed), a kill, a crash: try again
+            self._retry_or_fail(job, exit_reason(rc), rc)
+
+    def _retry_or_fail(self, job: Job, reason: str, rc: int | None = None, *,
+                       always: bool = False) -> None:
+        """The attempt ended (``reason``; ``rc``: the exit status when known): back to the
+        queue to resume from the latest checkpoint while the job has attempts left (or
+        ``always``), failed with the reason otherwise."""
+        ckpt = latest_checkpoint(self.job_dir(job.id) / OUT_DIR)
+        resume_iteration = 0 if ckpt is None else checkpoint_iteration(ckpt)
+        record = {"attempt": job.attempts, "exit_code": rc, "reason": reason,
+                  "resume_from": None if ckpt is None else ckpt.name,
+                  "resume_iteration": resume_iteration}
+        budget = self.budget(job)
+        log.warning("job %s: attempt %d of %d ended: %s", job.id, job.attempts, budget, reason)
+        if always or job.attempts < budget:
+            record["outcome"] = "requeued"
+            self.store.transition(job.id, "queued", attempt_end=record,
+                                  iteration=resume_iteration, note={
+                                      "reason": reason, "resume_from": record["resume_from"]})
+            return
+        record["outcome"] = "failed"
+        where = "" if ckpt is None else f" (a resume goes on from {ckpt.name})"
+        self.store.transition(job.id, "failed", attempt_end=record, error=(
+            f"attempt {job.attempts} of {budget}: {reason}; no attempts left{where}"))
+
+
+def exit_reason(rc: int) -> str:
+    """How a training process ended, in words (``rc`` as Popen reports it)."""
+    if rc == EXIT_INTERRUPTED:
+        return "interrupted (SIGTERM); it checkpointed"
+    if rc < 0:
+        try:
+            name = signal.Signals(-rc).name
+        except ValueError:
+            name = f"signal {-rc}"
+        if -rc == signal.SIGKILL:
+            return f"killed by {name} (likely out of memory)"
+        return f"killed by {name}"
+    return f"exited with unexpected code {rc}"
+
+
+def checkpoint_iteration(path: Path) -> int:
+    """The iteration in a checkpoint's name (``iter_000120.pt``: 120)."""
+    digits = path.stem.rpartition("_")[2]
+    return int(digits) if digits.isdigit() else 0
