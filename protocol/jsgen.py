@@ -32,7 +32,7 @@ from .messages import (
     PROTOCOL_VERSION,
     SERVER_TYPES,
 )
-from .params import FAMILIES
+from .params import FAMILIES, VALUE_KINDS
 
 OUTPUT = Path(__file__).resolve().parent.parent / "client" / "web" / "protocol.js"
 MSGPACK_IMPORT = "./vendor/msgpack/index.mjs"
@@ -44,17 +44,19 @@ def _js(value: Any) -> str:
 
 
 def _families() -> dict[str, dict[str, dict[str, Any]]]:
-    """params.FAMILIES as plain data: {"kind": "fixed", "shape": [...]} | vector | hand."""
+    """params.FAMILIES as plain data: {"kind": "fixed", "shape": [...]} | vector | hand, each
+    with "values": its params.VALUE_KINDS entry (which limit bounds it)."""
     out: dict[str, dict[str, dict[str, Any]]] = {}
     for family, fields in FAMILIES.items():
         out[family] = {}
         for name, (kind, arg) in fields.items():
             if kind == "fixed":
-                out[family][name] = {"kind": kind, "shape": list(arg)}
+                entry = {"kind": kind, "shape": list(arg)}
             elif kind == "vector":
-                out[family][name] = {"kind": kind, "max": arg}
+                entry = {"kind": kind, "max": arg}
             else:
-                out[family][name] = {"kind": kind, "shape": [15, 3], "max": 45}
+                entry = {"kind": kind, "shape": [15, 3], "max": 45}
+            out[family][name] = {**entry, "values": VALUE_KINDS[name]}
     return out
 
 
@@ -357,6 +359,35 @@ function sameShape(a, b) {
   return a.length === b.length && a.every((x, i) => x === b[i]);
 }
 
+function numbersOf(value) {
+  if (isPackedArray(value)) return Array.from(unpackArray(value).array, Number);
+  return Array.isArray(value) ? value.flat(4) : [value];
+}
+
+// The range check of protocol/params.py: rotations and translations bounded in norm per row of
+// 3, coefficients each in size.
+function rangeProblem(field, values, limits) {
+  let kind = field.values;
+  if (kind === "hand") kind = values.length === 45 ? "rotation" : "coefficient";
+  let worst = 0;
+  if (kind === "coefficient") {
+    for (const x of values) worst = Math.max(worst, Math.abs(x));
+  } else {
+    for (let i = 0; i + 2 < values.length; i += 3) {
+      worst = Math.max(worst, Math.hypot(values[i], values[i + 1], values[i + 2]));
+    }
+  }
+  const bound = { rotation: limits.max_rotation_rad, translation: limits.max_translation_m,
+                  coefficient: limits.max_coefficient }[kind];
+  return worst > bound ? `${kind} size ${worst} is out of range [0, ${bound}]` : null;
+}
+
+function outside(name, value, low, high, errors) {
+  if (typeof value === "number" && !(value >= low && value <= high)) {
+    errors.push(`${name} ${value} is out of range [${low}, ${high}]`);
+  }
+}
+
 function checkFamily(family, params, limits, errors) {
   const spec = FAMILIES[family];
   for (const [name, value] of Object.entries(params)) {
@@ -381,7 +412,12 @@ function checkFamily(family, params, limits, errors) {
     } else {
       ok = sameShape(got.shape, [15, 3]) || (flat && got.count >= 1 && got.count <= 45);
     }
-    if (!ok) errors.push(`${where}: shape [${got.shape}] does not fit ${JSON.stringify(field)}`);
+    if (!ok) {
+      errors.push(`${where}: shape [${got.shape}] does not fit ${JSON.stringify(field)}`);
+      continue;
+    }
+    const range = rangeProblem(field, numbersOf(value), limits);
+    if (range) errors.push(`${where}: ${range}`);
   }
 }
 
@@ -394,12 +430,28 @@ function checkRules(message, limits, errors) {
     if ((message.orbit == null) === (message.camera == null)) {
       errors.push("view: exactly one of 'orbit' and 'camera'");
     }
+    const orbit = isPlainObject(message.orbit) ? message.orbit : {};
+    outside("orbit.distance", orbit.distance, limits.min_orbit_distance_m,
+            limits.max_orbit_distance_m, errors);
+    outside("orbit.fov_y_deg", orbit.fov_y_deg, limits.min_fov_deg, limits.max_fov_deg, errors);
+    if (Array.isArray(orbit.target)) {
+      outside("orbit.target distance", Math.hypot(...orbit.target), 0, limits.max_position_m,
+              errors);
+    }
+    const camera = isPlainObject(message.camera) ? message.camera : {};
+    if (Array.isArray(camera.t)) {
+      outside("camera distance", Math.hypot(...camera.t), 0, limits.max_position_m, errors);
+    }
   } else if (message.type === "request") {
     for (const [field, limit] of [["width", "max_width"], ["height", "max_height"],
                                   ["max_fps", "max_fps"]]) {
       if (message[field] > limits[limit]) {
         errors.push(`${field} ${message[field]} exceeds the limit ${limits[limit]}`);
       }
+    }
+    if (typeof message.max_fps === "number" && message.max_fps < limits.min_fps) {
+      const range = `[${limits.min_fps}, ${limits.max_fps}]`;
+      errors.push(`max_fps ${message.max_fps} is out of range ${range}`);
     }
     if (Array.isArray(message.background) && !message.background.every((c) => c >= 0 && c <= 1)) {
       errors.push("background values must be in [0, 1]");

@@ -8,6 +8,7 @@ Every message is a msgpack map with a ``type``. Client -> server: ``hello``, ``d
 
 from __future__ import annotations
 
+import math
 from typing import Annotated, Any, Literal
 
 import numpy as np
@@ -44,6 +45,17 @@ def _limits(info: ValidationInfo) -> Limits:
     return (info.context or {}).get("limits", DEFAULT_LIMITS)
 
 
+def _within(name: str, value: float, low: float, high: float, setting: str) -> None:
+    """A ValueError naming the range (code ``invalid``) when ``value`` is outside it."""
+    if not low <= value <= high:
+        raise ValueError(f"{name} {value:.6g} is out of range [{low:.6g}, {high:.6g}] "
+                         f"(limits.{setting})")
+
+
+def _norm(v: Vec3) -> float:
+    return math.hypot(*v)
+
+
 # -- client -> server --------------------------------------------------------------------
 
 
@@ -76,7 +88,7 @@ class Drive(_Message):
         if value is None:
             return None
         try:
-            return validate_family(info.field_name, value, _limits(info).max_array_elements)
+            return validate_family(info.field_name, value, _limits(info))
         except ProtocolError as exc:
             raise ValueError(exc.message) from exc
 
@@ -91,9 +103,32 @@ class Orbit(_Message):
 
     yaw_deg: float = Field(0.0, ge=-360, le=360)
     pitch_deg: float = Field(0.0, ge=-89, le=89)
-    distance: float = Field(2.7, gt=0.05, le=100)
-    fov_y_deg: float = Field(30.0, ge=5, le=120)
+    distance: float = 2.7     # metres, within limits.min/max_orbit_distance_m
+    fov_y_deg: float = 30.0   # within limits.min/max_fov_deg
     target: Vec3 | None = None
+
+    @field_validator("distance")
+    @classmethod
+    def _distance(cls, value: float, info: ValidationInfo) -> float:
+        lim = _limits(info)
+        _within("distance", value, lim.min_orbit_distance_m, lim.max_orbit_distance_m,
+                "min_orbit_distance_m / max_orbit_distance_m")
+        return value
+
+    @field_validator("fov_y_deg")
+    @classmethod
+    def _fov(cls, value: float, info: ValidationInfo) -> float:
+        lim = _limits(info)
+        _within("fov_y_deg", value, lim.min_fov_deg, lim.max_fov_deg, "min_fov_deg / max_fov_deg")
+        return value
+
+    @field_validator("target")
+    @classmethod
+    def _target(cls, value: Vec3 | None, info: ValidationInfo) -> Vec3 | None:
+        if value is not None:
+            lim = _limits(info).max_position_m
+            _within("target distance from the origin", _norm(value), 0, lim, "max_position_m")
+        return value
 
 
 class CameraSpec(_Message):
@@ -101,18 +136,43 @@ class CameraSpec(_Message):
 
     K: tuple[Vec3, Vec3, Vec3]
     R: tuple[Vec3, Vec3, Vec3]
-    t: Vec3
-    width: int = Field(gt=0)
+    t: Vec3   # |t| is the camera centre's distance from the origin (R is a rotation)
+    width: int = Field(gt=0)    # at most limits.max_camera_size
     height: int = Field(gt=0)
 
+    @field_validator("width", "height")
+    @classmethod
+    def _size(cls, value: int, info: ValidationInfo) -> int:
+        _within(info.field_name, value, 1, _limits(info).max_camera_size, "max_camera_size")
+        return value
+
+    @field_validator("t")
+    @classmethod
+    def _position(cls, value: Vec3, info: ValidationInfo) -> Vec3:
+        lim = _limits(info).max_position_m
+        _within("camera distance from the origin", _norm(value), 0, lim, "max_position_m")
+        return value
+
     @model_validator(mode="after")
-    def _proper(self) -> CameraSpec:
+    def _proper(self, info: ValidationInfo) -> CameraSpec:
         R = np.asarray(self.R)
-        if abs(np.linalg.det(R) - 1) > 1e-3 or not np.allclose(R @ R.T, np.eye(3), atol=1e-3):
+        if (np.abs(R).max() > 1 + 1e-3 or abs(np.linalg.det(R) - 1) > 1e-3
+                or not np.allclose(R @ R.T, np.eye(3), atol=1e-3)):
             raise ValueError("R must be a rotation matrix (orthonormal, det +1)")
         K = np.asarray(self.K)
         if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0, 0, 1]):
             raise ValueError("K must have positive focal lengths and a last row [0, 0, 1]")
+        # Sane intrinsics: square-ish pixels, little skew, the principal point near the image.
+        fx, fy = K[0, 0], K[1, 1]
+        if not (0.5 <= fx / fy <= 2 and abs(K[0, 1]) <= fx
+                and abs(K[0, 2] - self.width / 2) <= self.width
+                and abs(K[1, 2] - self.height / 2) <= self.height):
+            raise ValueError("K must have fx / fy in [0.5, 2], |skew| <= fx and the principal "
+                             "point within one image size of the image centre")
+        lim = _limits(info)
+        fov = math.degrees(2 * math.atan(self.height / (2 * fy)))
+        _within("vertical field of view (deg)", fov, lim.min_fov_deg, lim.max_fov_deg,
+                "min_fov_deg / max_fov_deg")
         return self
 
 
@@ -140,10 +200,10 @@ class Request(_Message):
     height: int | None = Field(None, ge=16)
     background: Vec3 | None = None
     sh_degree: int | None = Field(None, ge=0, le=3)
-    quality: float | None = Field(None, gt=0, le=1)   # fraction of the Gaussians rendered
+    quality: float | None = Field(None, ge=0.01, le=1)  # fraction of the Gaussians rendered
     jpeg_quality: int | None = Field(None, ge=1, le=100)
     codec: Literal["jpeg", "png", "h264"] | None = None
-    max_fps: float | None = Field(None, gt=0)
+    max_fps: float | None = Field(None, gt=0)  # within limits.min_fps .. limits.max_fps
 
     @field_validator("background")
     @classmethod
@@ -161,6 +221,9 @@ class Request(_Message):
             raise ValueError(f"height {self.height} exceeds the limit {lim.max_height}")
         if self.max_fps is not None and self.max_fps > lim.max_fps:
             raise ValueError(f"max_fps {self.max_fps} exceeds the limit {lim.max_fps}")
+        if self.max_fps is not None and self.max_fps < lim.min_fps:
+            raise ValueError(f"max_fps {self.max_fps:.6g} is out of range "
+                             f"[{lim.min_fps:.6g}, {lim.max_fps:.6g}] (limits.min_fps)")
         return self
 
 

@@ -14,6 +14,7 @@ import numpy as np
 
 from .arrays import to_array
 from .errors import ProtocolError
+from .limits import Limits
 
 # field -> ("fixed", shape) or ("vector", max length) or ("hand", ()): [15, 3], [45] or
 # PCA coefficients [n <= 45].
@@ -33,6 +34,17 @@ FLAME_FIELDS: dict[str, FieldSpec] = {
 MANO_FIELDS: dict[str, FieldSpec] = {
     "betas": ("vector", 10), "global_orient": ("fixed", (3,)), "hand_pose": ("hand", ()),
     "transl": ("fixed", (3,)),
+}
+# What a parameter's values are, for their range check against the Limits: "rotation" (rows
+# of axis-angle, bounded in norm), "coefficient" (each bounded in size), "translation" (bounded
+# in norm), or "hand" (a full [15, 3] / [45] pose is rotations, fewer numbers PCA coefficients).
+VALUE_KINDS: dict[str, str] = {
+    "betas": "coefficient", "expression": "coefficient", "shape": "coefficient",
+    "expr": "coefficient", "global_orient": "rotation", "body_pose": "rotation",
+    "jaw_pose": "rotation", "leye_pose": "rotation", "reye_pose": "rotation",
+    "rotation": "rotation", "neck_pose": "rotation", "eyes_pose": "rotation",
+    "left_hand_pose": "hand", "right_hand_pose": "hand", "hand_pose": "hand",
+    "transl": "translation", "translation": "translation",
 }
 # drive field -> the family's fields
 FAMILIES: dict[str, dict[str, FieldSpec]] = {
@@ -55,8 +67,33 @@ def _shape_ok(arr: np.ndarray, spec: FieldSpec) -> tuple[bool, np.ndarray, str]:
     return ok, arr, "[15, 3], [45] or [n <= 45] PCA coefficients"
 
 
-def validate_family(family: str, values: Any, max_elements: int) -> dict[str, np.ndarray]:
-    """One family's partial parameters as float64 arrays of their per-frame shapes."""
+def value_range(name: str, size: int, limits: Limits) -> tuple[str, float, str]:
+    """(kind, bound, description) of a parameter's values: kind "norm" bounds each row of 3,
+    kind "abs" each value."""
+    kind = VALUE_KINDS[name]
+    if kind == "hand":
+        kind = "rotation" if size == 45 else "coefficient"
+    if kind == "rotation":
+        return "norm", limits.max_rotation_rad, "rotation angle (norm of each axis-angle row)"
+    if kind == "translation":
+        return "norm", limits.max_translation_m, "translation norm (m)"
+    return "abs", limits.max_coefficient, "coefficient size"
+
+
+def check_range(family: str, name: str, arr: np.ndarray, limits: Limits) -> None:
+    """ProtocolError("invalid") naming the field and its range when a value is out of it."""
+    how, bound, what = value_range(name, arr.size, limits)
+    worst = float(np.abs(arr).max(initial=0.0))
+    if how == "norm" and worst <= bound:  # each value in range first: the norm cannot overflow
+        worst = float(np.linalg.norm(arr.reshape(-1, 3), axis=1).max(initial=0.0))
+    if worst > bound:
+        raise ProtocolError("invalid", f"{family}.{name}: {what} {worst:.6g} is out of range "
+                                       f"[0, {bound:.6g}]")
+
+
+def validate_family(family: str, values: Any, limits: Limits) -> dict[str, np.ndarray]:
+    """One family's partial parameters as float64 arrays of their per-frame shapes, each value
+    within the limits' ranges."""
     spec = FAMILIES.get(family)
     if spec is None:
         raise ProtocolError("invalid", f"unknown parameter family {family!r}; "
@@ -69,10 +106,11 @@ def validate_family(family: str, values: Any, max_elements: int) -> dict[str, np
                                        f"expected some of {sorted(spec)}")
     out = {}
     for name, value in values.items():
-        arr = to_array(value, max_elements, f"{family}.{name}")
+        arr = to_array(value, limits.max_array_elements, f"{family}.{name}")
         ok, arr, want = _shape_ok(arr, spec[name])
         if not ok:
             raise ProtocolError("invalid", f"{family}.{name}: expected shape {want}, "
                                            f"got {list(arr.shape)}")
+        check_range(family, name, arr, limits)
         out[name] = arr
     return out

@@ -125,7 +125,7 @@ def test_js_encoded_client_messages_decode_in_python(run_js):
         {type: "hello", version: P.PROTOCOL_VERSION, client: "js", token: null},
         {type: "drive", seq: 7, reset: true,
          smplx: {jaw_pose: new Float32Array([0.1, 0.2, 0.3]),
-                 body_pose: Array.from({length: 21}, (_, i) => [i, 0, -i]),
+                 body_pose: Array.from({length: 21}, (_, i) => [i / 8, 0, -i / 8]),
                  left_hand_pose: new Float32Array(45).fill(0.25),
                  expression: P.packArray(new Float64Array([1, -1]), [2])},
          flame: {expr: [0.5, 0.25]}, mano_right: {hand_pose: new Float32Array(6)}},
@@ -148,7 +148,7 @@ def test_js_encoded_client_messages_decode_in_python(run_js):
     assert hello.version == PROTOCOL_VERSION and hello.client == "js" and hello.token is None
     assert drive.seq == 7 and drive.reset
     np.testing.assert_allclose(drive.smplx["jaw_pose"], [0.1, 0.2, 0.3], rtol=1e-6)
-    assert drive.smplx["body_pose"].shape == (21, 3) and drive.smplx["body_pose"][4, 2] == -4
+    assert drive.smplx["body_pose"].shape == (21, 3) and drive.smplx["body_pose"][4, 2] == -0.5
     assert drive.smplx["left_hand_pose"].shape == (15, 3)
     assert (drive.smplx["left_hand_pose"] == 0.25).all()
     np.testing.assert_array_equal(drive.smplx["expression"], [1, -1])
@@ -225,18 +225,25 @@ BAD = [
     {"type": "drive", "seq": 1, "smplx": {"jaw_pose": _nd([0, 0, 0], ">f4")}},
     {"type": "drive", "seq": 1, "flame": {"expr": [0.0] * 101}},
     {"type": "drive", "seq": 1, "mano_left": {"hand_pose": [0.0] * 46}},
+    {"type": "drive", "seq": 1, "smplx": {"betas": [1e300]}},               # out of range
+    {"type": "drive", "seq": 1, "smplx": {"leye_pose": _nd([1e38, 0, 0])}},
+    {"type": "drive", "seq": 1, "flame": {"translation": [0, 0, 11]}},
+    {"type": "drive", "seq": 1, "mano_right": {"hand_pose": [11.0] * 6}},
     {"type": "view"},
     {"type": "view", "orbit": {"yaw_deg": 0}, "camera": {
         "K": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "R": [[1, 0, 0], [0, 1, 0], [0, 0, 1]],
         "t": [0, 0, 0], "width": 4, "height": 4}},
     {"type": "view", "orbit": {"pitch_deg": 100}},
     {"type": "view", "orbit": {"distance": 0}},
+    {"type": "view", "orbit": {"fov_y_deg": 1e-9}},
+    {"type": "view", "orbit": {"target": [0, 1e200, 0]}},
     {"type": "request", "width": 5000},
     {"type": "request", "width": 8},
     {"type": "request", "background": [2, 0, 0]},
     {"type": "request", "codec": "gif"},
     {"type": "request", "outputs": []},
     {"type": "request", "max_fps": 500},
+    {"type": "request", "max_fps": 0.001},
     {"type": "image", "seq": 1, "data": b""},
     {"type": "image", "seq": 1, "format": "bmp", "data": b"x"},
     {"type": "hello", "token": "x" * 600},

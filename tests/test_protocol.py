@@ -36,6 +36,7 @@ from protocol import (
     unpack_array,
 )
 from protocol.messages import Answers
+from protocol.params import FAMILIES, VALUE_KINDS
 
 EYE = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
 K = ((500.0, 0.0, 256.0), (0.0, 500.0, 256.0), (0.0, 0.0, 1.0))
@@ -136,6 +137,27 @@ BAD_CLIENT = [
     (_raw(type="view", orbit={"pitch_deg": 95}), "invalid"),
     (_raw(type="view", camera={"K": K, "R": ((2, 0, 0), (0, 1, 0), (0, 0, 1)),
                                "t": (0, 0, 1), "width": 4, "height": 4}), "invalid"),
+    # finite but absurd values: refused at the boundary (finding 6 of issue 13)
+    (_raw(type="drive", seq=1, smplx={"betas": [1e300]}), "invalid"),
+    (_raw(type="drive", seq=1, smplx={"leye_pose": [1e38, 0, 0]}), "invalid"),
+    (_raw(type="drive", seq=1, smplx={"body_pose": [0.0] * 62 + [13.0]}), "invalid"),
+    (_raw(type="drive", seq=1, smplx={"transl": [0, 0, 1e9]}), "invalid"),
+    (_raw(type="drive", seq=1, flame={"eyes_pose": [0, 0, 0, 0, 1e30, 0]}), "invalid"),
+    (_raw(type="drive", seq=1, flame={"expr": [0.0, -11.0]}), "invalid"),
+    (_raw(type="drive", seq=1, mano_left={"hand_pose": [20.0] * 6}), "invalid"),   # PCA
+    (_raw(type="drive", seq=1, mano_right={"hand_pose": [9.0] * 45}), "invalid"),  # angles
+    (_raw(type="view", orbit={"distance": 1e12}), "invalid"),
+    (_raw(type="view", orbit={"distance": 0.0}), "invalid"),
+    (_raw(type="view", orbit={"fov_y_deg": 1e-30}), "invalid"),
+    (_raw(type="view", orbit={"target": (0, 1e300, 0)}), "invalid"),
+    (_raw(type="view", camera={"K": K, "R": EYE, "t": (0, 0, 1e6), "width": 512,
+                               "height": 512}), "invalid"),
+    (_raw(type="view", camera={"K": ((1e300, 0, 256), (0, 1e300, 256), (0, 0, 1)), "R": EYE,
+                               "t": (0, 0, 3), "width": 512, "height": 512}), "invalid"),
+    (_raw(type="view", camera={"K": K, "R": EYE, "t": (0, 0, 3), "width": 10**9,
+                               "height": 512}), "invalid"),
+    (_raw(type="request", max_fps=0.001), "invalid"),
+    (_raw(type="request", quality=1e-300), "invalid"),
     (_raw(type="request", width=10**6), "too_large"),
     (_raw(type="request", max_fps=1000), "too_large"),
     (_raw(type="request", codec="gif"), "invalid"),
@@ -161,6 +183,33 @@ def test_errors_say_which_message_they_answer():
     assert "jaw_pose" in err.value.message
 
 
+def test_range_errors_name_the_field_and_the_range():
+    with pytest.raises(ProtocolError) as err:
+        decode_client(_raw(type="drive", seq=5, smplx={"betas": [1.0, 1e300]}))
+    assert err.value.code == "invalid" and err.value.answers == {"type": "drive", "seq": 5}
+    assert "smplx.betas" in err.value.message and "[0, 10]" in err.value.message
+    with pytest.raises(ProtocolError) as err:
+        decode_client(_raw(type="request", max_fps=0.001))
+    assert "max_fps" in err.value.message and "[1, 60]" in err.value.message
+
+
+def test_value_ranges_are_configurable_and_sent_in_welcome():
+    tight = Limits(max_coefficient=2.0, max_rotation_rad=1.0, min_fps=5.0,
+                   max_orbit_distance_m=3.0)
+    assert decode_client(_raw(type="drive", seq=1, smplx={"betas": [3.0]})).smplx
+    for raw in (_raw(type="drive", seq=1, smplx={"betas": [3.0]}),
+                _raw(type="drive", seq=1, smplx={"jaw_pose": [0.8, 0.8, 0]}),
+                _raw(type="request", max_fps=2.0),
+                _raw(type="view", orbit={"distance": 4.0})):
+        with pytest.raises(ProtocolError) as err:
+            decode_client(raw, tight)
+        assert err.value.code == "invalid", err.value.message
+    welcome = decode_server(encode(SERVER_EXAMPLES[0].model_copy(update={"limits": tight})))
+    assert welcome.limits == tight
+    with pytest.raises(ValueError):
+        Limits(min_fps=10, max_fps=5)
+
+
 def test_size_limits_come_before_parsing_and_are_configurable():
     small = Limits(max_message_bytes=1024, max_array_elements=64)
     big = encode(Drive(seq=1, smplx={"betas": np.zeros(200)}))
@@ -182,7 +231,8 @@ def test_unbatched_shapes_are_normalised():
 
 # -- property tests --------------------------------------------------------------------------
 
-_finite = st.floats(-1e6, 1e6, allow_nan=False, allow_infinity=False, width=32)
+_finite = st.floats(-7.0, 7.0, allow_nan=False, allow_infinity=False, width=32)  # in range
+_any_finite = st.floats(allow_nan=False, allow_infinity=False)
 
 
 @st.composite
@@ -193,7 +243,7 @@ def drives(draw):
     if draw(st.booleans()):
         smplx["expression"] = draw(st.lists(_finite, min_size=1, max_size=100))
     if draw(st.booleans()):
-        n = draw(st.integers(1, 45))
+        n = draw(st.integers(1, 44))
         smplx["left_hand_pose"] = np.asarray(draw(st.lists(_finite, min_size=n, max_size=n)),
                                              dtype=np.float32)
     flame = {"jaw_pose": draw(st.lists(_finite, min_size=3, max_size=3))} \
@@ -212,6 +262,71 @@ def test_valid_drives_round_trip(drive):
         assert got.keys() == values.keys()
         for k, v in values.items():
             np.testing.assert_allclose(got[k].reshape(-1), np.asarray(v, np.float64).reshape(-1))
+
+
+def _size(spec) -> st.SearchStrategy[int]:
+    kind, arg = spec
+    if kind == "fixed":
+        return st.just(math.prod(arg))
+    return st.integers(1, arg if kind == "vector" else 45)
+
+
+@st.composite
+def wild_drives(draw):
+    """Every family's fields, shape-valid, with any finite float64 (1e300 and 1e-300 too)."""
+    families = {}
+    for family, spec in FAMILIES.items():
+        names = draw(st.lists(st.sampled_from(sorted(spec)), unique=True, max_size=len(spec)))
+        families[family] = {name: draw(st.lists(_any_finite, min_size=n, max_size=n))
+                            for name in names for n in [draw(_size(spec[name]))]}
+    return {"type": "drive", "seq": 1, **{f: v for f, v in families.items() if v}}
+
+
+def _within_limits(values: np.ndarray, name: str, lim: Limits) -> bool:
+    kind = VALUE_KINDS[name]
+    if kind == "hand":
+        kind = "rotation" if values.size == 45 else "coefficient"
+    if kind == "coefficient":
+        return bool(np.abs(values).max() <= lim.max_coefficient)
+    rows = np.linalg.norm(values.reshape(-1, 3), axis=1)
+    return bool(rows.max() <= (lim.max_rotation_rad if kind == "rotation"
+                               else lim.max_translation_m))
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(wild_drives())
+def test_any_finite_drive_is_refused_cleanly_or_within_limits(raw):
+    try:
+        drive = decode_client(msgpack.packb(raw, use_bin_type=True))
+    except ProtocolError as exc:
+        assert exc.code == "invalid" and exc.message
+        return
+    for family, values in drive.families().items():
+        for name, arr in values.items():
+            assert np.isfinite(arr).all() and _within_limits(arr, name, Limits()), \
+                (family, name, arr)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.fixed_dictionaries({}, optional={
+    "distance": _any_finite, "fov_y_deg": _any_finite, "yaw_deg": _any_finite,
+    "target": st.tuples(_any_finite, _any_finite, _any_finite)}),
+    st.one_of(st.none(), _any_finite))
+def test_any_finite_view_or_rate_is_refused_cleanly_or_within_limits(orbit, max_fps):
+    lim = Limits()
+    try:
+        view = decode_client(_raw(type="view", orbit=orbit))
+        o = view.orbit
+        assert lim.min_orbit_distance_m <= o.distance <= lim.max_orbit_distance_m
+        assert lim.min_fov_deg <= o.fov_y_deg <= lim.max_fov_deg
+        assert o.target is None or math.hypot(*o.target) <= lim.max_position_m
+    except ProtocolError as exc:
+        assert exc.code == "invalid"
+    try:
+        req = decode_client(_raw(type="request", max_fps=max_fps))
+        assert req.max_fps is None or lim.min_fps <= req.max_fps <= lim.max_fps
+    except ProtocolError as exc:
+        assert exc.code in ("invalid", "too_large")
 
 
 _msgpack_values = st.recursive(

@@ -1,9 +1,17 @@
 // Sliders for the jaw, the expression coefficients and the hands, turned into partial
-// SMPL-X updates (only what the slider touches is sent).
+// SMPL-X updates (only what the slider touches is sent). Slider ranges stay inside the value
+// ranges of the session's limits (sent in welcome), which the server enforces.
+
+import { DEFAULT_LIMITS } from "./protocol.js";
 
 const EXPRESSION_SLIDERS = 10;
 // SMPL-X hand joints: index, middle, pinky, ring (3 each), then the thumb (3).
 const FINGER_JOINTS = 12;
+
+// A range [min, max] cut to [-bound, bound].
+function within(range, bound) {
+  return { ...range, min: Math.max(range.min, -bound), max: Math.min(range.max, bound) };
+}
 
 function slider(container, label, { min, max, step = 0.01, value = 0 }, onInput) {
   const row = document.createElement("label");
@@ -41,22 +49,24 @@ export class Controls {
     this.inputs = [];
   }
 
-  build(expressionNames = []) {
+  build(expressionNames = [], limits = DEFAULT_LIMITS) {
     this.container.replaceChildren();
+    const angle = (range) => within(range, limits.max_rotation_rad);
+    const coefficient = (range) => within(range, limits.max_coefficient);
     const jaw = () => this.send({ smplx: { jaw_pose: new Float32Array([this.jaw.open, this.jaw.side, 0]) } });
     this.inputs = [
-      slider(this.container, "jaw open", { min: 0, max: 0.5 }, (v) => { this.jaw.open = v; jaw(); }),
-      slider(this.container, "jaw side", { min: -0.2, max: 0.2 }, (v) => { this.jaw.side = v; jaw(); }),
+      slider(this.container, "jaw open", angle({ min: 0, max: 0.5 }), (v) => { this.jaw.open = v; jaw(); }),
+      slider(this.container, "jaw side", angle({ min: -0.2, max: 0.2 }), (v) => { this.jaw.side = v; jaw(); }),
     ];
     for (let i = 0; i < EXPRESSION_SLIDERS; i += 1) {
       const label = expressionNames[i] || `expression ${i}`;
-      this.inputs.push(slider(this.container, label, { min: -1.5, max: 1.5 }, (v) => {
+      this.inputs.push(slider(this.container, label, coefficient({ min: -1.5, max: 1.5 }), (v) => {
         this.expression[i] = v;
         this.send({ smplx: { expression: Float32Array.from(this.expression) } });
       }));
     }
     for (const [side, sign] of [["left", -1], ["right", 1]]) {
-      this.inputs.push(slider(this.container, `${side} hand curl`, { min: -0.3, max: 1.5 }, (v) => {
+      this.inputs.push(slider(this.container, `${side} hand curl`, angle({ min: -0.3, max: 1.5 }), (v) => {
         this.send({ smplx: { [`${side}_hand_pose`]: handPose(v, sign) } });
       }));
     }

@@ -54,67 +54,86 @@ export const ND_KEY = Object.freeze("nd");
 
 export const DEFAULT_LIMITS = Object.freeze({
   "max_array_elements": 4096,
+  "max_camera_size": 16384,
+  "max_coefficient": 10.0,
+  "max_fov_deg": 120.0,
   "max_fps": 60.0,
   "max_height": 1080,
   "max_image_bytes": 4194304,
   "max_image_pixels": 2073600,
   "max_message_bytes": 8388608,
   "max_messages_per_s": 240.0,
+  "max_orbit_distance_m": 100.0,
+  "max_position_m": 100.0,
+  "max_rotation_rad": 12.566370614359172,
   "max_string_chars": 4096,
-  "max_width": 1920
+  "max_translation_m": 10.0,
+  "max_width": 1920,
+  "min_fov_deg": 5.0,
+  "min_fps": 1.0,
+  "min_orbit_distance_m": 0.05
 });
 
 export const FAMILIES = Object.freeze({
   "flame": {
     "expr": {
       "kind": "vector",
-      "max": 100
+      "max": 100,
+      "values": "coefficient"
     },
     "eyes_pose": {
       "kind": "fixed",
       "shape": [
         6
-      ]
+      ],
+      "values": "rotation"
     },
     "jaw_pose": {
       "kind": "fixed",
       "shape": [
         3
-      ]
+      ],
+      "values": "rotation"
     },
     "neck_pose": {
       "kind": "fixed",
       "shape": [
         3
-      ]
+      ],
+      "values": "rotation"
     },
     "rotation": {
       "kind": "fixed",
       "shape": [
         3
-      ]
+      ],
+      "values": "rotation"
     },
     "shape": {
       "kind": "vector",
-      "max": 300
+      "max": 300,
+      "values": "coefficient"
     },
     "translation": {
       "kind": "fixed",
       "shape": [
         3
-      ]
+      ],
+      "values": "translation"
     }
   },
   "mano_left": {
     "betas": {
       "kind": "vector",
-      "max": 10
+      "max": 10,
+      "values": "coefficient"
     },
     "global_orient": {
       "kind": "fixed",
       "shape": [
         3
-      ]
+      ],
+      "values": "rotation"
     },
     "hand_pose": {
       "kind": "hand",
@@ -122,25 +141,29 @@ export const FAMILIES = Object.freeze({
       "shape": [
         15,
         3
-      ]
+      ],
+      "values": "hand"
     },
     "transl": {
       "kind": "fixed",
       "shape": [
         3
-      ]
+      ],
+      "values": "translation"
     }
   },
   "mano_right": {
     "betas": {
       "kind": "vector",
-      "max": 10
+      "max": 10,
+      "values": "coefficient"
     },
     "global_orient": {
       "kind": "fixed",
       "shape": [
         3
-      ]
+      ],
+      "values": "rotation"
     },
     "hand_pose": {
       "kind": "hand",
@@ -148,42 +171,49 @@ export const FAMILIES = Object.freeze({
       "shape": [
         15,
         3
-      ]
+      ],
+      "values": "hand"
     },
     "transl": {
       "kind": "fixed",
       "shape": [
         3
-      ]
+      ],
+      "values": "translation"
     }
   },
   "smplx": {
     "betas": {
       "kind": "vector",
-      "max": 300
+      "max": 300,
+      "values": "coefficient"
     },
     "body_pose": {
       "kind": "fixed",
       "shape": [
         21,
         3
-      ]
+      ],
+      "values": "rotation"
     },
     "expression": {
       "kind": "vector",
-      "max": 100
+      "max": 100,
+      "values": "coefficient"
     },
     "global_orient": {
       "kind": "fixed",
       "shape": [
         3
-      ]
+      ],
+      "values": "rotation"
     },
     "jaw_pose": {
       "kind": "fixed",
       "shape": [
         3
-      ]
+      ],
+      "values": "rotation"
     },
     "left_hand_pose": {
       "kind": "hand",
@@ -191,19 +221,22 @@ export const FAMILIES = Object.freeze({
       "shape": [
         15,
         3
-      ]
+      ],
+      "values": "hand"
     },
     "leye_pose": {
       "kind": "fixed",
       "shape": [
         3
-      ]
+      ],
+      "values": "rotation"
     },
     "reye_pose": {
       "kind": "fixed",
       "shape": [
         3
-      ]
+      ],
+      "values": "rotation"
     },
     "right_hand_pose": {
       "kind": "hand",
@@ -211,13 +244,15 @@ export const FAMILIES = Object.freeze({
       "shape": [
         15,
         3
-      ]
+      ],
+      "values": "hand"
     },
     "transl": {
       "kind": "fixed",
       "shape": [
         3
-      ]
+      ],
+      "values": "translation"
     }
   }
 });
@@ -752,6 +787,25 @@ export const SCHEMA_DEFS = Object.freeze({
         "title": "Max Array Elements",
         "type": "integer"
       },
+      "max_camera_size": {
+        "default": 16384,
+        "minimum": 16,
+        "title": "Max Camera Size",
+        "type": "integer"
+      },
+      "max_coefficient": {
+        "default": 10.0,
+        "exclusiveMinimum": 0,
+        "title": "Max Coefficient",
+        "type": "number"
+      },
+      "max_fov_deg": {
+        "default": 120.0,
+        "exclusiveMaximum": 180,
+        "exclusiveMinimum": 0,
+        "title": "Max Fov Deg",
+        "type": "number"
+      },
       "max_fps": {
         "default": 60.0,
         "exclusiveMinimum": 0,
@@ -788,17 +842,60 @@ export const SCHEMA_DEFS = Object.freeze({
         "title": "Max Messages Per S",
         "type": "number"
       },
+      "max_orbit_distance_m": {
+        "default": 100.0,
+        "exclusiveMinimum": 0,
+        "title": "Max Orbit Distance M",
+        "type": "number"
+      },
+      "max_position_m": {
+        "default": 100.0,
+        "exclusiveMinimum": 0,
+        "title": "Max Position M",
+        "type": "number"
+      },
+      "max_rotation_rad": {
+        "default": 12.566370614359172,
+        "exclusiveMinimum": 0,
+        "title": "Max Rotation Rad",
+        "type": "number"
+      },
       "max_string_chars": {
         "default": 4096,
         "minimum": 64,
         "title": "Max String Chars",
         "type": "integer"
       },
+      "max_translation_m": {
+        "default": 10.0,
+        "exclusiveMinimum": 0,
+        "title": "Max Translation M",
+        "type": "number"
+      },
       "max_width": {
         "default": 1920,
         "minimum": 16,
         "title": "Max Width",
         "type": "integer"
+      },
+      "min_fov_deg": {
+        "default": 5.0,
+        "exclusiveMaximum": 180,
+        "exclusiveMinimum": 0,
+        "title": "Min Fov Deg",
+        "type": "number"
+      },
+      "min_fps": {
+        "default": 1.0,
+        "exclusiveMinimum": 0,
+        "title": "Min Fps",
+        "type": "number"
+      },
+      "min_orbit_distance_m": {
+        "default": 0.05,
+        "exclusiveMinimum": 0,
+        "title": "Min Orbit Distance M",
+        "type": "number"
       }
     },
     "title": "Limits",
@@ -810,15 +907,11 @@ export const SCHEMA_DEFS = Object.freeze({
     "properties": {
       "distance": {
         "default": 2.7,
-        "exclusiveMinimum": 0.05,
-        "maximum": 100,
         "title": "Distance",
         "type": "number"
       },
       "fov_y_deg": {
         "default": 30.0,
-        "maximum": 120,
-        "minimum": 5,
         "title": "Fov Y Deg",
         "type": "number"
       },
@@ -1013,8 +1106,8 @@ export const SCHEMA_DEFS = Object.freeze({
       "quality": {
         "anyOf": [
           {
-            "exclusiveMinimum": 0,
             "maximum": 1,
+            "minimum": 0.01,
             "type": "number"
           },
           {
@@ -1499,6 +1592,35 @@ function sameShape(a, b) {
   return a.length === b.length && a.every((x, i) => x === b[i]);
 }
 
+function numbersOf(value) {
+  if (isPackedArray(value)) return Array.from(unpackArray(value).array, Number);
+  return Array.isArray(value) ? value.flat(4) : [value];
+}
+
+// The range check of protocol/params.py: rotations and translations bounded in norm per row of
+// 3, coefficients each in size.
+function rangeProblem(field, values, limits) {
+  let kind = field.values;
+  if (kind === "hand") kind = values.length === 45 ? "rotation" : "coefficient";
+  let worst = 0;
+  if (kind === "coefficient") {
+    for (const x of values) worst = Math.max(worst, Math.abs(x));
+  } else {
+    for (let i = 0; i + 2 < values.length; i += 3) {
+      worst = Math.max(worst, Math.hypot(values[i], values[i + 1], values[i + 2]));
+    }
+  }
+  const bound = { rotation: limits.max_rotation_rad, translation: limits.max_translation_m,
+                  coefficient: limits.max_coefficient }[kind];
+  return worst > bound ? `${kind} size ${worst} is out of range [0, ${bound}]` : null;
+}
+
+function outside(name, value, low, high, errors) {
+  if (typeof value === "number" && !(value >= low && value <= high)) {
+    errors.push(`${name} ${value} is out of range [${low}, ${high}]`);
+  }
+}
+
 function checkFamily(family, params, limits, errors) {
   const spec = FAMILIES[family];
   for (const [name, value] of Object.entries(params)) {
@@ -1523,7 +1645,12 @@ function checkFamily(family, params, limits, errors) {
     } else {
       ok = sameShape(got.shape, [15, 3]) || (flat && got.count >= 1 && got.count <= 45);
     }
-    if (!ok) errors.push(`${where}: shape [${got.shape}] does not fit ${JSON.stringify(field)}`);
+    if (!ok) {
+      errors.push(`${where}: shape [${got.shape}] does not fit ${JSON.stringify(field)}`);
+      continue;
+    }
+    const range = rangeProblem(field, numbersOf(value), limits);
+    if (range) errors.push(`${where}: ${range}`);
   }
 }
 
@@ -1536,12 +1663,28 @@ function checkRules(message, limits, errors) {
     if ((message.orbit == null) === (message.camera == null)) {
       errors.push("view: exactly one of 'orbit' and 'camera'");
     }
+    const orbit = isPlainObject(message.orbit) ? message.orbit : {};
+    outside("orbit.distance", orbit.distance, limits.min_orbit_distance_m,
+            limits.max_orbit_distance_m, errors);
+    outside("orbit.fov_y_deg", orbit.fov_y_deg, limits.min_fov_deg, limits.max_fov_deg, errors);
+    if (Array.isArray(orbit.target)) {
+      outside("orbit.target distance", Math.hypot(...orbit.target), 0, limits.max_position_m,
+              errors);
+    }
+    const camera = isPlainObject(message.camera) ? message.camera : {};
+    if (Array.isArray(camera.t)) {
+      outside("camera distance", Math.hypot(...camera.t), 0, limits.max_position_m, errors);
+    }
   } else if (message.type === "request") {
     for (const [field, limit] of [["width", "max_width"], ["height", "max_height"],
                                   ["max_fps", "max_fps"]]) {
       if (message[field] > limits[limit]) {
         errors.push(`${field} ${message[field]} exceeds the limit ${limits[limit]}`);
       }
+    }
+    if (typeof message.max_fps === "number" && message.max_fps < limits.min_fps) {
+      const range = `[${limits.min_fps}, ${limits.max_fps}]`;
+      errors.push(`max_fps ${message.max_fps} is out of range ${range}`);
     }
     if (Array.isArray(message.background) && !message.background.every((c) => c >= 0 && c <= 1)) {
       errors.push("background values must be in [0, 1]");
