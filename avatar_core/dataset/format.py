@@ -15,17 +15,19 @@ from __future__ import annotations
 import math
 import re
 from dataclasses import dataclass, field
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any
 
 import numpy as np
 
+from ..bounded_npz import NpzLimits
 from ..render.camera import Camera
 
 __all__ = [
     "CAMERAS_JSON", "CameraSpec", "DATASET_JSON", "FORMAT_NAME", "FORMAT_VERSION",
     "IMAGE_FORMATS", "KINDS", "MASK_FORMAT", "PARAMS_NPZ", "ROOT_CONVENTIONS", "SPLITS_JSON",
-    "check_name", "frame_file", "opencv_to_engine_K", "view_path",
+    "PARAMS_NPZ_LIMITS", "check_name", "frame_file", "inside", "opencv_to_engine_K",
+    "view_path",
 ]
 
 FORMAT_NAME = "telesplat.dataset"
@@ -41,6 +43,9 @@ KINDS = ("images", "masks", "parts")  # folder names of the three per-view files
 ROOT_CONVENTIONS = ("smplx", "origin")
 
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
+_DRIVE = re.compile(r"^[A-Za-z]:")
+# params.npz is read within these bounds (a few MB in practice: [T, ~200] floats).
+PARAMS_NPZ_LIMITS = NpzLimits(max_array_bytes=256 * 2**20, max_total_bytes=512 * 2**20)
 
 
 def check_name(name: Any, what: str) -> str:
@@ -48,6 +53,24 @@ def check_name(name: Any, what: str) -> str:
     if not isinstance(name, str) or not _NAME.match(name):
         raise ValueError(f"{what} name {name!r} must match {_NAME.pattern} (it names a folder)")
     return name
+
+
+def inside(root: Path, rel: Any) -> Path | None:
+    """``root / rel`` when ``rel`` is a relative path that stays inside ``root`` (no absolute
+    path, drive, backslash or '..'; symlinks resolved), else None. Nothing outside ``root`` is
+    looked at, so the answer cannot tell whether such a path exists."""
+    if not isinstance(rel, str) or not rel or "\x00" in rel or "\\" in rel or _DRIVE.match(rel):
+        return None
+    parts = PurePosixPath(rel)
+    if parts.is_absolute() or ".." in parts.parts:
+        return None
+    target = Path(root).joinpath(*parts.parts)
+    try:
+        if not target.resolve().is_relative_to(Path(root).resolve()):
+            return None
+    except (OSError, RuntimeError):  # a symlink loop
+        return None
+    return target
 
 
 def frame_file(frame: int, ext: str) -> str:

@@ -10,14 +10,17 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from ..bounded_npz import NpzLimits, read_npz
 from ..render.camera import Camera
 from .format import (
     CAMERAS_JSON,
     DATASET_JSON,
     MASK_FORMAT,
     PARAMS_NPZ,
+    PARAMS_NPZ_LIMITS,
     SPLITS_JSON,
     CameraSpec,
+    inside,
     view_path,
 )
 from .imageio import decode_gray, decode_rgb
@@ -72,8 +75,9 @@ class Dataset:
     """A loaded dataset. Parameters are read once per sequence and cached (read-only)."""
 
     def __init__(self, root: Path, meta: dict[str, Any], cameras: dict[str, CameraSpec],
-                 splits: dict[str, Split]) -> None:
+                 splits: dict[str, Split], npz_limits: NpzLimits = PARAMS_NPZ_LIMITS) -> None:
         self.root = root
+        self.npz_limits = npz_limits
         self.meta = meta
         self.cameras = cameras
         self.sequences = {s: int(e["num_frames"]) for s, e in meta["sequences"].items()}
@@ -128,9 +132,8 @@ class Dataset:
         with self._lock:
             cached = self._params.get(sequence)
         if cached is None:
-            with np.load(self.root / "sequences" / sequence / PARAMS_NPZ,
-                         allow_pickle=False) as npz:
-                cached = {k: _read_only(npz[k]) for k in npz.files}
+            arrays = read_npz(self.root / "sequences" / sequence / PARAMS_NPZ, self.npz_limits)
+            cached = {k: _read_only(v) for k, v in arrays.items()}
             with self._lock:
                 self._params[sequence] = cached
         return dict(cached)
@@ -180,7 +183,13 @@ class Dataset:
     def source(self, split: str) -> Dataset:
         """The dataset a split's views come from: this one, or the one its "dataset" names."""
         s = self._split(split)
-        return self if s.dataset is None else load_dataset(self.root / s.dataset)
+        if s.dataset is None:
+            return self
+        folder = inside(self.root, s.dataset)
+        if folder is None:
+            raise ValueError(f"split {split!r}: its dataset must be a relative path inside "
+                             "this dataset")
+        return load_dataset(folder, npz_limits=self.npz_limits)
 
 
 def _split_of(name: str, entry: Mapping[str, Any]) -> Split:
@@ -189,12 +198,14 @@ def _split_of(name: str, entry: Mapping[str, Any]) -> Split:
                  entry.get("dataset"), extra)
 
 
-def load_dataset(root: str | Path, *, validate: bool = True, deep: bool = False) -> Dataset:
+def load_dataset(root: str | Path, *, validate: bool = True, deep: bool = False,
+                 npz_limits: NpzLimits = PARAMS_NPZ_LIMITS) -> Dataset:
     """Open the dataset at `root`. With `validate` (the default) every problem is checked
-    first and DatasetError lists all errors; without it only what loading needs is."""
+    first and DatasetError lists all errors; without it only what loading needs is.
+    Parameter files are read within `npz_limits`."""
     root = Path(root)
     if validate:
-        problems = errors_of(validate_dataset(root, deep=deep))
+        problems = errors_of(validate_dataset(root, deep=deep, npz_limits=npz_limits))
         if problems:
             raise DatasetError(root, problems)
     meta, problems = read_json(root / DATASET_JSON, "missing_dataset_json")
@@ -216,4 +227,4 @@ def load_dataset(root: str | Path, *, validate: bool = True, deep: bool = False)
     except (KeyError, TypeError, AttributeError) as exc:
         raise DatasetError(root, [Problem("split_bad_entry", Where(path=SPLITS_JSON),
                                           f"cannot read the splits: {exc}")]) from exc
-    return Dataset(root, meta, cameras, splits)
+    return Dataset(root, meta, cameras, splits, npz_limits)

@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from ..bounded_npz import NpzLimits, read_npz
 from .format import (
     CAMERAS_JSON,
     DATASET_JSON,
@@ -23,9 +24,11 @@ from .format import (
     IMAGE_FORMATS,
     MASK_FORMAT,
     PARAMS_NPZ,
+    PARAMS_NPZ_LIMITS,
     ROOT_CONVENTIONS,
     SPLITS_JSON,
     check_name,
+    inside,
     is_finite_number,
 )
 from .params import check_params, param_spec
@@ -45,12 +48,14 @@ def read_json(path: Path, missing_code: str) -> tuple[Any, list[Problem]]:
         return None, [problem(missing_code, f"{name} is missing", path=name)]
     try:
         return json.loads(path.read_text(encoding="utf-8")), []
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+    except (OSError, ValueError, RecursionError) as exc:  # ValueError: bad UTF-8 or JSON
         return None, [problem("invalid_json", f"{name} cannot be read: {exc}", path=name)]
 
 
-def validate_dataset(root: str | Path, *, deep: bool = False) -> list[Problem]:
-    """Every problem of the dataset at `root` (errors and warnings), in a stable order."""
+def validate_dataset(root: str | Path, *, deep: bool = False,
+                     npz_limits: NpzLimits = PARAMS_NPZ_LIMITS) -> list[Problem]:
+    """Every problem of the dataset at `root` (errors and warnings), in a stable order.
+    Parameter files are read within `npz_limits` (a file past them is an error)."""
     root = Path(root)
     meta, problems = read_json(root / DATASET_JSON, "missing_dataset_json")
     cameras, more = read_json(root / CAMERAS_JSON, "missing_cameras_json")
@@ -59,7 +64,8 @@ def validate_dataset(root: str | Path, *, deep: bool = False) -> list[Problem]:
     problems += more
     if meta is None or cameras is None:
         return problems
-    return problems + check_documents(root, meta, cameras, splits or {}, deep=deep)
+    return problems + check_documents(root, meta, cameras, splits or {}, deep=deep,
+                                      npz_limits=npz_limits)
 
 
 @dataclass(frozen=True)
@@ -76,7 +82,8 @@ class _Info:
 
 
 def check_documents(root: Path, meta: Any, cameras_doc: Any, splits_doc: Any, *,
-                    deep: bool = False) -> list[Problem]:
+                    deep: bool = False, npz_limits: NpzLimits = PARAMS_NPZ_LIMITS
+                    ) -> list[Problem]:
     """Validate parsed dataset.json / cameras.json / splits.json against the files under
     `root` (the writer calls this before it writes dataset.json)."""
     problems, info = _check_meta(meta)
@@ -88,7 +95,7 @@ def check_documents(root: Path, meta: Any, cameras_doc: Any, splits_doc: Any, *,
     if info.image_format is not None:
         problems += check_files(Path(root), info.sequences, _kinds(info), sizes,
                                 info.num_parts, deep)
-    problems += _check_all_params(Path(root), info)
+    problems += _check_all_params(Path(root), info, npz_limits)
     problems += _check_splits(Path(root), splits_doc, set(info.sequences), set(sizes))
     return problems
 
@@ -236,12 +243,7 @@ def _kinds(info: _Info) -> list[Kind]:
 
 # -- params.npz -----------------------------------------------------------------------------
 
-def _load_npz(path: Path) -> dict[str, np.ndarray]:
-    with np.load(path, allow_pickle=False) as npz:
-        return {k: npz[k] for k in npz.files}
-
-
-def _check_all_params(root: Path, info: _Info) -> list[Problem]:
+def _check_all_params(root: Path, info: _Info, limits: NpzLimits) -> list[Problem]:
     problems = []
     for seq, T in info.sequences.items():
         rel = f"sequences/{seq}/{PARAMS_NPZ}"
@@ -250,7 +252,7 @@ def _check_all_params(root: Path, info: _Info) -> list[Problem]:
                                     path=rel))
             continue
         try:
-            params = _load_npz(root / rel)
+            params = read_npz(root / rel, limits)  # NpzError: a ValueError
         except (OSError, ValueError) as exc:
             problems.append(problem("params_unreadable", f"{rel}: {exc}", sequence=seq,
                                     path=rel))
@@ -267,14 +269,13 @@ def _check_all_params(root: Path, info: _Info) -> list[Problem]:
 
 # -- splits.json ----------------------------------------------------------------------------
 
-def _other_dataset(root: Path, rel: str) -> tuple[set[str], set[str]] | None:
+def _other_dataset(other: Path) -> tuple[set[str], set[str]] | None:
     """(sequences, cameras) of the dataset a split borrows, None when there is none."""
-    other = root / rel
     try:
         meta = json.loads((other / DATASET_JSON).read_text(encoding="utf-8"))
         cams = json.loads((other / CAMERAS_JSON).read_text(encoding="utf-8"))
         return (set(meta["sequences"]), {c["name"] for c in cams["cameras"]})
-    except (OSError, ValueError, KeyError, TypeError):
+    except (OSError, ValueError, KeyError, TypeError, RecursionError):
         return None
 
 
@@ -292,8 +293,12 @@ def _check_split(root: Path, name: str, entry: Any, sequences: set[str], cameras
         p("split_bad_entry", "must be {\"sequences\": [names], \"cameras\": [names]}")
         return out
     if "dataset" in entry:
-        other = _other_dataset(root, entry["dataset"]) \
-            if isinstance(entry["dataset"], str) else None
+        folder = inside(root, entry["dataset"])
+        if folder is None:  # refused before any file is looked at: nothing about it leaks
+            p("split_outside_dataset", "dataset must be a relative path inside this dataset "
+                                       "(no absolute path, no '..')")
+            return out
+        other = _other_dataset(folder)
         if other is None:
             p("split_unknown_dataset", f"dataset {entry['dataset']!r} is not a readable "
                                        "dataset (path relative to this one)")

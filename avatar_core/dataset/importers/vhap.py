@@ -39,7 +39,8 @@ from typing import Any
 
 import numpy as np
 
-from ..format import CameraSpec
+from ...bounded_npz import read_npz
+from ..format import PARAMS_NPZ_LIMITS, CameraSpec
 from ..writer import DatasetWriter
 from .common import (
     Progress,
@@ -177,8 +178,8 @@ def _flame_params(paths: list[Path]) -> dict[str, np.ndarray]:
     """Per-timestep FLAME files -> our flame_* arrays ([T, ...], shared ones once)."""
     loaded = []
     for p in paths:
-        with np.load(p, allow_pickle=False) as npz:
-            loaded.append({k: np.asarray(npz[k], dtype=np.float64) for k in npz.files})
+        arrays = read_npz(p, PARAMS_NPZ_LIMITS)
+        loaded.append({k: np.asarray(v, dtype=np.float64) for k, v in arrays.items()})
     skipped = sorted(set().union(*loaded) - set(_PER_FRAME) - set(_SHARED))
     if skipped:
         log.warning("FLAME keys not imported: %s", skipped)
