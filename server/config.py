@@ -110,6 +110,31 @@ class Settings(BaseModel):
     job_max_stored_per_user: int = Field(
         200, ge=1, description="Training jobs kept per user, finished ones included; past it a "
                                "submission is 429 until some are deleted (admins exempt).")
+    max_unpack_ratio: float = Field(
+        100.0, ge=1, description="Largest unpacked / packed size ratio of one member of an "
+                                 "uploaded zip or npz that unpacks to more than 1 MiB; past it "
+                                 "the upload is refused as a decompression bomb (413).")
+    max_npz_array_bytes: int = Field(
+        512 * 2**20, ge=1024, description="Largest array of an uploaded npz (avatar Gaussians, "
+                                          "dataset parameters), unpacked, from its declared "
+                                          "shape before anything is read (422 / 400).")
+    max_npz_bytes: int = Field(
+        1 * 2**30, ge=1024, description="Largest total of the arrays of one uploaded npz, "
+                                        "unpacked; bounds the memory one upload can take.")
+    max_dataset_unpacked_bytes: int = Field(
+        8 * 2**30, ge=1024, description="Largest uploaded dataset archive, unpacked (413).")
+    max_dataset_member_bytes: int = Field(
+        1 * 2**30, ge=1024, description="Largest file of an uploaded dataset archive, "
+                                        "unpacked (413).")
+    max_dataset_files: int = Field(
+        100_000, ge=1, description="Most members of an uploaded dataset archive (413).")
+    max_avatars_per_user: int = Field(
+        100, ge=1, description="Avatars one user may own (uploads; trained avatars count "
+                               "too); past it an upload is 429 (admins exempt).")
+    max_stored_bytes_per_user: int = Field(
+        20 * 2**30, ge=1024, description="Bytes one user may store: their avatars plus their "
+                                         "jobs' folders (uploaded datasets, checkpoints); an "
+                                         "upload past it is 413 (admins exempt).")
 
     @field_validator("demo_avatar")
     @classmethod

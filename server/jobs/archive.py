@@ -2,9 +2,12 @@
 
 A member must be a plain file or folder with a relative path without ``..`` (no absolute
 paths, drive letters, backslashes, symlinks, device files or encryption); the members are
-bounded in number and in total unpacked size. Unpacking then counts the bytes actually
-written, so a header that lies about a size cannot get more onto the disk. The dataset's root
-is the archive's top level or its one top-level folder (where ``dataset.json`` is).
+bounded in number (checked on the end record, before the directory is parsed), each in its
+unpacked size and its unpacked / packed ratio (a decompression bomb), and all together in
+unpacked size and against the owner's storage left. Unpacking then counts the bytes actually
+written, per member and in all, so a header that lies about a size cannot get more onto the
+disk. A damaged archive (truncated, bad CRC, unknown method) is a 400. The dataset's root is
+the archive's top level or its one top-level folder (where ``dataset.json`` is).
 """
 
 from __future__ import annotations
@@ -13,9 +16,12 @@ import re
 import shutil
 import stat
 import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import BinaryIO
+
+from avatar_core.bounded_npz import NpzError, NpzLimits, check_zip_members, open_zip
 
 __all__ = ["ArchiveError", "UploadLimits", "check_archive", "extract_archive"]
 
@@ -28,6 +34,28 @@ class UploadLimits:
     max_upload_bytes: int = 512 * 2**20      # the request body
     max_unpacked_bytes: int = 8 * 2**30      # all members together, unpacked
     max_files: int = 100_000                 # members
+    max_member_bytes: int = 1 * 2**30        # one member, unpacked
+    max_ratio: float = 100.0                 # unpacked / packed of a member past ratio_floor
+    ratio_floor_bytes: int = 1 << 20
+    quota_bytes: int | None = None           # the owner's storage left (None: no quota)
+
+    def ratio_limits(self) -> NpzLimits:
+        return NpzLimits(max_ratio=self.max_ratio, ratio_floor_bytes=self.ratio_floor_bytes)
+
+    @property
+    def budget(self) -> int:
+        """Bytes the archive may unpack to: the unpacked limit, or the quota left if less."""
+        if self.quota_bytes is None:
+            return self.max_unpacked_bytes
+        return max(0, min(self.max_unpacked_bytes, self.quota_bytes))
+
+
+def _over_budget(limits: UploadLimits) -> ArchiveError:
+    if limits.quota_bytes is not None and limits.quota_bytes < limits.max_unpacked_bytes:
+        return ArchiveError(f"the archive unpacks to more than the {max(0, limits.quota_bytes)} "
+                            "bytes left of your storage quota", 413)
+    return ArchiveError(f"the archive unpacks to more than the {limits.max_unpacked_bytes} "
+                        "bytes allowed", 413)
 
 
 class ArchiveError(ValueError):
@@ -61,13 +89,19 @@ def _member_path(info: zipfile.ZipInfo) -> PurePosixPath:
 def check_archive(path: str | Path | BinaryIO, limits: UploadLimits) -> list[zipfile.ZipInfo]:
     """The file members of a zip that passes every check; ArchiveError otherwise."""
     try:
-        with zipfile.ZipFile(path) as z:
+        with open_zip(path, limits.max_files, what="upload") as z:
             infos = z.infolist()
-    except (zipfile.BadZipFile, OSError, ValueError) as exc:
-        raise ArchiveError(f"the upload is not a readable zip archive: {exc}") from exc
+    except NpzError as exc:
+        if exc.over_limit:
+            raise ArchiveError(str(exc), 413) from None
+        raise ArchiveError(f"the upload is not a readable zip archive: {exc}") from None
     if len(infos) > limits.max_files:
         raise ArchiveError(f"the archive has {len(infos)} members, more than the "
                            f"{limits.max_files} allowed", 413)
+    try:
+        check_zip_members(infos, limits.ratio_limits())
+    except NpzError as exc:
+        raise ArchiveError(str(exc), 413 if exc.over_limit else 400) from None
     seen: set[str] = set()
     total = 0
     files = []
@@ -79,10 +113,12 @@ def check_archive(path: str | Path | BinaryIO, limits: UploadLimits) -> list[zip
         seen.add(key)
         if info.is_dir():
             continue
+        if info.file_size > limits.max_member_bytes:
+            raise ArchiveError(f"archive member {info.filename!r} unpacks to {info.file_size} "
+                               f"bytes, more than the {limits.max_member_bytes} allowed", 413)
         total += info.file_size
-        if total > limits.max_unpacked_bytes:
-            raise ArchiveError(f"the archive unpacks to more than the "
-                               f"{limits.max_unpacked_bytes} bytes allowed", 413)
+        if total > limits.budget:
+            raise _over_budget(limits)
         files.append(info)
     if not files:
         raise ArchiveError("the archive is empty")
@@ -111,22 +147,26 @@ def extract_archive(path: str | Path | BinaryIO, dest: str | Path, limits: Uploa
     dest.mkdir(parents=True)
     written = 0
     try:
-        with zipfile.ZipFile(path) as z:
+        with open_zip(path, limits.max_files, what="upload") as z:
             for info in files:
                 target = dest.joinpath(*PurePosixPath(info.filename).parts)
                 target.parent.mkdir(parents=True, exist_ok=True)
                 with z.open(info) as src, open(target, "xb") as out:
-                    while chunk := src.read(_CHUNK):
+                    member = 0  # never more than declared, whatever the stream holds
+                    while chunk := src.read(min(_CHUNK, info.file_size - member + 1)):
+                        member += len(chunk)
                         written += len(chunk)
-                        if written > limits.max_unpacked_bytes:
-                            raise ArchiveError("the archive unpacks to more than the "
-                                               f"{limits.max_unpacked_bytes} bytes allowed",
-                                               413)
+                        if member > info.file_size:
+                            raise ArchiveError(f"archive member {info.filename!r} unpacks to "
+                                               "more than its declared size")
+                        if written > limits.budget:
+                            raise _over_budget(limits)
                         out.write(chunk)
     except ArchiveError:
         shutil.rmtree(dest, ignore_errors=True)
         raise
-    except (zipfile.BadZipFile, OSError, EOFError, ValueError, RuntimeError) as exc:
+    except (zipfile.BadZipFile, zlib.error, OSError, EOFError, ValueError, RuntimeError,
+            NotImplementedError, NpzError) as exc:
         shutil.rmtree(dest, ignore_errors=True)
         raise ArchiveError(f"the archive cannot be unpacked: {exc}") from exc
     return dest.joinpath(*root.parts) if root.parts else dest
