@@ -1,11 +1,20 @@
-"""The job store: state transitions, event order, cancel, reading back after a restart, and
-two writers (threads) at once."""
+"""The job store: state transitions, event order, cancel, reading back after a restart, two
+writers (threads) at once, attempt records, resume and delete, quotas, and the migration of
+a database written by the previous release."""
 
+import sqlite3
 import threading
 
 import pytest
 
-from server.jobs.store import InvalidTransition, JobNotFound, NewJob, SQLiteJobStore
+from server.jobs.store import (
+    MAX_ATTEMPT_LOG,
+    InvalidTransition,
+    JobNotFound,
+    NewJob,
+    QuotaExceeded,
+    SQLiteJobStore,
+)
 
 
 def _new(owner="alice", total=100, **kw) -> NewJob:
@@ -121,3 +130,91 @@ def test_concurrent_writers_keep_one_sequence(store):
         t.join(timeout=30)
     seqs = [e.seq for e in store.events(job.id)]
     assert seqs == list(range(1, 102))
+
+
+def test_attempt_log_requeue_resume_and_delete(store):
+    job = store.create(_new(max_attempts=2))
+    assert (job.max_attempts, job.attempt_log) == (2, ())
+    store.claim_next()
+    store.report(job.id, {"type": "progress", "iteration": 17})
+    store.set_error(job.id, "stale")
+    end = {"attempt": 1, "reason": "killed by SIGKILL", "resume_from": "iter_000010.pt"}
+    again = store.transition(job.id, "queued", attempt_end=end, iteration=10,
+                             note={"reason": "killed by SIGKILL"})
+    assert again.iteration == 10 and again.error is None and again.finished is None
+    (logged,) = again.attempt_log
+    assert logged["reason"] == "killed by SIGKILL" and logged["time"] > 0
+    assert store.events(job.id)[-1].data["attempt_end"] == logged
+    assert again.to_dict()["attempt_log"] == [logged]
+    with pytest.raises(InvalidTransition):
+        store.resume(job.id, 5)  # queued: not resumable
+    store.claim_next()
+    failed = store.transition(job.id, "failed", error="no attempts left")
+    assert failed.finished is not None
+    resumed = store.resume(job.id, 5, note={"reason": "resumed on request"})
+    assert (resumed.state, resumed.max_attempts, resumed.error, resumed.finished) == (
+        "queued", 5, None, None)
+    assert resumed.attempts == 2 and len(resumed.attempt_log) == 1
+    assert store.events(job.id)[-1].data["reason"] == "resumed on request"
+    with pytest.raises(InvalidTransition):
+        store.delete(job.id)  # active
+    store.request_cancel(job.id)
+    store.delete(job.id)
+    with pytest.raises(JobNotFound):
+        store.get(job.id)
+    assert store.events(job.id) == []
+
+
+def test_the_attempt_log_keeps_the_newest_records(store):
+    job = store.create(_new())
+    for attempt in range(1, MAX_ATTEMPT_LOG + 6):
+        store.claim_next()
+        store.transition(job.id, "queued", attempt_end={"attempt": attempt, "reason": "x"})
+    log = store.get(job.id).attempt_log
+    assert len(log) == MAX_ATTEMPT_LOG and log[-1]["attempt"] == MAX_ATTEMPT_LOG + 5
+
+
+def test_quotas_are_checked_with_the_insert(store):
+    store.create(_new("alice"), max_active=1)
+    with pytest.raises(QuotaExceeded, match="at most 1"):
+        store.create(_new("alice"), max_active=1)
+    store.create(_new("bob"), max_active=1)  # per owner
+    assert store.count("alice") == {"queued": 1}
+    store.request_cancel(store.list(owner="alice")[0].id)
+    store.create(_new("alice"), max_active=1, max_stored=2)  # the cancelled one is not active
+    with pytest.raises(QuotaExceeded, match="stored"):
+        store.create(_new("alice"), max_stored=2)
+    assert len(store.list(owner="alice")) == 2
+
+
+_OLD_SCHEMA = """
+CREATE TABLE jobs (
+    id TEXT PRIMARY KEY, owner TEXT NOT NULL, name TEXT,
+    state TEXT NOT NULL CHECK (state IN ('queued','running','succeeded','failed','cancelled')),
+    dataset TEXT NOT NULL, dataset_path TEXT NOT NULL, config TEXT NOT NULL,
+    created REAL NOT NULL, started REAL, finished REAL,
+    iteration INTEGER NOT NULL DEFAULT 0, total INTEGER NOT NULL, loss REAL, error TEXT,
+    avatar_id TEXT, attempts INTEGER NOT NULL DEFAULT 0,
+    cancel_requested INTEGER NOT NULL DEFAULT 0);
+CREATE TABLE events (job_id TEXT NOT NULL REFERENCES jobs (id) ON DELETE CASCADE,
+    seq INTEGER NOT NULL, time REAL NOT NULL, data TEXT NOT NULL, PRIMARY KEY (job_id, seq));
+INSERT INTO jobs (id, owner, state, dataset, dataset_path, config, created, total, attempts)
+    VALUES ('old1', 'alice', 'running', 'upload', '/x', '{"iterations": 5}', 1.0, 5, 1);
+"""
+
+
+def test_a_database_of_the_previous_release_is_migrated(tmp_path):
+    path = tmp_path / "jobs.db"
+    with sqlite3.connect(path) as db:
+        db.executescript(_OLD_SCHEMA)
+    db.close()
+    store = SQLiteJobStore(path)
+    old = store.get("old1")
+    assert (old.state, old.attempts, old.max_attempts, old.attempt_log) == (
+        "running", 1, None, ())
+    store.transition("old1", "queued", attempt_end={"attempt": 1, "reason": "restart"})
+    store.close()
+    again = SQLiteJobStore(path)  # opening a migrated database changes nothing
+    assert again.get("old1").attempt_log[0]["reason"] == "restart"
+    assert again.create(_new(max_attempts=3)).max_attempts == 3
+    again.close()
