@@ -180,7 +180,7 @@ def start_server(data_dir: Path, render_threads: int, max_sessions: int, avatar:
         if not line:
             break
         lines.append(line)
-        found = re.search(r"serving at (http://[^/\s]+)/\?token=(\S+)", line)
+        found = re.search(r"serving at (http://[^/\s]+)/[?#]token=(\S+)", line)
         if found:
             return proc, found.group(1), found.group(2)
     proc.kill()

@@ -57,15 +57,15 @@ class StreamError(RuntimeError):
         self.message = message
 
 
-def stream_url(server: str, avatar: str, token: str | None = None) -> str:
-    """``ws(s)://host/v1/stream?avatar=...&token=...`` from an http(s) or ws(s) base URL."""
+def stream_url(server: str, avatar: str) -> str:
+    """``ws(s)://host/v1/stream?avatar=...`` from an http(s) or ws(s) base URL. Never with the
+    token: URLs end up in logs; it goes in the ``hello`` message instead."""
     parts = urlsplit(server if "://" in server else f"http://{server}")
     scheme = {"http": "ws", "https": "wss"}.get(parts.scheme, parts.scheme)
     path = parts.path.rstrip("/")
     if not path.endswith("/v1/stream"):
         path += "/v1/stream"
-    query = {"avatar": avatar, **({"token": token} if token else {})}
-    return urlunsplit((scheme, parts.netloc, path, urlencode(query), ""))
+    return urlunsplit((scheme, parts.netloc, path, urlencode({"avatar": avatar}), ""))
 
 
 def _float32(values: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -110,12 +110,12 @@ class StreamClient:
         from websockets.asyncio.client import connect
         from websockets.exceptions import ConnectionClosed
 
-        url = stream_url(server, avatar, token)
+        url = stream_url(server, avatar)
         ws = await connect(url, compression=None, max_size=MAX_WIRE_BYTES, proxy=None,
                            open_timeout=timeout, user_agent_header=client_name)
         try:
             with contextlib.suppress(ConnectionClosed):  # refused already: read why below
-                await ws.send(encode(Hello(token=token, client=client_name)))
+                await ws.send(encode(Hello(token=token, client=client_name)))  # authenticates
             welcome = await asyncio.wait_for(cls._first(ws), timeout)
         except BaseException:
             await ws.close()

@@ -26,6 +26,7 @@ from .config import Settings
 from .context import ServerContext, SessionSlots
 from .drive import DriveState
 from .jobs import routes as jobs_routes
+from .logsafe import install_log_redaction
 from .metrics import ServerMetrics
 from .registry import DEMO_ID, AvatarRegistry
 from .renderer import FrameJob, SessionRenderer
@@ -69,8 +70,9 @@ def _start(ctx: ServerContext) -> None:
 
 
 def create_app(settings: Settings) -> FastAPI:
+    install_log_redaction()  # before uvicorn logs a URL with ?token= in it
     settings.data_dir.mkdir(parents=True, exist_ok=True)
-    tokens = TokenStore(settings.tokens_path)
+    tokens = TokenStore(settings.tokens_path, settings.tokens_reload_interval_s)
     local_token = None
     if settings.auth == "local":
         tokens.revoke_subject(LOCAL_SUBJECT)  # one live local token: the one printed last

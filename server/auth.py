@@ -7,19 +7,24 @@ avatar). HTTP routes use ``require_scope(scope)``; WebSockets use ``token_from_w
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import hashlib
 import hmac
 import json
+import logging
 import os
 import secrets
 import threading
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from fastapi import HTTPException, Request, WebSocket, params
+
+log = logging.getLogger(__name__)
 
 SCOPES = ("stream", "train", "admin")
 PUBLIC_OWNER = "public"  # avatars any stream-scoped token may see and stream
@@ -57,28 +62,76 @@ class TokenStore:
     """Tokens in a JSON file: ``{"tokens": [{"sha256", "subject", "scopes", "created"}]}``.
 
     Only hashes are stored, so the file leaks nothing usable. Thread-safe; every write replaces
-    the file atomically.
+    the file atomically, under an advisory lock so that a server and ``telesplat serve
+    --issue-token`` writing at once lose nothing. Another process's changes are picked up
+    without a restart: at most every ``reload_interval_s`` the file's stat is compared with
+    the one last read, and a changed file is read again (a broken one keeps the old tokens).
     """
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, reload_interval_s: float = 1.0) -> None:
         self.path = Path(path)
+        self.reload_interval_s = reload_interval_s
         self._lock = threading.Lock()
         self._entries: dict[str, dict[str, Any]] = {}
-        self._load()
+        self._stat: tuple[int, int, int] | None = None  # (inode, size, mtime_ns) last read
+        self._checked = 0.0
+        with self._lock:
+            self._load(strict=True)
 
-    def _load(self) -> None:
-        if not self.path.is_file():
+    def _file_stat(self) -> tuple[int, int, int] | None:
+        try:
+            st = self.path.stat()
+        except FileNotFoundError:
+            return None
+        return st.st_ino, st.st_size, st.st_mtime_ns
+
+    def _load(self, strict: bool = False) -> None:
+        """Read the file into ``_entries`` (lock held). A malformed file raises at start-up
+        (``strict``) and is logged and skipped on a reload."""
+        stat = self._file_stat()
+        self._checked = time.monotonic()
+        if stat is None:
+            self._entries, self._stat = {}, None
             return
-        data = json.loads(self.path.read_text())
-        for entry in data.get("tokens", []):
-            self._entries[entry["sha256"]] = entry
+        try:
+            data = json.loads(self.path.read_text())
+            entries = {entry["sha256"]: entry for entry in data.get("tokens", [])}
+        except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+            if strict:
+                raise ValueError(f"{self.path}: not a token file: {exc}") from exc
+            log.warning("token file %s unreadable (%s): keeping the tokens loaded before",
+                        self.path, exc)
+            self._stat = stat  # do not retry until it changes again
+            return
+        self._entries, self._stat = entries, stat
+
+    def _refresh(self) -> None:
+        """Reload if the file changed since it was read (lock held; cheap: one stat)."""
+        if time.monotonic() - self._checked < self.reload_interval_s:
+            return
+        self._checked = time.monotonic()
+        if self._file_stat() != self._stat:
+            self._load()
+
+    @contextlib.contextmanager
+    def _update(self) -> Iterator[None]:
+        """Read-modify-write: the newest file in, the changed entries out, all under both
+        the thread lock and the file lock."""
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        lock_path = self.path.with_name(self.path.name + ".lock")
+        with self._lock, open(lock_path, "a") as lock_file:
+            os.chmod(lock_path, 0o600)
+            fcntl.flock(lock_file, fcntl.LOCK_EX)
+            self._load(strict=True)
+            yield
+            self._save()
 
     def _save(self) -> None:
-        self.path.parent.mkdir(parents=True, exist_ok=True)
         tmp = self.path.with_suffix(".tmp")
         tmp.write_text(json.dumps({"tokens": list(self._entries.values())}, indent=2))
         os.chmod(tmp, 0o600)
         tmp.replace(self.path)
+        self._stat = self._file_stat()
 
     def issue(self, subject: str, scopes: Iterable[str]) -> str:
         """A new token for ``subject`` with ``scopes``; the plain token is returned once."""
@@ -89,27 +142,22 @@ class TokenStore:
         if not subject or subject == PUBLIC_OWNER:
             raise ValueError(f"subject must be non-empty and not {PUBLIC_OWNER!r}")
         token = TOKEN_PREFIX + secrets.token_urlsafe(32)
-        with self._lock:
+        with self._update():
             self._entries[_digest(token)] = {"sha256": _digest(token), "subject": subject,
                                              "scopes": scopes, "created": time.time()}
-            self._save()
         return token
 
     def revoke_subject(self, subject: str) -> int:
         """Remove every token of ``subject``; how many there were."""
-        with self._lock:
+        with self._update():
             gone = [k for k, e in self._entries.items() if e["subject"] == subject]
             for key in gone:
                 del self._entries[key]
-            if gone:
-                self._save()
         return len(gone)
 
     def revoke(self, token: str) -> bool:
-        with self._lock:
+        with self._update():
             found = self._entries.pop(_digest(token), None) is not None
-            if found:
-                self._save()
         return found
 
     def principal(self, token: str | None) -> Principal | None:
@@ -118,6 +166,7 @@ class TokenStore:
             return None
         digest = _digest(token)
         with self._lock:
+            self._refresh()
             for key, entry in self._entries.items():
                 if hmac.compare_digest(key, digest):  # constant time per comparison
                     return Principal(entry["subject"], frozenset(entry["scopes"]))

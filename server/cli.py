@@ -33,7 +33,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _announce(app: FastAPI, url: str) -> None:
-    """Print the URL (with the local admin token) once start-up, warm-up included, is done."""
+    """Print the URL (with the local admin token) once start-up, warm-up included, is done.
+
+    The token travels in the URL's fragment (``#token=``), which a browser never sends: it
+    stays out of every request line and log; the page moves it into memory at once."""
     inner = app.router.lifespan_context
 
     @contextlib.asynccontextmanager
@@ -41,7 +44,7 @@ def _announce(app: FastAPI, url: str) -> None:
         async with inner(app):
             token = app.state.local_token
             if token:
-                print(f"Telesplat is serving at {url}/?token={token}", flush=True)
+                print(f"Telesplat is serving at {url}/#token={token}", flush=True)
                 print(f"  admin token (subject 'local'): {token}", flush=True)
             else:
                 print(f"Telesplat is serving at {url}/ (tokens from "

@@ -10,6 +10,7 @@ from avatar_core.body.models import MANOModel
 from avatar_core.gaussians.animate import AvatarAnimator
 from avatar_core.pipeline import LoadedAvatar, mano_models
 
+from .admission import Admission
 from .auth import TokenStore
 from .config import Settings
 from .metrics import ServerMetrics
@@ -48,8 +49,13 @@ class ServerContext:
     slots: SessionSlots
     sessions: dict[str, Any] = field(default_factory=dict)  # id -> StreamSession
     local_token: str | None = None
+    admission: Admission = None  # type: ignore[assignment]  # made from settings below
     _manos: dict[str, dict[str, MANOModel]] = field(default_factory=dict)
     _manos_lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def __post_init__(self) -> None:
+        if self.admission is None:
+            self.admission = Admission.from_settings(self.settings)
 
     def session_models(self, avatar_id: str
                        ) -> tuple[LoadedAvatar, AvatarAnimator, dict[str, MANOModel]]:

@@ -1,5 +1,10 @@
 """WebSocket ``/v1/stream?avatar=ID``: authenticate, admit, welcome, then run the session.
 
+The token comes in an ``Authorization: Bearer`` header or, from a browser (which cannot set
+one), in the first message, a ``hello``; ``?token=`` is still accepted from old clients but
+keeps the token in URLs. Until it is authenticated a connection may send one small message
+within a short time, and holds one of a few waiting slots per address and in total.
+
 Refusals are sent as an ``error`` message and then a close with one of the codes below, since
 a browser sees neither the status nor the body of a refused WebSocket handshake.
 """
@@ -11,7 +16,7 @@ import contextlib
 import logging
 
 from fastapi import APIRouter, WebSocket
-from starlette.websockets import WebSocketState
+from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from protocol import (
     CODECS,
@@ -29,6 +34,7 @@ from protocol.messages import Orbit
 
 from .auth import Principal, token_from_websocket
 from .context import ServerContext
+from .inbound import InboundLimits
 from .registry import DEMO_ID, AvatarNotFound, AvatarRecord
 from .renderer import SessionRenderer
 from .session import SessionConfig, StreamSession, error_message
@@ -36,12 +42,14 @@ from .session import SessionConfig, StreamSession, error_message
 log = logging.getLogger(__name__)
 router = APIRouter()
 
-HELLO_TIMEOUT_S = 10.0
 # Close codes: 4000 + the HTTP status the refusal would have had; 1013 "try again later".
 CLOSE_BAD_HELLO = 4400
 CLOSE_UNAUTHORIZED = 4401
 CLOSE_FORBIDDEN = 4403
 CLOSE_NOT_FOUND = 4404
+CLOSE_HELLO_TIMEOUT = 4408
+CLOSE_TOO_LARGE = 4413
+CLOSE_TOO_MANY = 4429  # this address waiting, or this user streaming, too much already
 CLOSE_BUSY = 1013
 CLOSE_INTERNAL = 1011
 
@@ -52,34 +60,73 @@ class Refusal(Exception):
         self.code, self.message, self.close_code = code, message, close_code
 
 
-async def _token(ws: WebSocket, ctx: ServerContext) -> str:
-    """The token from the URL or header, else from a first ``hello`` message."""
-    token = token_from_websocket(ws)
-    if token:
-        return token
+def _client_address(ws: WebSocket) -> str:
+    return ws.client.host if ws.client else "unknown"
+
+
+def _admit_unauthenticated(ctx: ServerContext, address: str) -> None:
+    """Take a waiting slot for ``address`` (Refusal past the per-address or total cap)."""
+    refused = ctx.admission.waiting.try_acquire(address)
+    s = ctx.settings
+    if refused == "total":
+        raise Refusal("busy", f"server busy: {s.max_unauthenticated} connections are waiting "
+                              "to authenticate; try again later", CLOSE_BUSY)
+    if refused == "key":
+        raise Refusal("busy", f"too many connections waiting to authenticate from this address "
+                              f"(limit {s.max_unauthenticated_per_address})", CLOSE_TOO_MANY)
+
+
+async def _hello_token(ws: WebSocket, ctx: ServerContext) -> str:
+    """The token of the first message, a ``hello``; read under the pre-auth limits: a short
+    timeout and a small size, checked on the frame's length before anything is decoded."""
+    s = ctx.settings
     try:
-        message = await asyncio.wait_for(ws.receive(), HELLO_TIMEOUT_S)
+        message = await asyncio.wait_for(ws.receive(), s.hello_timeout_s)
     except TimeoutError:
-        raise Refusal("unauthorized", "no token: give ?token=, an Authorization header or a "
-                                      "hello message with a token", CLOSE_UNAUTHORIZED) from None
+        raise Refusal("unauthorized", f"no hello within {s.hello_timeout_s:g} s: send a hello "
+                                      "with a token first (or an Authorization header)",
+                      CLOSE_HELLO_TIMEOUT) from None
+    if message["type"] == "websocket.disconnect":
+        raise WebSocketDisconnect(message.get("code", 1000))
     data = message.get("bytes")
+    if data is None:
+        raise Refusal("bad_message", "messages are binary msgpack frames", CLOSE_BAD_HELLO)
+    if len(data) > s.hello_max_bytes:  # before any decoding: an unknown peer costs nothing
+        raise Refusal("too_large", f"a message of {len(data)} bytes before authentication; "
+                                   f"the hello is limited to {s.hello_max_bytes}",
+                      CLOSE_TOO_LARGE)
+    hello_limits = s.limits.model_copy(update={"max_message_bytes": s.hello_max_bytes})
     try:
-        hello = decode_client(data, ctx.settings.limits) if data is not None else None
+        hello = decode_client(data, hello_limits)
     except ProtocolError as exc:
         raise Refusal(exc.code, exc.message, CLOSE_BAD_HELLO) from None
     if not isinstance(hello, Hello) or not hello.token:
         raise Refusal("unauthorized", "no token: the first message must be a hello with a "
-                                      "token when the URL carries none", CLOSE_UNAUTHORIZED)
+                                      "token", CLOSE_UNAUTHORIZED)
     if hello.version != PROTOCOL_VERSION:
         raise Refusal("version", f"this server speaks protocol version {PROTOCOL_VERSION}, "
                                  f"not {hello.version}", CLOSE_BAD_HELLO)
     return hello.token
 
 
-def _check_access(ctx: ServerContext, principal: Principal | None,
-                  avatar_id: str) -> AvatarRecord:
+async def _authenticate(ws: WebSocket, ctx: ServerContext) -> Principal:
+    """The principal of the header's (or a legacy ``?token=``'s) token, else of the hello's;
+    while the hello is awaited the connection holds a waiting slot of its address."""
+    token = token_from_websocket(ws)
+    if not token:
+        address = _client_address(ws)
+        _admit_unauthenticated(ctx, address)
+        try:
+            token = await _hello_token(ws, ctx)
+        finally:
+            ctx.admission.waiting.release(address)
+    principal = ctx.tokens.principal(token)
     if principal is None:
         raise Refusal("unauthorized", "invalid token", CLOSE_UNAUTHORIZED)
+    return principal
+
+
+def _check_access(ctx: ServerContext, principal: Principal, avatar_id: str) -> AvatarRecord:
     if not principal.has("stream"):
         raise Refusal("forbidden", "this token lacks the 'stream' scope", CLOSE_FORBIDDEN)
     try:
@@ -90,6 +137,12 @@ def _check_access(ctx: ServerContext, principal: Principal | None,
         raise Refusal("forbidden", f"avatar {avatar_id!r} belongs to another owner",
                       CLOSE_FORBIDDEN)
     return record
+
+
+def inbound_limits(s) -> InboundLimits:
+    return InboundLimits(max_message_objects=s.max_message_objects,
+                         decode_offload_bytes=s.decode_offload_bytes,
+                         max_bytes_per_s=s.max_inbound_bytes_per_s)
 
 
 def default_request(ctx: ServerContext, record: AvatarRecord) -> Request:
@@ -113,21 +166,33 @@ async def stream(ws: WebSocket, avatar: str = DEMO_ID) -> None:
     """Drive an avatar and receive its frames (see protocol/ for the messages)."""
     ctx: ServerContext = ws.app.state.ctx
     await ws.accept()
+    subject = None  # holds a per-user slot while set
     try:
-        principal = ctx.tokens.principal(await _token(ws, ctx))
+        principal = await _authenticate(ws, ctx)
         record = _check_access(ctx, principal, avatar)
         if not ctx.slots.try_acquire():
             raise Refusal("busy", f"server busy: {ctx.slots.limit} sessions are open; try "
                                   "again later", CLOSE_BUSY)
+        if not principal.is_admin:
+            if ctx.admission.sessions.try_acquire(principal.subject) is not None:
+                ctx.slots.release()
+                raise Refusal("busy", f"{principal.subject!r} has "
+                                      f"{ctx.settings.max_sessions_per_user} sessions open, the "
+                                      "most one user may have; close one first", CLOSE_TOO_MANY)
+            subject = principal.subject
     except Refusal as refusal:
         await _refuse(ws, refusal, ctx)
         return
+    except WebSocketDisconnect:
+        return  # left before authenticating
     ctx.metrics.sessions.set(ctx.slots.count)
     ctx.metrics.sessions_total.inc()
     try:
         await _serve(ws, ctx, record)
     finally:
         ctx.slots.release()
+        if subject is not None:
+            ctx.admission.sessions.release(subject)
         ctx.metrics.sessions.set(ctx.slots.count)
         if ws.application_state == WebSocketState.CONNECTED:
             with contextlib.suppress(Exception):
@@ -147,7 +212,8 @@ async def _serve(ws: WebSocket, ctx: ServerContext, record: AvatarRecord) -> Non
     request = default_request(ctx, record)
     session = StreamSession(
         ws, renderer, ctx.scheduler, ctx.track_scheduler, ctx.metrics,
-        SessionConfig(s.limits, s.jpeg_quality, s.jpeg_quality_moving, s.stats_interval_s),
+        SessionConfig(s.limits, s.jpeg_quality, s.jpeg_quality_moving, s.stats_interval_s,
+                      inbound_limits(s)),
         request, View(orbit=Orbit()), session_count=lambda: ctx.slots.count)
     info = AvatarInfo(id=record.id, name=record.name, num_gaussians=record.num_gaussians,
                       sh_degree=record.sh_degree, owner=record.owner, metadata=record.metadata)

@@ -39,12 +39,12 @@ from protocol import (
     Request,
     Stats,
     View,
-    decode_client,
     encode,
 )
 from protocol.messages import Answers
 
 from .drive import DriveState, fit_drive
+from .inbound import InboundDecoder, InboundLimits
 from .metrics import ServerMetrics
 from .renderer import FrameJob, RenderedFrame, SessionRenderer
 from .scheduler import RenderScheduler
@@ -82,6 +82,7 @@ class SessionConfig:
     jpeg_quality: int
     jpeg_quality_moving: int
     stats_interval_s: float
+    inbound: InboundLimits = InboundLimits()
 
 
 def error_message(code: str, message: str, answers: dict | None = None) -> Error:
@@ -108,6 +109,7 @@ class StreamSession:
         self.shapes = renderer.shapes
         self.session_count = session_count  # () -> int, for stats
         self.bucket = TokenBucket(self.limits.max_messages_per_s)
+        self.inbound = InboundDecoder(self.limits, config.inbound)
         self._dirty = asyncio.Event()
         self._dirty.set()  # the first frame shows the rest pose
         self._control: asyncio.Queue = asyncio.Queue(CONTROL_QUEUE)
@@ -170,7 +172,7 @@ class StreamSession:
                                                 "messages per second; this one was dropped")
                 continue
             try:
-                msg = decode_client(data, self.limits)
+                msg = await self.inbound.decode(data)  # bounded; large ones off the loop
                 self.metrics.messages.labels(msg.type).inc()
                 self.handle(msg)
             except ProtocolError as exc:

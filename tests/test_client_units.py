@@ -136,7 +136,7 @@ def test_motion_files_reject_bad_input(tmp_path):
 
 
 def test_stream_url_from_http_and_ws_bases():
-    assert stream_url("http://h:1", "demo", "t k") == "ws://h:1/v1/stream?avatar=demo&token=t+k"
+    assert stream_url("http://h:1", "de mo") == "ws://h:1/v1/stream?avatar=de+mo"  # no token
     assert stream_url("https://h/base/", "a") == "wss://h/base/v1/stream?avatar=a"
     assert stream_url("ws://h:2/v1/stream", "a") == "ws://h:2/v1/stream?avatar=a"
 

@@ -1,16 +1,18 @@
 // The Telesplat page: pick an avatar, watch its live stream, orbit, drive it with clips,
-// sliders or the webcam. The token comes from ?token= (the server prints that URL).
+// sliders or the webcam. The token comes from the address (#token=, as the server prints it,
+// or ?token= from older links); it is moved into memory and removed from the address bar at
+// once, then travels only in the WebSocket's hello and REST calls' Authorization header.
 
 import { Controls } from "./controls.js";
 import { MotionPlayer } from "./motions.js";
 import { OrbitControl } from "./orbit.js";
-import { Session, streamUrl } from "./session.js";
+import { Session, streamUrl, takeToken } from "./session.js";
 import { StreamStats, renderStats } from "./stats.js";
 import { Webcam } from "./webcam.js";
 
 const $ = (id) => document.getElementById(id);
 const params = new URLSearchParams(location.search);
-const token = params.get("token");
+const token = takeToken(window);
 
 // Shared with tests and the console: what the page is doing.
 const state = window.telesplat = {
@@ -110,7 +112,7 @@ async function connect(avatarId) {
   player.stop();
   state.avatar = avatarId;
   $("status").textContent = `connecting to ${avatarId}…`;
-  const session = new Session(streamUrl(avatarId, token));
+  const session = new Session(streamUrl(avatarId), token);
   state.session = session;
   session.addEventListener("frame", (e) => showFrame(e.detail));
   session.addEventListener("servererror", (e) => onServerError(e.detail));
@@ -214,6 +216,6 @@ function wire() {
 }
 
 wire();
-if (!token) notify("no ?token= in the address: the server prints a URL with one", "error");
+if (!token) notify("no #token= in the address: the server prints a URL with one", "error");
 loadAvatars();
 loadMotions();

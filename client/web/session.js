@@ -5,15 +5,30 @@
 
 import { PROTOCOL_VERSION, ProtocolError, decode, encode } from "./protocol.js";
 
-export function streamUrl(avatar, token) {
+/** The stream's URL; never with a token in it (URLs end up in logs and histories). */
+export function streamUrl(avatar) {
   const scheme = location.protocol === "https:" ? "wss" : "ws";
-  const query = new URLSearchParams({ avatar });
-  if (token) query.set("token", token);
-  return `${scheme}://${location.host}/v1/stream?${query}`;
+  return `${scheme}://${location.host}/v1/stream?${new URLSearchParams({ avatar })}`;
+}
+
+/** The token from the address (#token= or ?token=), removed from the address bar and the
+ *  history entry so it is neither shown, bookmarked nor sent again; null if there is none. */
+export function takeToken(win) {
+  const url = new URL(win.location.href);
+  const fragment = new URLSearchParams(url.hash.slice(1));
+  const token = fragment.get("token") || url.searchParams.get("token");
+  if (fragment.has("token") || url.searchParams.has("token")) {
+    fragment.delete("token");
+    url.searchParams.delete("token");
+    url.hash = fragment.toString();
+    win.history.replaceState(win.history.state, "", url.toString());
+  }
+  return token || null;
 }
 
 export class Session extends EventTarget {
-  constructor(url) {
+  /** `token` goes in the first message, the hello, which the server reads before anything. */
+  constructor(url, token = null) {
     super();
     this.url = url;
     this.seq = 0;
@@ -27,7 +42,9 @@ export class Session extends EventTarget {
       this._reject = reject;
     });
     this.ws.addEventListener("open", () => {
-      this._send({ type: "hello", version: PROTOCOL_VERSION, client: "telesplat-web" });
+      const hello = { type: "hello", version: PROTOCOL_VERSION, client: "telesplat-web" };
+      if (token) hello.token = token;
+      this._send(hello);
     });
     this.ws.addEventListener("message", (event) => this._receive(event.data));
     this.ws.addEventListener("close", (event) => {
