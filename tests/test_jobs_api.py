@@ -250,6 +250,9 @@ def test_tokens_scopes_and_owners(srv):
         for path in ("", "/events", "/logs", "/result"):
             assert bob.get(f"/v1/jobs/{job['id']}{path}").status_code == 404, path
         assert bob.post(f"/v1/jobs/{job['id']}/cancel").status_code == 404
+        assert bob.post(f"/v1/jobs/{job['id']}/resume").status_code == 404
+        assert bob.delete(f"/v1/jobs/{job['id']}").status_code == 404
+        assert viewer.delete(f"/v1/jobs/{job['id']}").status_code == 403
         assert bob.get("/v1/jobs/does-not-exist").status_code == 404
         assert job["id"] not in [j["id"] for j in bob.get("/v1/jobs").json()["jobs"]]
         assert job["id"] in [j["id"] for j in alice.get("/v1/jobs").json()["jobs"]]
@@ -267,9 +270,13 @@ def test_openapi_documents_the_routes(srv):
     paths = spec["paths"]
     assert {"/v1/jobs", "/v1/jobs/{job_id}", "/v1/jobs/{job_id}/events",
             "/v1/jobs/{job_id}/logs", "/v1/jobs/{job_id}/cancel",
-            "/v1/jobs/{job_id}/result"} <= set(paths)
+            "/v1/jobs/{job_id}/result", "/v1/jobs/{job_id}/resume"} <= set(paths)
+    assert "delete" in paths["/v1/jobs/{job_id}"]
     submit = paths["/v1/jobs"]["post"]
     assert {"application/json", "multipart/form-data"} <= set(submit["requestBody"]["content"])
     assert submit["responses"]["201"]["content"]["application/json"]["schema"]["$ref"].endswith(
         "/JobOut")
     assert "404" in paths["/v1/jobs/{job_id}"]["get"]["responses"]
+    assert "429" in submit["responses"]
+    job = spec["components"]["schemas"]["JobOut"]["properties"]
+    assert {"attempts", "max_attempts", "attempt_log"} <= set(job)

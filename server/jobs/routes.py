@@ -403,8 +403,11 @@ def job_events(job_id: str, request: Request,
                 if len(events) == EVENT_PAGE:
                     continue
             else:
-                job = await run_in_threadpool(store.get, job_id)
-                # its last state event is written with the state: nothing can follow it
+                try:
+                    job = await run_in_threadpool(store.get, job_id)
+                except JobNotFound:  # deleted meanwhile
+                    return
+                # its last state event is written with the state: only a resume follows it
                 if job.done and not await run_in_threadpool(store.events, job_id, seq, 1):
                     yield _sse(None, "end", {"state": job.state, "avatar_id": job.avatar_id,
                                              "error": job.error})
