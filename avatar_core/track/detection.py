@@ -40,6 +40,8 @@ class Detector:
         h, w = frame_bgr.shape[:2]
         box = letterbox_rect(w, h)
         size = self.spec.input_size
+        # face_detection.pbtxt, palm_detection_cpu.pbtxt, pose_detection_cpu.pbtxt:
+        # ImageToTensorCalculator keep_aspect_ratio: true, border_mode: BORDER_ZERO.
         x = to_tensor(crop_rgb(frame_bgr, box, size, size, zero_border=True),
                       *self.input_range)  # [1, S, S, 3]
         raw_boxes, raw_scores = self.model(x)[:2]  # [1, N, 4 + 2K], [1, N, 1]

@@ -59,6 +59,7 @@ class FacePipeline(SingleTargetPipeline):
     def landmarks(self, frame_bgr: np.ndarray, roi: RotatedRect
                   ) -> tuple[FaceLandmarks, RotatedRect] | None:
         w, h = self.landmarker.input_size
+        # face_landmark_cpu.pbtxt: ImageToTensorCalculator border_mode unset -> BORDER_REPLICATE.
         x = to_tensor(crop_rgb(frame_bgr, roi, w, h), 0.0, 1.0)  # [1, 192, 192, 3]
         raw, flag = self.landmarker(x)  # [1, 1, 1, 1404], [1, 1, 1, 1]
         score = float(expit(flag.reshape(-1)[0]))  # a logit

@@ -95,6 +95,7 @@ class HandPipeline:
 
     def landmarks(self, frame_bgr: np.ndarray, roi: RotatedRect) -> HandLandmarks | None:
         w, h = self.landmarker.input_size
+        # hand_landmark_cpu.pbtxt: ImageToTensorCalculator border_mode unset -> BORDER_REPLICATE.
         x = to_tensor(crop_rgb(frame_bgr, roi, w, h), 0.0, 1.0)  # [1, 224, 224, 3]
         raw, presence, handedness = self.landmarker(x)[:3]  # [1, 63], [1, 1], [1, 1]
         score = float(presence.reshape(-1)[0])

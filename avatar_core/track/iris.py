@@ -59,6 +59,8 @@ class IrisPipeline:
             ) -> tuple[np.ndarray, np.ndarray]:
         """One eye's contour [71, 3] and iris [5, 3] in frame px."""
         w, h = self.model.input_size
+        # iris_landmark_cpu.pbtxt: ImageCroppingCalculator border_mode: BORDER_REPLICATE (then
+        # a resize to 64x64; here one warp straight to 64x64).
         crop = crop_rgb(frame_bgr, roi, w, h)  # [64, 64, 3]
         if flip:
             crop = crop[:, ::-1]

@@ -47,14 +47,17 @@ def refine_from_heatmap(points: np.ndarray, heatmap: np.ndarray, kernel: int = 7
     out = points.copy()
     r = (kernel - 1) // 2
     for i in range(points.shape[0]):
-        col, row = int(points[i, 0] * hm_w), int(points[i, 1] * hm_h)
-        if not (0 <= col < hm_w and 0 <= row < hm_h):
+        col, row = int(points[i, 0] * hm_w), int(points[i, 1] * hm_h)  # truncated, as in C++
+        # refine_landmarks_from_heatmap_calculator.cc tests `col >= hm_height` where it means
+        # the row, so a point up to `r` cells below the map still refines from its clipped
+        # window (a square map; kept for parity).
+        if not (0 <= col < hm_w and 0 <= row and col < hm_h):
             continue
         r0, r1, c0, c1 = max(0, row - r), min(hm_h, row + r + 1), max(0, col - r), min(
             hm_w, col + r + 1)
         conf = _sigmoid(heatmap[r0:r1, c0:c1, i])
         total = float(conf.sum())
-        if conf.max() >= min_confidence and total > 0:
+        if conf.size and conf.max() >= min_confidence and total > 0:
             rows, cols = np.mgrid[r0:r1, c0:c1]
             out[i, 0] = float((cols * conf).sum()) / hm_w / total
             out[i, 1] = float((rows * conf).sum()) / hm_h / total
@@ -82,7 +85,9 @@ class PosePipeline(SingleTargetPipeline):
     def landmarks(self, frame_bgr: np.ndarray, roi: RotatedRect
                   ) -> tuple[PoseLandmarks, RotatedRect] | None:
         w, h = self.landmarker.input_size
-        x = to_tensor(crop_rgb(frame_bgr, roi, w, h, zero_border=True), 0.0, 1.0)
+        # pose_landmark_by_roi_cpu.pbtxt: ImageToTensorCalculator border_mode unset ->
+        # BORDER_REPLICATE. The body ROI of a portrait is 2-4x the photo, so the fill matters.
+        x = to_tensor(crop_rgb(frame_bgr, roi, w, h), 0.0, 1.0)
         raw, flag, _seg, heatmap = self.landmarker(x)[:4]  # [1,195] [1,1] _ [1,64,64,39]
         score = float(flag.reshape(-1)[0])  # the model ends in a sigmoid
         if score < self.min_presence:

@@ -55,12 +55,48 @@ def crop_matrix(rect: RotatedRect, out_w: int, out_h: int) -> np.ndarray:
     return cv2.getAffineTransform(src, dst)
 
 
+# OpenCV's fixed-point bilinear resampling (the one MediaPipe's bundled OpenCV 4.x uses):
+# source coordinates are rounded to 1/32 px and the weights are exact multiples of 1/1024.
+_INTER_BITS = 5
+_INTER_TAB = 1 << _INTER_BITS
+
+
+def crop_map(rect: RotatedRect, out_w: int, out_h: int) -> tuple[np.ndarray, np.ndarray]:
+    """The fixed-point source map of a crop, as MediaPipe's ImageToTensor builds it:
+    cv::boxPoints of the float rect (degrees) -> getPerspectiveTransform onto the crop's
+    corners -> warpPerspective's inverse map with coordinates rounded to 1/32 px.
+    Returns (map1 [out_h, out_w, 2] int16 whole px, map2 [out_h, out_w] uint16 fraction
+    index) for cv2.remap."""
+    box = ((np.float32(rect.cx), np.float32(rect.cy)),
+           (np.float32(rect.width), np.float32(rect.height)),
+           float(np.float32(np.float32(rect.rotation) * np.float32(180.0) / math.pi)))
+    src = cv2.boxPoints(box)  # bottom-left, top-left, top-right, bottom-right
+    dst = np.float32([[0, out_h], [0, 0], [out_w, 0], [out_w, out_h]])
+    inv = cv2.invert(cv2.getPerspectiveTransform(src, dst), flags=cv2.DECOMP_LU)[1]
+    x = np.arange(out_w, dtype=np.float64)[None, :]
+    y = np.arange(out_h, dtype=np.float64)[:, None]
+    w = inv[2, 0] * x + inv[2, 1] * y + inv[2, 2]
+    w = np.divide(_INTER_TAB, w, out=np.zeros_like(w), where=w != 0)
+    lim = (np.iinfo(np.int32).min, np.iinfo(np.int32).max)
+    fx = np.rint(np.clip((inv[0, 0] * x + inv[0, 1] * y + inv[0, 2]) * w, *lim)).astype(np.int64)
+    fy = np.rint(np.clip((inv[1, 0] * x + inv[1, 1] * y + inv[1, 2]) * w, *lim)).astype(np.int64)
+    short = (np.iinfo(np.int16).min, np.iinfo(np.int16).max)
+    map1 = np.stack([np.clip(fx >> _INTER_BITS, *short), np.clip(fy >> _INTER_BITS, *short)],
+                    axis=-1).astype(np.int16)
+    map2 = ((fy & (_INTER_TAB - 1)) * _INTER_TAB + (fx & (_INTER_TAB - 1))).astype(np.uint16)
+    return map1, map2
+
+
 def crop_rgb(frame_bgr: np.ndarray, rect: RotatedRect, out_w: int, out_h: int,
              zero_border: bool = False) -> np.ndarray:
-    """[out_h, out_w, 3] uint8 RGB crop of the rotated rect (bilinear)."""
+    """[out_h, out_w, 3] uint8 RGB crop of the rotated rect, resampled as MediaPipe's
+    ImageToTensorCalculator does on the CPU (bilinear, fixed point; see `crop_map`).
+    `zero_border` fills outside the frame with black (border_mode BORDER_ZERO), else the
+    edge pixels are replicated (BORDER_REPLICATE, also what an unset border_mode means)."""
     border = cv2.BORDER_CONSTANT if zero_border else cv2.BORDER_REPLICATE
-    crop = cv2.warpAffine(frame_bgr, crop_matrix(rect, out_w, out_h), (out_w, out_h),
-                          flags=cv2.INTER_LINEAR, borderMode=border, borderValue=0)
+    map1, map2 = crop_map(rect, out_w, out_h)
+    crop = cv2.remap(frame_bgr, map1, map2, cv2.INTER_LINEAR, borderMode=border,
+                     borderValue=0)
     return cv2.cvtColor(crop, cv2.COLOR_BGR2RGB)
 
 
