@@ -28,6 +28,7 @@ from .drive import DriveState
 from .jobs import routes as jobs_routes
 from .logsafe import install_log_redaction
 from .metrics import ServerMetrics
+from .private import private_dir
 from .registry import DEMO_ID, AvatarRegistry
 from .renderer import FrameJob, SessionRenderer
 from .scheduler import RenderScheduler
@@ -71,7 +72,7 @@ def _start(ctx: ServerContext) -> None:
 
 def create_app(settings: Settings) -> FastAPI:
     install_log_redaction()  # before uvicorn logs a URL with ?token= in it
-    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    private_dir(settings.data_dir)  # 0700: tokens, uploads, avatars and logs live below
     tokens = TokenStore(settings.tokens_path, settings.tokens_reload_interval_s)
     local_token = None
     if settings.auth == "local":
@@ -79,8 +80,7 @@ def create_app(settings: Settings) -> FastAPI:
         local_token = tokens.issue(LOCAL_SUBJECT, SCOPES)
     ctx = ServerContext(
         settings=settings, tokens=tokens,
-        registry=AvatarRegistry(settings.avatars_dir, max_package_bytes=settings.max_upload_bytes
-                                * 4),  # uncompressed may exceed the zip
+        registry=AvatarRegistry.from_settings(settings),
         scheduler=RenderScheduler(settings.render_threads, settings.torch_threads),
         track_scheduler=RenderScheduler(settings.track_threads, 1),
         metrics=ServerMetrics(), slots=SessionSlots(settings.max_sessions),

@@ -5,6 +5,10 @@ temporary folder inside ``root`` and renamed into place, so a reader never sees 
 avatar and a failed add leaves nothing behind. Records (owner, name, metadata) survive
 restarts. Loaded avatars are cached; each streaming session gets its own animator (posing
 is stateful) over the shared, read-only model tensors.
+
+Everything stored is private to the server's user (folders 0700, files 0600), and no server
+path reaches a client: path-like strings are scrubbed from a package's manifest and record
+(a trainer records its dataset's folder), and a demo avatar from a path is "demo:package".
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from avatar_core.body.cache import StageCache
+from avatar_core.bounded_npz import NpzLimits
 from avatar_core.gaussians.animate import AvatarAnimator
 from avatar_core.gaussians.package import (
     GAUSSIANS,
@@ -35,14 +40,32 @@ from avatar_core.gaussians.package import (
 from avatar_core.pipeline import LoadedAvatar, load_avatar
 
 from .auth import PUBLIC_OWNER
+from .private import make_private, private_dir
 
 RECORD, PACKAGE_DIR = "record.json", "package"
 ID_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$")
 DEMO_ID = "demo"
+_PATH_LIKE = re.compile(r"^(/|~|\\\\|[A-Za-z]:[\\/])")  # /abs, ~user, \\share, C:\
 
 
 class AvatarNotFound(KeyError):
     pass
+
+
+class StorageQuotaExceeded(ValueError):
+    """The package would take its owner past their storage quota."""
+
+
+def scrub_paths(value: Any) -> Any:
+    """``value`` (JSON) without server paths: dict entries holding a path are dropped, list
+    items holding one become its last component."""
+    if isinstance(value, dict):
+        return {k: scrub_paths(v) for k, v in value.items()
+                if not (isinstance(v, str) and _PATH_LIKE.match(v))}
+    if isinstance(value, list):
+        return [Path(v).name if isinstance(v, str) and _PATH_LIKE.match(v) else scrub_paths(v)
+                for v in value]
+    return value
 
 
 @dataclass
@@ -68,15 +91,26 @@ def _dir_size(path: Path) -> int:
 class AvatarRegistry:
     """Avatar packages under ``root``, with owners; thread-safe."""
 
-    def __init__(self, root: str | Path, *, max_package_bytes: int = MAX_PACKAGE_BYTES) -> None:
-        self.root = Path(root)
-        self.root.mkdir(parents=True, exist_ok=True)
+    def __init__(self, root: str | Path, *, max_package_bytes: int = MAX_PACKAGE_BYTES,
+                 npz_limits: NpzLimits | None = None) -> None:
+        self.root = private_dir(root)
         self.max_package_bytes = max_package_bytes
+        self.npz_limits = npz_limits  # None: load_package's, from max_package_bytes
         self._lock = threading.RLock()
         self._records: dict[str, AvatarRecord] = {}
         self._loaded: dict[str, LoadedAvatar] = {}
         self._load_locks: dict[str, threading.Lock] = {}
         self._scan()
+
+    @classmethod
+    def from_settings(cls, settings: Any) -> AvatarRegistry:
+        """The server's registry: ``settings.avatars_dir`` and its unpack limits."""
+        limits = NpzLimits(max_array_bytes=settings.max_npz_array_bytes,
+                           max_total_bytes=settings.max_npz_bytes,
+                           max_ratio=settings.max_unpack_ratio)
+        # the files together may be larger than the zip, and hold the arrays and the manifest
+        return cls(settings.avatars_dir, npz_limits=limits,
+                   max_package_bytes=max(4 * settings.max_upload_bytes, settings.max_npz_bytes))
 
     # -- records ---------------------------------------------------------------------------
 
@@ -87,6 +121,9 @@ class AvatarRegistry:
             except (ValueError, TypeError):
                 continue  # a damaged record is skipped, not fatal
             if rec.id == rec_file.parent.name:
+                rec.metadata = scrub_paths(rec.metadata)  # records written before scrubbing
+                if rec.source.startswith("demo:") and _PATH_LIKE.match(rec.source[5:]):
+                    rec.source = "demo:package"
                 self._records[rec.id] = rec
         for tmp in self.root.glob(".incoming-*"):  # leftovers of a crash mid-add
             shutil.rmtree(tmp, ignore_errors=True)
@@ -115,13 +152,16 @@ class AvatarRegistry:
 
     def add_package(self, src: str | Path, owner: str, name: str | None = None, *,
                     avatar_id: str | None = None, source: str = "",
-                    metadata: dict[str, Any] | None = None) -> AvatarRecord:
-        """Validate a package (folder or zip) and copy it in atomically; PackageError if bad.
+                    metadata: dict[str, Any] | None = None,
+                    max_size_bytes: int | None = None) -> AvatarRecord:
+        """Validate a package (folder or zip) and copy it in atomically; PackageError if bad,
+        StorageQuotaExceeded when it unpacks to more than ``max_size_bytes`` (None: no cap).
 
         ``avatar_id``: a fixed id (replaces an avatar of that id), else a fresh random one.
         """
         src = Path(src)
-        package = load_package(src, max_bytes=self.max_package_bytes)  # raises PackageError
+        package = load_package(src, max_bytes=self.max_package_bytes,
+                               npz_limits=self.npz_limits)  # raises PackageError
         avatar_id = avatar_id or secrets.token_hex(8)
         if not ID_PATTERN.match(avatar_id):
             raise ValueError(f"bad avatar id {avatar_id!r}")
@@ -134,12 +174,19 @@ class AvatarRegistry:
                     shutil.copyfile(src / member, target / member)
             else:
                 _extract_members(src, target)
+            _scrub_manifest(target / MANIFEST)
+            size = _dir_size(target)
+            if max_size_bytes is not None and size > max_size_bytes:
+                raise StorageQuotaExceeded(
+                    f"storage quota exceeded: the avatar takes {size} bytes and "
+                    f"{max(0, max_size_bytes)} are left")
             rec = AvatarRecord(
                 id=avatar_id, name=name or package.name, owner=owner,
                 num_gaussians=package.avatar.num, sh_degree=package.avatar.sh_degree,
-                created=time.time(), size_bytes=_dir_size(target), source=source,
-                metadata={**package.metadata, **(metadata or {})})
+                created=time.time(), size_bytes=size, source=source,
+                metadata=scrub_paths({**package.metadata, **(metadata or {})}))
             (staging / RECORD).write_text(json.dumps(rec.to_dict(), indent=2))
+            make_private(staging)
             with self._lock:
                 final = self.root / avatar_id
                 if final.exists():
@@ -178,7 +225,8 @@ class AvatarRegistry:
 
     def register_demo(self, spec: str) -> AvatarRecord | None:
         """The start-up demo avatar (owner 'public', id 'demo'): 'synthetic[:N]', 'trained',
-        'none' or a package path. Kept as is when already registered from the same spec."""
+        'none' or a package path. Kept as is when already registered from the same synthetic
+        spec."""
         if spec == "none":
             return None
         with self._lock:
@@ -195,9 +243,10 @@ class AvatarRegistry:
             from avatar_core.demo import ensure_demo_avatar  # the lead's; trains once, cached
 
             path = Path(ensure_demo_avatar())
-        else:
-            path = Path(spec)
-        return self.add_package(path, PUBLIC_OWNER, avatar_id=DEMO_ID, source=f"demo:{spec}")
+            return self.add_package(path, PUBLIC_OWNER, avatar_id=DEMO_ID, source="demo:trained")
+        # a path: re-added at every start (cheap), and never shown to clients
+        return self.add_package(Path(spec), PUBLIC_OWNER, avatar_id=DEMO_ID,
+                                source="demo:package")
 
     # -- loading for streaming ---------------------------------------------------------------
 
@@ -228,6 +277,14 @@ class AvatarRegistry:
         return loaded, animator
 
 
+def _scrub_manifest(path: Path) -> None:
+    """The copied package's avatar.json without server paths (it can be downloaded)."""
+    manifest = json.loads(path.read_text())
+    scrubbed = {k: v if k == "body_model" else scrub_paths(v) for k, v in manifest.items()}
+    if scrubbed != manifest:
+        path.write_text(json.dumps(scrubbed, indent=2))
+
+
 def _extract_members(src: Path, target: Path) -> None:
     """Copy the two package members out of a zip that ``load_package`` has already checked."""
     with zipfile.ZipFile(src) as z:
@@ -237,4 +294,5 @@ def _extract_members(src: Path, target: Path) -> None:
                 shutil.copyfileobj(fin, fout, 1 << 20)
 
 
-__all__ = ["DEMO_ID", "AvatarNotFound", "AvatarRecord", "AvatarRegistry", "PackageError"]
+__all__ = ["DEMO_ID", "AvatarNotFound", "AvatarRecord", "AvatarRegistry", "PackageError",
+           "StorageQuotaExceeded", "scrub_paths"]

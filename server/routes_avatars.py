@@ -2,7 +2,8 @@
 
 Reading needs the ``stream`` scope, uploading and deleting the ``train`` scope. A caller sees
 its own avatars and the public ones (an admin sees all). Unknown ids are 404; an avatar that
-exists but is another owner's is 403.
+exists but is another owner's is 403. Uploads are checked against the owner's quotas
+(server/quotas.py: 429 past the avatar count, 413 past the stored bytes; admins exempt).
 """
 
 from __future__ import annotations
@@ -19,7 +20,9 @@ from starlette.background import BackgroundTask
 
 from .auth import Principal, require_scope
 from .context import ServerContext
-from .registry import AvatarNotFound, AvatarRecord, PackageError
+from .private import private_dir
+from .quotas import check_avatar_quota, storage_left
+from .registry import AvatarNotFound, AvatarRecord, PackageError, StorageQuotaExceeded
 from .uploads import receive_upload
 
 router = APIRouter(prefix="/v1/avatars", tags=["avatars"])
@@ -89,8 +92,11 @@ def get_avatar(avatar_id: str, request: Request,
     "", summary="Upload an avatar package (zip)", status_code=status.HTTP_201_CREATED,
     response_model=AvatarOut,
     responses={**ERRORS, 400: {"model": ErrorOut, "description": "Malformed body"},
-               413: {"model": ErrorOut, "description": "Larger than max_upload_bytes"},
-               422: {"model": ErrorOut, "description": "Not a valid avatar package"}},
+               413: {"model": ErrorOut, "description": "Larger than max_upload_bytes, past "
+                                                        "an unpack limit or the storage quota"},
+               422: {"model": ErrorOut, "description": "Not a valid avatar package (also a "
+                                                        "damaged or truncated zip)"},
+               429: {"model": ErrorOut, "description": "The owner has max_avatars_per_user"}},
     openapi_extra={"requestBody": {"required": True, "content": {
         "multipart/form-data": {"schema": {
             "type": "object", "required": ["file"],
@@ -103,12 +109,21 @@ async def upload_avatar(request: Request, name: str | None = None,
     unpacked; the caller owns the new avatar. ``name`` (query or form field) overrides the
     package's name."""
     ctx = _ctx(request)
+    jobs = getattr(request.app.state, "jobs", None)
+    exempt = principal.is_admin
+    if not exempt:  # before the body is read
+        await asyncio.to_thread(check_avatar_quota, principal.subject, 0, ctx.settings,
+                                ctx.registry, jobs)
     upload = await receive_upload(request, ctx.settings.data_dir / "tmp",
                                   ctx.settings.max_upload_bytes)
     try:
+        left = None if exempt else await asyncio.to_thread(
+            storage_left, principal.subject, ctx.settings, ctx.registry, jobs)
         rec = await asyncio.to_thread(
             ctx.registry.add_package, upload.path, principal.subject,
-            name or upload.name, source="upload")
+            name or upload.name, source="upload", max_size_bytes=left)
+    except StorageQuotaExceeded as exc:
+        raise HTTPException(413, str(exc)) from None
     except PackageError as exc:
         raise HTTPException(422, f"not a valid avatar package: {exc}".replace(
             str(upload.path), "upload")) from None
@@ -126,8 +141,7 @@ async def download_avatar(avatar_id: str, request: Request,
                           principal: Principal = _STREAM) -> FileResponse:
     ctx = _ctx(request)
     rec = visible_avatar(ctx, principal, avatar_id)
-    tmp_dir = ctx.settings.data_dir / "tmp"
-    tmp_dir.mkdir(parents=True, exist_ok=True)
+    tmp_dir = private_dir(ctx.settings.data_dir / "tmp")
     with tempfile.NamedTemporaryFile(dir=tmp_dir, suffix=".zip", delete=False) as fh:
         path = Path(fh.name)
     try:

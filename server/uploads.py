@@ -15,6 +15,8 @@ from pathlib import Path
 from fastapi import HTTPException, Request
 from python_multipart.multipart import MultipartParser, parse_options_header
 
+from .private import private_dir
+
 MAX_NAME_CHARS = 200
 
 
@@ -90,7 +92,7 @@ async def receive_upload(request: Request, tmp_dir: Path, limit: int) -> Upload:
     if declared and declared.isdigit() and int(declared) > limit + 64 * 1024:
         raise HTTPException(413, f"upload of {declared} bytes exceeds the limit of {limit}")
     ctype, options = parse_options_header(request.headers.get("content-type", ""))
-    tmp_dir.mkdir(parents=True, exist_ok=True)
+    private_dir(tmp_dir)
     fd, name = tempfile.mkstemp(prefix="upload-", suffix=".zip", dir=tmp_dir)
     path = Path(name)
     try:

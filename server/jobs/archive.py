@@ -22,6 +22,7 @@ from pathlib import Path, PurePosixPath
 from typing import BinaryIO
 
 from avatar_core.bounded_npz import NpzError, NpzLimits, check_zip_members, open_zip
+from avatar_core.dataset.format import PARAMS_NPZ_LIMITS
 
 __all__ = ["ArchiveError", "UploadLimits", "check_archive", "extract_archive"]
 
@@ -38,9 +39,17 @@ class UploadLimits:
     max_ratio: float = 100.0                 # unpacked / packed of a member past ratio_floor
     ratio_floor_bytes: int = 1 << 20
     quota_bytes: int | None = None           # the owner's storage left (None: no quota)
+    max_npz_array_bytes: int = PARAMS_NPZ_LIMITS.max_array_bytes  # params.npz, when read
+    max_npz_bytes: int = PARAMS_NPZ_LIMITS.max_total_bytes
 
     def ratio_limits(self) -> NpzLimits:
         return NpzLimits(max_ratio=self.max_ratio, ratio_floor_bytes=self.ratio_floor_bytes)
+
+    def npz_limits(self) -> NpzLimits:
+        """How the unpacked dataset's params.npz files are read."""
+        return NpzLimits(max_array_bytes=self.max_npz_array_bytes,
+                         max_total_bytes=self.max_npz_bytes, max_ratio=self.max_ratio,
+                         ratio_floor_bytes=self.ratio_floor_bytes)
 
     @property
     def budget(self) -> int:

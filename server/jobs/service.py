@@ -11,15 +11,18 @@ from __future__ import annotations
 import re
 import shutil
 import tempfile
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, BinaryIO
 
+from avatar_core.bounded_npz import NpzLimits
 from avatar_core.dataset import DatasetError, load_dataset
 from avatar_core.train.checkpoint import latest_checkpoint
 from avatar_core.train.config import TrainConfig, config_from_dict, config_to_dict, preset
 from avatar_core.train.posing import SYNTHETIC_PREFIX
 
+from ..quotas import storage_left
 from .archive import ArchiveError, UploadLimits, extract_archive
 from .run import OUT_DIR
 from .store import (
@@ -97,9 +100,10 @@ def _check_avatar_name(name: str | None) -> str | None:
     return name
 
 
-def _validated(root: Path, body_model_dir: str | None) -> None:
+def _validated(root: Path, body_model_dir: str | None, npz_limits: NpzLimits) -> None:
     try:
-        dataset = load_dataset(root)  # shallow validation: files present, headers, parameters
+        # shallow validation: files present, headers, parameters (read within npz_limits)
+        dataset = load_dataset(root, npz_limits=npz_limits)
     except DatasetError as exc:
         lines = [str(p) for p in exc.problems[:20]]
         more = len(exc.problems) - len(lines)
@@ -126,6 +130,8 @@ class JobService:
         self.datasets_dir = self.data_dir / DATASETS_DIR
         self.jobs_dir.mkdir(parents=True, exist_ok=True)
         self.limits = limits or UploadLimits()
+        # owner -> bytes they may still store (None: no storage quota); set by from_settings
+        self.storage_left: Callable[[str], int] | None = None
         self.quota = quota or JobQuota()
         self.store = store or SQLiteJobStore(self.jobs_dir / DB_FILE)
         self.worker = Worker(self.store, self.jobs_dir, register, worker)
@@ -154,11 +160,20 @@ class JobService:
             max_upload_bytes=getattr(settings, "max_upload_bytes", limits.max_upload_bytes),
             max_unpacked_bytes=getattr(settings, "max_dataset_unpacked_bytes",
                                        limits.max_unpacked_bytes),
-            max_files=getattr(settings, "max_dataset_files", limits.max_files))
+            max_files=getattr(settings, "max_dataset_files", limits.max_files),
+            max_member_bytes=getattr(settings, "max_dataset_member_bytes",
+                                     limits.max_member_bytes),
+            max_ratio=getattr(settings, "max_unpack_ratio", limits.max_ratio),
+            max_npz_array_bytes=getattr(settings, "max_npz_array_bytes",
+                                        limits.max_npz_array_bytes),
+            max_npz_bytes=getattr(settings, "max_npz_bytes", limits.max_npz_bytes))
         quota = JobQuota(
             max_active=getattr(settings, "job_max_active_per_user", JobQuota.max_active),
             max_stored=getattr(settings, "job_max_stored_per_user", JobQuota.max_stored))
-        return cls(settings.data_dir, register, worker=worker, limits=upload, quota=quota)
+        service = cls(settings.data_dir, register, worker=worker, limits=upload, quota=quota)
+        if hasattr(settings, "max_stored_bytes_per_user"):  # the avatars' and jobs' bytes
+            service.storage_left = lambda owner: storage_left(owner, settings, registry, service)
+        return service
 
     def start(self) -> None:
         for leftover in self.jobs_dir.glob(".upload-*"):  # a crash mid-upload
@@ -191,13 +206,19 @@ class JobService:
         except QuotaExceeded as exc:
             raise SubmitError(str(exc), 429) from exc
 
+    def upload_limits(self, owner: str, exempt: bool = False) -> UploadLimits:
+        """The archive limits for ``owner``: ``limits`` with their storage left as quota."""
+        if exempt or self.storage_left is None:
+            return self.limits
+        return replace(self.limits, quota_bytes=self.storage_left(owner))
+
     def submit_named(self, owner: str, dataset: str, config: Any = None,
                      name: str | None = None, *, exempt: bool = False) -> Job:
         self.check_quota(owner, exempt)
         path = self.dataset_path(dataset)
         resolved = resolve_config(config)
         name = _check_avatar_name(name)
-        _validated(path, self.worker.config.body_model_dir)
+        _validated(path, self.worker.config.body_model_dir, self.limits.npz_limits())
         return self._create(owner, f"dataset:{dataset}", path, resolved, name,
                             exempt=exempt)
 
@@ -212,10 +233,11 @@ class JobService:
         scratch = Path(tempfile.mkdtemp(prefix=".upload-", dir=self.jobs_dir))
         try:
             try:
-                root = extract_archive(archive, scratch / "unpacked", self.limits)
+                root = extract_archive(archive, scratch / "unpacked",
+                                       self.upload_limits(owner, exempt))
             except ArchiveError as exc:
                 raise SubmitError(str(exc), exc.status) from exc
-            _validated(root, self.worker.config.body_model_dir)
+            _validated(root, self.worker.config.body_model_dir, self.limits.npz_limits())
             folder = self.worker.job_dir(job_id)
             folder.mkdir()
             target = folder / UPLOADED_DATASET
