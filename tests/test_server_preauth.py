@@ -1,0 +1,253 @@
+"""The WebSocket front door on a real server: nothing is decoded before authentication, waiting
+connections are capped per address and in total, the hello has a deadline, sessions are capped
+per user, a huge message of tiny objects is refused in a session before it is unpacked, tokens
+never reach a log line, and tokens issued while the server runs work without a restart."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import httpx
+import msgpack
+import pytest
+import websockets
+
+from protocol import Hello, Ping, encode
+from server.routes_stream import (
+    CLOSE_BUSY,
+    CLOSE_HELLO_TIMEOUT,
+    CLOSE_TOO_LARGE,
+    CLOSE_TOO_MANY,
+)
+from tests.server_fixtures import (
+    WS_TIMEOUT_S,
+    is_type,
+    recv_msg,
+    recv_until,
+    run_server,
+    stream,
+    wait_until,
+)
+
+REPO = Path(__file__).resolve().parent.parent
+PER_ADDRESS = 2
+WAITING_TOTAL = 3
+HEAVY_BYTES = 7 * 2**20
+
+
+@pytest.fixture(scope="module")
+def srv(tmp_path_factory):
+    with run_server(tmp_path_factory.mktemp("preauth"), max_unauthenticated_per_address=PER_ADDRESS,
+                    max_unauthenticated=WAITING_TOTAL, hello_timeout_s=60.0,
+                    max_sessions_per_user=1, tokens_reload_interval_s=0.05) as running:
+        yield running
+
+
+def heavy_message() -> bytes:
+    """~7 MiB of tiny nested arrays, each within the unpacker's own per-array limit (4096):
+    msgpack needs over a second to unpack it."""
+    block = [[1, 2, 3, 4]] * 1024  # 5 bytes an entry
+    data = msgpack.packb({"type": "hello", "client": "x",
+                          "x": [block] * (HEAVY_BYTES // (5 * 1024 + 3) - 1)})
+    assert HEAVY_BYTES * 0.9 < len(data) <= HEAVY_BYTES
+    return data
+
+
+def _waiting(srv, address: str | None = None) -> int:
+    return srv.ctx.admission.waiting.count(address)
+
+
+async def _connect(srv, source: str = "127.0.0.1", token: str | None = None, **kwargs):
+    """A /v1/stream connection from ``source`` (any 127/8 address reaches the server)."""
+    url = srv.ws_url("demo", token=token)
+    return await websockets.connect(url, max_size=None, open_timeout=WS_TIMEOUT_S,
+                                    close_timeout=5, local_addr=(source, 0), **kwargs)
+
+
+async def _refusal(ws) -> tuple[str, str, int]:
+    """The error's code and message, and the close code that follows it."""
+    err = await recv_msg(ws)
+    assert err.type == "error"
+    with pytest.raises(websockets.ConnectionClosed) as closed:
+        await asyncio.wait_for(ws.recv(), WS_TIMEOUT_S)
+    return err.code, err.message, closed.value.rcvd.code
+
+
+async def _health(srv) -> dict:
+    async with httpx.AsyncClient(base_url=srv.url, timeout=WS_TIMEOUT_S) as c:
+        r = await c.get("/v1/health")
+        assert r.status_code == 200
+        return r.json()
+
+
+async def _wait(predicate, what: str) -> None:
+    await asyncio.to_thread(wait_until, predicate, 20, what=what)
+
+
+def test_an_oversize_first_message_is_refused_undecoded_while_health_answers(srv):
+    heavy = heavy_message()
+
+    async def run():
+        peers = [await _connect(srv, f"127.0.0.{i + 2}") for i in range(WAITING_TOTAL)]
+        await _wait(lambda: _waiting(srv) == WAITING_TOTAL, "the peers to wait")
+        assert (await _health(srv))["status"] == "ok"  # while they hold every waiting slot
+        await asyncio.gather(*(ws.send(heavy) for ws in peers))
+        health, *refusals = await asyncio.gather(_health(srv), *map(_refusal, peers))
+        assert health["status"] == "ok"
+        for code, message, close in refusals:
+            # The frame's length alone refused it: a decode would have said bad_message,
+            # invalid or "exceeds the limit".
+            assert (code, close) == ("too_large", CLOSE_TOO_LARGE)
+            assert "before authentication" in message
+        await _wait(lambda: _waiting(srv) == 0, "the waiting slots to be released")
+    asyncio.run(run())
+
+
+def test_waiting_connections_are_capped_per_address_and_in_total(srv):
+    async def run():
+        first = [await _connect(srv) for _ in range(PER_ADDRESS)]
+        await _wait(lambda: _waiting(srv, "127.0.0.1") == PER_ADDRESS, "two waiting")
+        over_address = await _connect(srv)
+        code, message, close = await _refusal(over_address)
+        assert (code, close) == ("busy", CLOSE_TOO_MANY) and "this address" in message
+        other = await _connect(srv, "127.0.0.2")  # another address still gets in ...
+        await _wait(lambda: _waiting(srv) == WAITING_TOTAL, "all slots taken")
+        over_total = await _connect(srv, "127.0.0.3")  # ... until the total is reached
+        code, message, close = await _refusal(over_total)
+        assert (code, close) == ("busy", CLOSE_BUSY) and "waiting to authenticate" in message
+        # Authenticating frees the slot: the address may wait again.
+        await first[0].send(encode(Hello(token=srv.token, client="test")))
+        await recv_until(first[0], is_type("welcome"))
+        await _wait(lambda: _waiting(srv, "127.0.0.1") == PER_ADDRESS - 1, "a slot freed")
+        again = await _connect(srv)
+        await _wait(lambda: _waiting(srv, "127.0.0.1") == PER_ADDRESS, "the slot retaken")
+        for ws in (*first, other, again):
+            await ws.close()
+        await _wait(lambda: _waiting(srv) == 0, "every slot released")
+    asyncio.run(run())
+    metrics = srv.ctx.metrics.render_text().decode()
+    assert 'telesplat_sessions_refused_total{reason="busy"}' in metrics
+
+
+def test_hello_deadline(tmp_path):
+    with run_server(tmp_path, hello_timeout_s=0.2, warmup=False) as quick:
+        async def run():
+            ws = await _connect(quick)
+            code, message, close = await _refusal(ws)  # sent nothing
+            assert (code, close) == ("unauthorized", CLOSE_HELLO_TIMEOUT) and "0.2 s" in message
+            await _wait(lambda: _waiting(quick) == 0, "the slot released")
+        asyncio.run(run())
+
+
+def test_sessions_per_user(srv):
+    ann = srv.issue("ann", ("stream",))
+    bob = srv.issue("bob", ("stream",))
+
+    async def run():
+        async with stream(srv, token=ann) as first:
+            await recv_until(first, is_type("frame"))
+            async with stream(srv, token=ann, welcome=False) as second:
+                code, message, close = await _refusal(second)
+                assert (code, close) == ("busy", CLOSE_TOO_MANY) and "'ann'" in message
+            async with stream(srv, token=bob) as other, stream(srv) as admin, \
+                    stream(srv) as admin2:  # another user, and admins (exempt)
+                for ws in (other, admin, admin2):
+                    await recv_until(ws, is_type("frame"))
+        await _wait(lambda: srv.ctx.admission.sessions.count("ann") == 0, "ann's session gone")
+        async with stream(srv, token=ann) as again:  # the slot came back
+            await recv_until(again, is_type("frame"))
+    asyncio.run(run())
+
+
+def test_a_message_of_too_many_objects_is_refused_before_unpacking(srv):
+    heavy = heavy_message()
+
+    async def run():
+        async with stream(srv) as ws:
+            await ws.send(heavy)
+            health, err = await asyncio.gather(
+                _health(srv), recv_until(ws, is_type("error")))
+            assert health["status"] == "ok"
+            assert err.code == "too_large" and "16384 msgpack objects" in err.message
+            await ws.send(encode(Ping(t=7.0)))  # the session goes on
+            assert (await recv_until(ws, is_type("pong"))).t == 7.0
+    asyncio.run(run())
+
+
+@pytest.fixture
+def server_log():
+    """Every line uvicorn's access and error loggers write at INFO, formatted as uvicorn does."""
+    from uvicorn.logging import AccessFormatter, DefaultFormatter
+
+    lines: list[str] = []
+
+    class Collect(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            lines.append(self.format(record))
+
+    handlers = {"uvicorn.access": Collect(), "uvicorn.error": Collect()}
+    handlers["uvicorn.access"].setFormatter(AccessFormatter(
+        '%(client_addr)s - "%(request_line)s" %(status_code)s'))
+    handlers["uvicorn.error"].setFormatter(DefaultFormatter("%(message)s"))
+    levels = {}
+    for name, handler in handlers.items():
+        logger = logging.getLogger(name)
+        levels[name] = logger.level
+        logger.setLevel(logging.INFO)
+        logger.addHandler(handler)
+    try:
+        yield lines
+    finally:
+        for name, handler in handlers.items():
+            logging.getLogger(name).removeHandler(handler)
+            logging.getLogger(name).setLevel(levels[name])
+
+
+def test_tokens_never_reach_the_log(srv, server_log):
+    async def run():
+        async with httpx.AsyncClient(base_url=srv.url, timeout=WS_TIMEOUT_S) as c:
+            await c.get(f"/v1/avatars?token={srv.token}&x=1")
+            await c.get("/v1/health", params={"ticket": "tk-secret-ticket"})
+        async with stream(srv) as ws:  # the legacy ?token= WebSocket URL
+            await recv_until(ws, is_type("frame"))
+    asyncio.run(run())
+    wait_until(lambda: any("WebSocket /v1/stream" in line for line in server_log), 10,
+               what="the WebSocket's log line")
+    text = "\n".join(server_log)
+    assert srv.token not in text and srv.token.removeprefix("tsk_") not in text
+    assert "tk-secret-ticket" not in text
+    # (REST reads tokens from the header only: 401)
+    assert '"GET /v1/avatars?token=[redacted]&x=1 HTTP/1.1" 401' in text, text
+    assert "/v1/stream?avatar=demo&token=[redacted]" in text, text
+
+
+def test_tokens_issued_while_running_work_without_a_restart(srv):
+    env = {k: v for k, v in os.environ.items() if not k.startswith("TELESPLAT_")}
+    out = subprocess.run(
+        [sys.executable, "-m", "server", "--data-dir", str(srv.settings.data_dir),
+         "--issue-token", "carol:stream"],
+        cwd=REPO, env=env, capture_output=True, text=True, timeout=120, check=True)
+    carol = out.stdout.strip().splitlines()[-1]
+    assert carol.startswith("tsk_")
+
+    def status(token: str) -> int:
+        return httpx.get(f"{srv.url}/v1/avatars", headers=srv.headers(token), timeout=10
+                         ).status_code
+
+    wait_until(lambda: status(carol) == 200, 10, what="the new token to be accepted")
+    assert status(srv.token) == 200  # the CLI's write kept the server's own token
+
+    async def run():
+        async with stream(srv, token="", welcome=False) as ws:
+            await ws.send(encode(Hello(token=carol)))
+            await recv_until(ws, is_type("frame"))
+    asyncio.run(run())
+
+    from server.auth import TokenStore
+    assert TokenStore(srv.settings.tokens_path).revoke(carol)  # another process revokes it
+    wait_until(lambda: status(carol) == 401, 10, what="the revoked token to be refused")
