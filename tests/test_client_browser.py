@@ -4,6 +4,7 @@ reports the server's answer to webcam frames."""
 
 from __future__ import annotations
 
+import logging
 import time
 
 import pytest
@@ -58,10 +59,33 @@ def thumb_diff(a: dict, b: dict) -> float:
 
 
 @pytest.fixture(scope="module")
-def page(server):  # noqa: F811
+def server_log():
+    """What uvicorn logs at INFO (request lines, WebSocket URLs) while the page runs."""
+    lines: list[str] = []
+
+    class Collect(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            lines.append(record.getMessage())
+
+    handler = Collect()
+    loggers = [logging.getLogger(name) for name in ("uvicorn.access", "uvicorn.error")]
+    levels = [logger.level for logger in loggers]
+    for logger in loggers:
+        logger.setLevel(logging.INFO)
+        logger.addHandler(handler)
+    try:
+        yield lines
+    finally:
+        for logger, level in zip(loggers, levels, strict=True):
+            logger.removeHandler(handler)
+            logger.setLevel(level)
+
+
+@pytest.fixture(scope="module")
+def page(server, server_log):  # noqa: F811
     driver = make_chromium()
     try:
-        driver.get(f"{server.url}/?token={server.token}")
+        driver.get(f"{server.url}/#token={server.token}")  # as `telesplat serve` prints it
         yield driver
     finally:
         driver.quit()
@@ -163,3 +187,23 @@ def test_motion_clips_panel(page):
     seq = page.execute_script("return window.telesplat.session.seq")
     buttons[0].click()
     wait_for(page, f"window.telesplat.session.seq > {seq + 5}", 30, "the clip to drive")
+
+
+def test_the_token_stays_out_of_urls_and_logs(page, server, server_log):  # noqa: F811
+    wait_for(page, "window.telesplat.framesShown > 0", 60, "a frame")
+    assert server.token not in page.current_url and "token" not in page.current_url
+    assert "token" not in page.execute_script("return window.telesplat.session.url")
+    sockets = [line for line in server_log if '"WebSocket /v1/stream' in line]
+    assert sockets and all("token" not in line for line in sockets), sockets
+    assert not any(server.token in line for line in server_log)
+
+
+def test_an_old_link_with_a_query_token_still_works(page, server, server_log):  # noqa: F811
+    page.get(f"{server.url}/?token={server.token}&avatar=demo")
+    wait_for(page, "window.telesplat.framesShown > 0", 60, "a frame")
+    assert "token" not in page.current_url and "avatar=demo" in page.current_url
+    # The first request carried it; the log shows it redacted, and no WebSocket URL has it.
+    assert any("GET /?token=[redacted]&avatar=demo" in line for line in server_log), server_log
+    sockets = [line for line in server_log if '"WebSocket /v1/stream' in line]
+    assert all("token" not in line for line in sockets), sockets
+    assert not any(server.token in line for line in server_log)
