@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import logging
+import os
 import sys
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -72,6 +73,7 @@ def serve(args: argparse.Namespace) -> int:
         return 0
     logging.basicConfig(level=args.log_level.upper(), format="%(levelname)s %(name)s: "
                                                              "%(message)s")
+    os.umask(0o077)  # what the server and its training processes write is theirs alone
     app = create_app(settings)
     sock = listen_socket(settings.host, settings.port, settings.send_buffer_bytes)
     host = f"[{settings.host}]" if ":" in settings.host else settings.host
