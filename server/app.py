@@ -81,7 +81,8 @@ def create_app(settings: Settings) -> FastAPI:
     ctx = ServerContext(
         settings=settings, tokens=tokens,
         registry=AvatarRegistry.from_settings(settings),
-        scheduler=RenderScheduler(settings.render_threads, settings.torch_threads),
+        scheduler=RenderScheduler(settings.render_threads, settings.torch_threads,
+                                  settings.fair_share, settings.fair_share_window_s),
         track_scheduler=RenderScheduler(settings.track_threads, 1),
         metrics=ServerMetrics(), slots=SessionSlots(settings.max_sessions),
         local_token=local_token)

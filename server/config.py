@@ -84,7 +84,17 @@ class Settings(BaseModel):
                                                       "'public': synthetic, trained, none, or "
                                                       "a package path.")
     render_threads: int = Field(1, ge=1, le=64, description="Render worker threads shared by "
-                                                            "all sessions (fair round-robin).")
+                                                            "all sessions (see fair_share).")
+    fair_share: Literal["time", "frames"] = Field(
+        "time", description="How render threads are shared. time: the waiting session with the "
+                            "least recent render time goes first, and with N sessions active "
+                            "each is paced to at most render_threads/N of the render time "
+                            "(alone, none is held back); frames: first come first served, "
+                            "equal frame rates whatever a frame costs.")
+    fair_share_window_s: float = Field(
+        2.0, gt=0, le=60, description="fair_share time: half-life of the recent render time, "
+                                      "and how long a session counts as active after its "
+                                      "last frame.")
     track_threads: int = Field(1, ge=1, le=64, description="Webcam-tracking worker threads "
                                                            "shared by all sessions.")
     torch_threads: int = Field(

@@ -84,6 +84,27 @@ class DriveState:
         self.seq = drive.seq
         self.version += 1
 
+    def restore(self, failed: DriveState, good: DriveState) -> bool:
+        """A frame of ``failed`` did not render: every value it held that is still current
+        and differs from ``good`` (the last state that rendered) goes back to ``good``'s.
+        Values sent since the failure stay. True when something was put back.
+
+        Arrays are replaced, never mutated, so identity tells what changed."""
+        restored = False
+        for family, values in failed.families.items():
+            current, before = self.families[family], good.families[family]
+            for name, value in values.items():
+                if current.get(name) is not value or before.get(name) is value:
+                    continue
+                current = {k: v for k, v in current.items() if k != name}
+                if name in before:
+                    current[name] = before[name]
+                restored = True
+            self.families[family] = current
+        if restored:
+            self.version += 1
+        return restored
+
     def copy(self) -> DriveState:
         # Arrays are never mutated in place (updates replace them), so a shallow copy is enough.
         return DriveState({k: dict(v) for k, v in self.families.items()}, self.seq,

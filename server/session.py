@@ -4,6 +4,9 @@ Latest input wins. The receiver applies every message to the session state at on
 merges into the parameters, a view replaces the camera, a request updates the render
 settings) and raises a flag; the render loop takes a snapshot of the newest state only, so
 inputs that arrive while a frame is being made are coalesced into the next one, never queued.
+While the loop waits for its frame-rate cap or its fair share of render time, every state
+change wakes it to re-check (a new max_fps applies at once). A frame that fails to render
+puts back the last state that rendered, so one bad input never stops the session.
 The render loop sends each frame before it renders the next: with at most one frame in the
 send path, a slow client gets fewer, fresh frames instead of a growing backlog. Control
 messages (errors, pongs, stats) go through a small bounded queue of their own, so the
@@ -16,6 +19,7 @@ import asyncio
 import collections
 import contextlib
 import logging
+import math
 import statistics
 import time
 import uuid
@@ -23,6 +27,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from fastapi import WebSocket
+from pydantic import ValidationError
 from starlette.websockets import WebSocketDisconnect
 
 from protocol import (
@@ -112,6 +117,8 @@ class StreamSession:
         self.inbound = InboundDecoder(self.limits, config.inbound)
         self._dirty = asyncio.Event()
         self._dirty.set()  # the first frame shows the rest pose
+        self._wake = asyncio.Event()  # any state change: the pacing wait re-checks
+        self._good: FrameJob | None = None  # the newest state that rendered
         self._control: asyncio.Queue = asyncio.Queue(CONTROL_QUEUE)
         self._send_lock = asyncio.Lock()
         self._inflight = None  # concurrent future of the render running now
@@ -227,6 +234,7 @@ class StreamSession:
     def _changed(self) -> None:
         self._pending_inputs += 1
         self._dirty.set()
+        self._wake.set()
 
     # -- rendering ---------------------------------------------------------------------------
 
@@ -244,31 +252,58 @@ class StreamSession:
         track_ms, self._track_ms = self._track_ms, 0.0
         return FrameJob(self.drive.copy(), self.view, req, quality, track_ms)
 
-    async def _render_loop(self) -> None:
+    def _next_frame_at(self, started: float) -> float:
+        """When the next frame may start: the frame-rate cap and the fair share of render
+        time, both read now (a request or another session may have changed them)."""
+        gap = max(1.0 / self.request.max_fps, self.scheduler.pace_s(self.id))
+        return started + gap
+
+    async def _pace(self, started: float) -> None:
+        """Wait until the next frame may start; inputs keep coalescing meanwhile."""
         loop = asyncio.get_running_loop()
-        next_at = loop.time()
+        while (delay := self._next_frame_at(started) - loop.time()) > 0:
+            self._wake.clear()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._wake.wait(), delay)
+
+    async def _render_loop(self) -> None:
+        started = -math.inf
         while True:
             await self._dirty.wait()
-            delay = next_at - loop.time()
-            if delay > 0:
-                await asyncio.sleep(delay)  # frame-rate cap; inputs keep coalescing meanwhile
+            await self._pace(started)
             self._dirty.clear()
             job = self._snapshot()
-            started = loop.time()
-            next_at = started + 1.0 / job.request.max_fps
-            future = self.scheduler.submit(self.renderer.render, job)
+            started = asyncio.get_running_loop().time()
+            future = self.scheduler.submit(self.renderer.render, job, key=self.id)
             self._inflight = future  # kept after a cancel: teardown waits for it to finish
             try:
                 frame = await asyncio.wrap_future(future)
             except ValueError as exc:  # parameters the model refused (ParameterError)
-                self.send_error("invalid", f"cannot pose these parameters: {exc}",
+                self._restore(job, drive_only=True)
+                self.send_error("invalid", f"cannot pose these parameters: {exc}; the session "
+                                           "keeps its last parameters that rendered",
                                 {"type": "drive", "seq": job.drive.seq})
                 continue
             except Exception as exc:  # noqa: BLE001 - the session goes on
                 log.exception("render failed in session %s", self.id)
-                self.send_error("internal", f"rendering failed: {type(exc).__name__}")
+                self._restore(job, drive_only=False)
+                self.send_error("internal", f"rendering failed: {type(exc).__name__}; the "
+                                            "session keeps its last state that rendered")
                 continue
+            self._good = job
             await self._send_frame(frame)
+
+    def _restore(self, failed: FrameJob, drive_only: bool) -> None:
+        """Put back the last state that rendered wherever the failed frame's state is still
+        current (newer inputs stay: they get their own try)."""
+        good = self._good
+        self.drive.restore(failed.drive, good.drive if good is not None else DriveState())
+        if good is None or drive_only:
+            return
+        if self.view is failed.view:
+            self.view = good.view
+        if self.request is failed.request:
+            self.request = good.request
 
     async def _track_loop(self) -> None:
         """Track the newest image, one at a time, off the event loop; its fit drives."""
@@ -280,16 +315,18 @@ class StreamSession:
                 continue
             image, received_at = pending
             answers = {"type": "image", "seq": image.seq}
-            future = self.track_scheduler.submit(self.tracking.process, image, received_at)
+            future = self.track_scheduler.submit(self.tracking.process, image, received_at,
+                                                 key=self.id)
             self._track_inflight = future
             try:
                 tracked = await asyncio.wrap_future(future)
-                drive = Drive(seq=tracked.seq, smplx=tracked.params)
+                drive = Drive.model_validate({"seq": tracked.seq, "smplx": tracked.params},
+                                             context={"limits": self.limits})
                 self.drive.apply(drive, fit_drive(drive, self.shapes))
             except TrackingUnavailable as exc:
                 self.send_error("unsupported", str(exc), answers)
                 continue
-            except (TrackingInputInvalid, ProtocolError) as exc:
+            except (TrackingInputInvalid, ProtocolError, ValidationError) as exc:
                 self.send_error("invalid", f"cannot track this image: {exc}", answers)
                 continue
             except Exception as exc:  # noqa: BLE001 - the session goes on
@@ -349,6 +386,8 @@ class StreamSession:
                 task.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)
             self._release_renderer()
+            self.scheduler.forget(self.id)
+            self.track_scheduler.forget(self.id)
             self.closed.set()
 
     def _release_renderer(self) -> None:

@@ -2,14 +2,19 @@
 of the renderer, and slow clients that must not build up lag or slow anyone else."""
 
 import asyncio
+import math
 import socket
+import threading
 import time
 
+import msgpack
 import numpy as np
 import pytest
 import websockets
 
 from protocol import Drive, Limits, Ping, Request, encode
+from server.drive import DriveState
+from server.scheduler import RenderScheduler
 from tests.server_fixtures import is_type, recv_msg, recv_until, run_server, stream, wait_until
 
 MAX_SESSIONS = 3
@@ -169,3 +174,177 @@ def test_slow_client_builds_no_lag_and_slows_nobody(srv):
             stale = [m for m in seen if m.type == "frame"]
             assert len(stale) < 15, f"{len(stale)} stale frames were buffered"
     asyncio.run(run())
+
+
+# -- sessions that never stop for good (issue 13, finding 6) --------------------------------
+
+
+def _raw_drive(seq: int, **families) -> bytes:
+    """A drive packed without client-side validation, as a hostile client would send it."""
+    return msgpack.packb({"type": "drive", "seq": seq, **families}, use_bin_type=True)
+
+
+ABSURD_DRIVES = [
+    {"smplx": {"betas": [1e300]}},
+    {"smplx": {"leye_pose": [1e38, 0.0, 0.0]}},
+    {"smplx": {"jaw_pose": [0.0, math.nan, 0.0]}},
+    {"smplx": {"transl": [math.inf, 0.0, 0.0]}},
+    {"flame": {"eyes_pose": [0.0, 0.0, 0.0, 1e38, 0.0, 0.0]}},
+    {"smplx": {"body_pose": [1e30] * 63}},
+]
+
+
+def test_absurd_drives_are_refused_and_the_next_frame_renders(srv):
+    async def run():
+        async with stream(srv) as ws:
+            await recv_until(ws, is_type("frame"))
+            for seq, families in enumerate(ABSURD_DRIVES, start=100):
+                await ws.send(_raw_drive(seq, **families))
+                err = await recv_until(ws, is_type("error"))
+                assert err.code == "invalid", err.message
+                assert err.answers.type == "drive" and err.answers.seq == seq
+                await ws.send(drive(seq))  # the session goes on: a good drive renders
+                frame = await recv_until(ws, is_type("frame", seq=seq))
+                assert frame.data
+    asyncio.run(run())
+
+
+def test_a_tiny_max_fps_is_woken_by_the_next_request(tmp_path):
+    """max_fps 0.001 (allowed here) puts the loop to wait ~1000 s; max_fps 30 wakes it."""
+    limits = Limits(min_fps=0.001)
+    with run_server(tmp_path, limits=limits, default_width=64, default_height=64) as server:
+        async def run():
+            async with stream(server) as ws:
+                await recv_until(ws, is_type("frame"))
+                await ws.send(msgpack.packb({"type": "request", "max_fps": 0.001}))
+                await ws.send(drive(2))  # waits for the 1000 s cap
+                await ws.send(encode(Request(max_fps=30)))
+                await recv_until(ws, is_type("frame", seq=2), timeout=15)
+        asyncio.run(run())
+
+
+def test_the_default_limits_refuse_a_sleeping_frame_rate(srv):
+    async def run():
+        async with stream(srv) as ws:
+            await ws.send(msgpack.packb({"type": "request", "max_fps": 0.001}))
+            err = await recv_until(ws, is_type("error"))
+            assert err.code == "invalid" and "max_fps" in err.message
+            await ws.send(drive(7))
+            await recv_until(ws, is_type("frame", seq=7))
+    asyncio.run(run())
+
+
+def test_a_failed_render_puts_back_only_what_it_showed():
+    good, state = DriveState(), DriveState()
+    jaw = {"jaw_pose": np.zeros(3)}
+    state.apply(Drive(seq=1, smplx=jaw), {"smplx": jaw})
+    good = state.copy()
+    bad = {"jaw_pose": np.full(3, 0.3), "body_pose": np.zeros((21, 3))}
+    state.apply(Drive(seq=2, smplx=bad), {"smplx": bad})
+    failed = state.copy()
+    newer = {"body_pose": np.full((21, 3), 0.1)}
+    state.apply(Drive(seq=3, smplx=newer), {"smplx": newer})  # sent after the failed frame
+    version = state.version
+    assert state.restore(failed, good)
+    assert state.families["smplx"]["jaw_pose"] is jaw["jaw_pose"]       # put back
+    assert state.families["smplx"]["body_pose"] is newer["body_pose"]   # newer: kept
+    assert state.version > version and state.seq == 3
+    assert not state.restore(failed, good)  # nothing left to put back
+
+
+# -- fair share of render time, not of frames (issue 13, finding 7) --------------------------
+
+BIG = 512  # the largest frame the fairness server allows: PNG + alpha + depth at BIG x BIG
+
+
+@pytest.fixture(scope="module")
+def fair_srv(tmp_path_factory):
+    limits = Limits(max_width=BIG, max_height=BIG, max_messages_per_s=200.0)
+    with run_server(tmp_path_factory.mktemp("fair"), limits=limits, default_max_fps=60,
+                    fair_share="time", fair_share_window_s=1.0) as running:
+        yield running
+
+
+def _render_share(srv, cheap: str, big: str, seconds: float):
+    """(frames of each, the expensive session's render seconds / the window) while both
+    drive continuously, counted over `seconds` after a warm-up."""
+    sched = srv.ctx.scheduler
+
+    async def run():
+        async with stream(srv) as a, stream(srv) as b:
+            ids = {cheap: a.welcome.session, big: b.welcome.session}
+            await a.send(encode(Request(max_fps=60, width=64, height=64)))
+            await b.send(encode(Request(width=BIG, height=BIG, codec="png", max_fps=60,
+                                        outputs=["rgb", "alpha", "depth"])))
+            warm = asyncio.gather(_drive_for(a, 2.0), _drive_for(b, 2.0),
+                                  _count_frames(a, 2.0), _count_frames(b, 2.0))
+            await warm  # shares settle (window 1 s)
+            before = sched.render_seconds(ids[big])
+            start = time.monotonic()
+            sent = asyncio.gather(_drive_for(a, seconds), _drive_for(b, seconds))
+            counts = await asyncio.gather(_count_frames(a, seconds), _count_frames(b, seconds))
+            window = time.monotonic() - start
+            used = sched.render_seconds(ids[big]) - before
+            await sent
+            return counts, used / window
+    return asyncio.run(run())
+
+
+def test_an_expensive_session_gets_its_share_of_render_time_not_more(fair_srv):
+    (cheap, big), big_share = _render_share(fair_srv, "cheap", "big", 3.0)
+    # Served frame for frame, the expensive session would take most of the time (its frames
+    # cost several cheap ones) and the two would get equal frame counts.
+    assert big >= 1, "the expensive session still gets frames"
+    assert big_share <= 0.6, (big_share, cheap, big)  # its share (1/2) and a margin
+    assert cheap >= 1.5 * big, (cheap, big)  # frame for frame it would be 1:1
+
+
+@pytest.mark.parametrize("policy,first", [("time", "light"), ("frames", "heavy")])
+def test_the_scheduler_serves_the_least_recent_render_time_first(policy, first):
+    sched = RenderScheduler(1, 1, policy, window_s=1.0)
+    try:
+        now = time.monotonic()
+        sched.share.add("heavy", 5.0, now)
+        sched.share.add("light", 0.01, now)
+        gate, order = threading.Event(), []
+        blocker = sched.submit(gate.wait, 10)  # holds the one thread while both queue
+        jobs = [sched.submit(order.append, name, key=name) for name in ("heavy", "light")]
+        gate.set()
+        for job in (blocker, *jobs):
+            job.result(timeout=10)
+        assert order[0] == first
+    finally:
+        sched.shutdown()
+
+
+def test_only_a_session_over_its_share_is_paced_and_only_while_others_are_active():
+    sched = RenderScheduler(1, 1, "time", window_s=1.0)
+    try:
+        now = time.monotonic()
+        sched.share.add("heavy", 0.5, now)   # a recent share of 0.35: below its half
+        sched.share.add("light", 0.01, now)
+        assert sched.pace_s("heavy") == 0.0
+        sched.share.add("heavy", 1.0, now)   # now over its half
+        assert sched.pace_s("heavy") > 0 and sched.pace_s("light") == 0.0
+        sched.forget("light")                # alone: never held back
+        assert sched.pace_s("heavy") == 0.0
+        assert RenderScheduler(1, 1, "frames").pace_s("heavy") == 0.0
+        with pytest.raises(ValueError):
+            RenderScheduler(1, 1, "lottery")
+    finally:
+        sched.shutdown()
+
+
+def test_the_scheduler_cancels_queued_jobs_on_shutdown():
+    sched = RenderScheduler(1, 1)
+    gate = threading.Event()
+    running = sched.submit(gate.wait, 10, key="a")
+    queued = sched.submit(time.monotonic, key="b")
+    wait_until(lambda: sched.running == 1, 10, what="the first job to start")
+    gate.set()
+    sched.shutdown()
+    assert running.result(timeout=1) is True
+    assert queued.cancelled() or queued.done()
+    assert sched.queued == 0 and sched.running == 0
+    with pytest.raises(RuntimeError):
+        sched.submit(time.monotonic)
