@@ -7,6 +7,7 @@ the square regions used here the two agree.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import cv2
@@ -59,8 +60,15 @@ def crop_matrix(rect: RotatedRect, out_w: int, out_h: int) -> np.ndarray:
 # source coordinates are rounded to 1/32 px and the weights are exact multiples of 1/1024.
 _INTER_BITS = 5
 _INTER_TAB = 1 << _INTER_BITS
+# Fixed-point coordinates inside this range need no saturation (whole px fit an int16).
+_SAFE = (-32000.0 * _INTER_TAB, 32000.0 * _INTER_TAB)
 
 
+# A settled ROI repeats frame after frame (a still subject): its maps are kept.
+CROP_MAP_CACHE_SIZE = 16
+
+
+@functools.lru_cache(maxsize=CROP_MAP_CACHE_SIZE)
 def crop_map(rect: RotatedRect, out_w: int, out_h: int) -> tuple[np.ndarray, np.ndarray]:
     """The fixed-point source map of a crop, as MediaPipe's ImageToTensor builds it:
     cv::boxPoints of the float rect (degrees) -> getPerspectiveTransform onto the crop's
@@ -73,17 +81,31 @@ def crop_map(rect: RotatedRect, out_w: int, out_h: int) -> tuple[np.ndarray, np.
     src = cv2.boxPoints(box)  # bottom-left, top-left, top-right, bottom-right
     dst = np.float32([[0, out_h], [0, 0], [out_w, 0], [out_w, out_h]])
     inv = cv2.invert(cv2.getPerspectiveTransform(src, dst), flags=cv2.DECOMP_LU)[1]
-    x = np.arange(out_w, dtype=np.float64)[None, :]
-    y = np.arange(out_h, dtype=np.float64)[:, None]
-    w = inv[2, 0] * x + inv[2, 1] * y + inv[2, 2]
-    w = np.divide(_INTER_TAB, w, out=np.zeros_like(w), where=w != 0)
-    lim = (np.iinfo(np.int32).min, np.iinfo(np.int32).max)
-    fx = np.rint(np.clip((inv[0, 0] * x + inv[0, 1] * y + inv[0, 2]) * w, *lim)).astype(np.int64)
-    fy = np.rint(np.clip((inv[1, 0] * x + inv[1, 1] * y + inv[1, 2]) * w, *lim)).astype(np.int64)
-    short = (np.iinfo(np.int16).min, np.iinfo(np.int16).max)
-    map1 = np.stack([np.clip(fx >> _INTER_BITS, *short), np.clip(fy >> _INTER_BITS, *short)],
-                    axis=-1).astype(np.int16)
-    map2 = ((fy & (_INTER_TAB - 1)) * _INTER_TAB + (fx & (_INTER_TAB - 1))).astype(np.uint16)
+    # A rect maps affinely: the last row is [0, 0, 1] up to rounding, so warpPerspective's
+    # division by W is left out (it and OpenCV's per-block sums move a sample position by
+    # ~1e-12 px, which flips the 1/32 px rounding of a rare pixel). The scaling by 32 is
+    # exact: this is round((M[0] x + (M[1] y + M[2])) * 32).
+    x = np.arange(out_w, dtype=np.float64)
+    y = np.arange(out_h, dtype=np.float64)
+    map1 = np.empty((out_h, out_w, 2), np.int16)
+    frac = []
+    for k, row in enumerate(inv[:2]):
+        v = np.add.outer((row[1] * y + row[2]) * _INTER_TAB, (row[0] * _INTER_TAB) * x)
+        np.rint(v, out=v)
+        # Saturated as OpenCV does (int, then short for the whole pixels), which a crop
+        # within 32000 px of the image never needs.
+        inside = _SAFE[0] < v.min() and v.max() < _SAFE[1]
+        if not inside:  # NaN (a degenerate rect) saturates to INT_MIN, as cvRound gives
+            np.nan_to_num(v, copy=False, nan=np.iinfo(np.int32).min)
+            np.clip(v, np.iinfo(np.int32).min, np.iinfo(np.int32).max, out=v)
+        fixed = v.astype(np.int32)
+        whole = fixed >> _INTER_BITS
+        if not inside:
+            whole = np.clip(whole, np.iinfo(np.int16).min, np.iinfo(np.int16).max)
+        map1[..., k] = whole
+        frac.append(fixed & (_INTER_TAB - 1))
+    map2 = (frac[1] << _INTER_BITS | frac[0]).astype(np.uint16)
+    map1.flags.writeable = map2.flags.writeable = False  # shared through the cache
     return map1, map2
 
 
