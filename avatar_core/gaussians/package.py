@@ -171,8 +171,13 @@ def load_package(path: str | Path, *, max_bytes: int = MAX_PACKAGE_BYTES,
         arr = arrays[name]
         if name != "parents" and not np.isfinite(arr).all():
             raise PackageError(f"{path}: '{name}' contains NaN or Inf")
+        if arr.dtype.kind not in ("iu" if name == "parents" else "iuf"):
+            raise PackageError(f"{path}: '{name}' has dtype {arr.dtype}, not a real number type")
+        arr = arr.astype(arr.dtype.newbyteorder("="), copy=False)  # torch takes native order
         tensors[name] = torch.as_tensor(arr, dtype=torch.long if name == "parents" else dtype)
     parents = tensors["parents"]
+    if parents.dim() != 1:
+        raise PackageError(f"{path}: 'parents' must be [N], not {list(parents.shape)}")
     if parents.numel() and (parents.min() < 0 or parents.max() >= body.num_faces):
         raise PackageError(f"{path}: parent triangle indices outside [0, {body.num_faces})")
     try:
