@@ -57,9 +57,9 @@ class Settings(BaseModel):
         64 * 1024, ge=0, description="Client messages of at least this many bytes are decoded "
                                      "in a worker thread, off the event loop.")
     max_inbound_bytes_per_s: float = Field(
-        32 * 2**20, gt=0, description="Bytes per second one session may send (token bucket, "
+        16 * 2**20, gt=0, description="Bytes per second one session may send (token bucket, "
                                       "burst max(16 MiB, limits.max_message_bytes)); past it "
-                                      "messages are dropped with 'rate_limited'.")
+                                      "the session's socket is read more slowly (backpressure).")
     tokens_reload_interval_s: float = Field(
         1.0, ge=0, description="How often, at most, the token file's mtime and size are "
                                "checked; a change (e.g. telesplat serve --issue-token) is "

@@ -1,6 +1,11 @@
 """What a session receives, bounded before it costs: bytes per second, objects per message, and
 large messages decoded off the event loop.
 
+Bytes per second are bounded by backpressure, not by dropping: past its budget a session's
+receiver waits before it reads on, and uvicorn stops reading a WebSocket while its message
+waits, so the sender's TCP window fills and it slows down; the frames it sends are not
+received (and cost nothing) faster than the budget.
+
 Why: the event loop serves every session and ``/v1/health``; one large message decoded on it
 stalls them all. msgpack holds the GIL while it unpacks, so a worker thread alone does not
 help: the object count is bounded first (``protocol.scan``), which bounds the unpack, and the
@@ -22,7 +27,7 @@ from protocol.scan import check_object_count
 class InboundLimits:
     max_message_objects: int = 16384
     decode_offload_bytes: int = 64 * 1024
-    max_bytes_per_s: float = 32 * 2**20
+    max_bytes_per_s: float = 16 * 2**20
     max_burst_bytes: float = 16 * 2**20
 
 
@@ -35,14 +40,14 @@ class ByteBudget:
         self.available = burst
         self.stamp = time.monotonic()
 
-    def take(self, size: int) -> bool:
+    def reserve(self, size: int) -> float:
+        """Take ``size`` bytes; seconds to wait before using them (0: at once). The budget may
+        go into debt, which later reservations wait out."""
         now = time.monotonic()
         self.available = min(self.capacity, self.available + (now - self.stamp) * self.rate)
         self.stamp = now
-        if size > self.available:
-            return False
         self.available -= size
-        return True
+        return max(0.0, -self.available / self.rate)
 
 
 def decode_bounded(data: bytes, limits: Limits, max_objects: int) -> Any:
@@ -68,10 +73,11 @@ class InboundDecoder:
                                  max(inbound.max_burst_bytes, limits.max_message_bytes))
 
     async def decode(self, data: bytes) -> Any:
-        """The message, or ProtocolError (``rate_limited`` past the byte budget)."""
-        if not self.budget.take(len(data)):
-            raise ProtocolError("rate_limited", f"more than {self.inbound.max_bytes_per_s:.0f} "
-                                                "bytes per second; this message was dropped")
+        """The message, or ProtocolError; waits first while the session is over its byte
+        budget (the socket is not read meanwhile)."""
+        delay = self.budget.reserve(len(data))
+        if delay > 0:
+            await asyncio.sleep(delay)
         if len(data) >= self.inbound.decode_offload_bytes:
             return await asyncio.to_thread(decode_bounded, data, self.limits,
                                            self.inbound.max_message_objects)

@@ -251,3 +251,12 @@ def test_tokens_issued_while_running_work_without_a_restart(srv):
     from server.auth import TokenStore
     assert TokenStore(srv.settings.tokens_path).revoke(carol)  # another process revokes it
     wait_until(lambda: status(carol) == 401, 10, what="the revoked token to be refused")
+
+
+def test_the_byte_budget_delays_instead_of_dropping():
+    from server.inbound import ByteBudget
+
+    budget = ByteBudget(rate=1.0, burst=100.0)  # 1 byte/s: refills are negligible here
+    assert budget.reserve(100) == 0.0  # the burst
+    assert 9.0 < budget.reserve(10) <= 10.0  # 10 bytes of debt: wait ~10 s
+    assert 19.0 < budget.reserve(10) <= 20.0  # debts add up
