@@ -1,12 +1,17 @@
 """Upload archive checks without a server: where the dataset root is, member limits,
-duplicate and special members, and nothing left behind when unpacking fails."""
+duplicate and special members, bombs, budgets, liars and damage, and nothing left behind
+when unpacking fails."""
 
 import io
+import os
+import struct
 import zipfile
 
 import pytest
 
 from server.jobs.archive import ArchiveError, UploadLimits, check_archive, extract_archive
+
+from .upload_bombs import corrupt, zip_bomb
 
 
 def _zip(*members: tuple[str, bytes]) -> io.BytesIO:
@@ -59,3 +64,61 @@ def test_device_files_and_encrypted_members_are_refused():
         raw[at] |= 0x1
     with pytest.raises(ArchiveError, match="encrypted"):
         check_archive(io.BytesIO(bytes(raw)), UploadLimits())
+
+
+def _declare_size(data: bytes, size: int) -> bytes:
+    """The zip with its (one) member's unpacked size rewritten in both headers: a liar."""
+    raw = bytearray(data)
+    for signature, at in ((b"PK\x03\x04", 22), (b"PK\x01\x02", 24)):
+        start = raw.index(signature) + at
+        raw[start:start + 4] = struct.pack("<I", size)
+    return bytes(raw)
+
+
+def test_a_member_that_lies_about_its_size_writes_no_more_than_declared(tmp_path):
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as z:
+        z.writestr("dataset.json", os.urandom(100_000))
+    liar = _declare_size(buf.getvalue(), 1000)
+    with pytest.raises(ArchiveError, match="cannot be unpacked") as err:
+        extract_archive(io.BytesIO(liar), tmp_path / "u", UploadLimits())
+    assert err.value.status == 400 and not (tmp_path / "u").exists()
+
+
+def _zeros_zip(nbytes: int, name: str = "big.bin") -> io.BytesIO:
+    return io.BytesIO(zip_bomb(name, nbytes, {"dataset.json": b"{}"}))
+
+
+@pytest.mark.parametrize("nbytes, limits, words", [
+    (256 << 20, UploadLimits(), "decompression bomb"),
+    (8 << 20, UploadLimits(max_ratio=1e9, max_member_bytes=4 << 20), "more than the 4194304"),
+    (8 << 20, UploadLimits(max_ratio=1e9, max_unpacked_bytes=4 << 20), "4194304 bytes allowed"),
+    (8 << 20, UploadLimits(max_ratio=1e9, quota_bytes=4 << 20), "left of your storage quota"),
+    (8 << 20, UploadLimits(max_ratio=1e9, quota_bytes=-5), "the 0 bytes left"),
+])
+def test_bombs_and_budgets_are_413_before_anything_is_written(tmp_path, nbytes, limits, words):
+    with pytest.raises(ArchiveError, match=words) as err:
+        extract_archive(_zeros_zip(nbytes), tmp_path / "u", limits)
+    assert err.value.status == 413 and not (tmp_path / "u").exists()
+
+
+def test_the_member_count_is_read_from_the_end_record(tmp_path):
+    members = [("dataset.json", b"{}")] + [(f"f{i}", b"") for i in range(50)]
+    with pytest.raises(ArchiveError, match="declares 51 members") as err:
+        check_archive(_zip(*members), UploadLimits(max_files=10))
+    assert err.value.status == 413
+
+
+@pytest.mark.parametrize("damage, words", [
+    (lambda d: d[: len(d) // 2], "not a readable zip"),
+    (lambda d: d[:-5], "not a readable zip"),
+    (lambda d: corrupt(d, at=0.3, span=16), "cannot be unpacked"),
+])
+def test_damaged_archives_are_400(tmp_path, damage, words):
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as z:
+        z.writestr("dataset.json", os.urandom(20_000))
+        z.writestr("cameras.json", os.urandom(20_000))
+    with pytest.raises(ArchiveError, match=words) as err:
+        extract_archive(io.BytesIO(damage(buf.getvalue())), tmp_path / "u", UploadLimits())
+    assert err.value.status == 400 and not (tmp_path / "u").exists()

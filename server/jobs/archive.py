@@ -177,5 +177,7 @@ def extract_archive(path: str | Path | BinaryIO, dest: str | Path, limits: Uploa
     except (zipfile.BadZipFile, zlib.error, OSError, EOFError, ValueError, RuntimeError,
             NotImplementedError, NpzError) as exc:
         shutil.rmtree(dest, ignore_errors=True)
-        raise ArchiveError(f"the archive cannot be unpacked: {exc}") from exc
+        # an OSError names a server path (the scratch folder): only its reason goes out
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
+        raise ArchiveError(f"the archive cannot be unpacked: {reason}") from exc
     return dest.joinpath(*root.parts) if root.parts else dest
