@@ -10,6 +10,7 @@ import json
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -34,15 +35,17 @@ class LoadedAvatar:
     files: SyntheticModelFiles
 
 
-def load_avatar(spec: str, model_dir: Path | None = None) -> LoadedAvatar:
+def load_avatar(spec: str, model_dir: Path | None = None, **package_limits: Any
+                ) -> LoadedAvatar:
     """`synthetic[:IDENTITY]` for an untrained avatar on the synthetic model, or the path of a
-    package bound to the synthetic model (its body reference says which seed)."""
+    package bound to the synthetic model (its body reference says which seed).
+    ``package_limits``: ``max_bytes`` / ``npz_limits`` for ``load_package``."""
     if spec == "synthetic" or spec.startswith("synthetic:"):
         identity = int(spec.split(":", 1)[1]) if ":" in spec else 0
         files = ensure_models(model_dir)
         package, model = synthetic_package(files.root, identity)
     else:
-        package = load_package(spec)
+        package = load_package(spec, **package_limits)
         ref = package.body.model
         if not ref.startswith("synthetic:seed"):
             raise ValueError(f"{spec}: bound to body model {ref!r}; only synthetic models can be "

@@ -260,7 +260,9 @@ class AvatarRegistry:
             with self._lock:
                 loaded = self._loaded.get(avatar_id)
             if loaded is None:
-                loaded = load_avatar(str(self.package_dir(avatar_id)))
+                # the limits it was accepted under: a package that was added also opens
+                loaded = load_avatar(str(self.package_dir(avatar_id)),
+                                     max_bytes=self.max_package_bytes, npz_limits=self.npz_limits)
                 with self._lock:
                     if avatar_id in self._records:
                         self._loaded[avatar_id] = loaded
