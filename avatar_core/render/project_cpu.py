@@ -13,8 +13,15 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from .projection import EPS2D, FAR_PLANE, NEAR_PLANE
-from .sh import SH_C0, SH_C1, SH_C2, SH_C3
+from .projection import (
+    EPS2D,
+    FAR_PLANE,
+    MAX_BOUND_PX,
+    MAX_SCREEN_PX,
+    MAX_SIGMA_PX,
+    NEAR_PLANE,
+)
+from .sh import SH_C0, SH_C1, SH_C2, SH_C3, SH_COEFF_MAX
 
 __all__ = ["project_np", "sh_rgb_np"]
 
@@ -23,36 +30,45 @@ _QUAT_EPS = 1e-12
 
 @njit(parallel=True, cache=True)
 def _project_kernel(means, quats, scales, opacities, viewmat, K, width, height, near, far,
-                    eps2d, antialiased, means2d, conics, depths, radii, opac_out):
+                    eps2d, max_sigma, antialiased, means2d, conics, depths, radii, opac_out):
     R = viewmat[:3, :3].astype(np.float64)
     t = viewmat[:3, 3].astype(np.float64)
     fx, fy, cx, cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
     tan_fovx, tan_fovy = 0.5 * width / fx, 0.5 * height / fy
     lim_x_pos, lim_x_neg = (width - cx) / fx + 0.3 * tan_fovx, cx / fx + 0.3 * tan_fovx
     lim_y_pos, lim_y_neg = (height - cy) / fy + 0.3 * tan_fovy, cy / fy + 0.3 * tan_fovy
+    lim = 1.0 + max(abs(lim_x_pos), abs(lim_x_neg), abs(lim_y_pos), abs(lim_y_neg))
+    f_max = max(abs(fx), abs(fy))
     for g in prange(means.shape[0]):
         # scalar code only: no temporary arrays (allocations) and no BLAS calls per Gaussian
         px, py, pz = float(means[g, 0]), float(means[g, 1]), float(means[g, 2])
         xc = R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz + t[0]  # camera space
         yc = R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz + t[1]
         z = R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz + t[2]
-        ok = near < z < far
-        zs = z if ok else 1.0
-        means2d[g, 0] = (K[0, 0] * xc + K[0, 1] * yc + K[0, 2] * z) / zs
-        means2d[g, 1] = (K[1, 1] * yc + K[1, 2] * z) / zs
-        depths[g] = z
+        zp = z if z > 0.0 else 1.0
+        mx = (K[0, 0] * xc + K[0, 1] * yc + K[0, 2] * z) / zp
+        my = (K[1, 1] * yc + K[1, 2] * z) / zp
+        s0, s1, s2 = float(scales[g, 0]), float(scales[g, 1]), float(scales[g, 2])
+        bound = f_max / zp * lim * max(abs(s0), abs(s1), abs(s2))
+        # the sanity rules of projection._sane_rows (written so that NaN culls)
+        ok = (near < z < far) and abs(mx) <= MAX_SCREEN_PX and abs(my) <= MAX_SCREEN_PX \
+            and bound <= MAX_BOUND_PX
+        means2d[g, 0] = mx if ok else K[0, 2]  # the stand-in (0, 0, 1) of the torch version
+        means2d[g, 1] = my if ok else K[1, 2]
+        depths[g] = z if ok else 0.0
         radii[g] = 0
         conics[g, 0] = conics[g, 1] = conics[g, 2] = 0.0
         opac_out[g] = opacities[g]
         if not ok:
+            if antialiased:
+                opac_out[g] = 0.0
             continue
         # rotation (zero quaternion -> identity) times scales, into camera space
-        w, x, y, zq = (float(quats[g, 0]), float(quats[g, 1]), float(quats[g, 2]),
-                       float(quats[g, 3]))
+        w, x, y, zq = (np.float64(quats[g, 0]), np.float64(quats[g, 1]), np.float64(quats[g, 2]),
+                       np.float64(quats[g, 3]))
         nq = math.sqrt(w * w + x * x + y * y + zq * zq)
         inv = 1.0 / nq if nq > _QUAT_EPS else 0.0
         w, x, y, zq = w * inv, x * inv, y * inv, zq * inv
-        s0, s1, s2 = float(scales[g, 0]), float(scales[g, 1]), float(scales[g, 2])
         q00, q01, q02 = (1 - 2 * (y * y + zq * zq)) * s0, 2 * (x * y - w * zq) * s1, \
             2 * (x * zq + w * y) * s2
         q10, q11, q12 = 2 * (x * y + w * zq) * s0, (1 - 2 * (x * x + zq * zq)) * s1, \
@@ -77,21 +93,28 @@ def _project_kernel(means, quats, scales, opacities, viewmat, K, width, height, 
         c00 += eps2d
         c11 += eps2d
         det = c00 * c11 - c01 * c01
-        if not (det > 0.0 and math.isfinite(det)):
+        ca, cb, cc = np.float32(c11 / det), np.float32(-c01 / det), np.float32(c00 / det)
+        # positive definite as stored (float32), as the torch version demands
+        if not (det > 0.0 and math.isfinite(det) and ca > 0.0 and cc > 0.0
+                and float(ca) * float(cc) - float(cb) * float(cb) > 0.0):
+            if antialiased:
+                opac_out[g] = 0.0
             continue
-        conics[g, 0], conics[g, 1], conics[g, 2] = c11 / det, -c01 / det, c00 / det
+        conics[g, 0], conics[g, 1], conics[g, 2] = ca, cb, cc
         if antialiased:
             opac_out[g] = opacities[g] * math.sqrt(max(det_orig / det, 0.0))
         b = 0.5 * (c00 + c11)
         lam = b + math.sqrt(max(b * b - det, 0.01))
-        r = math.ceil(min(3.0 * math.sqrt(max(lam, 0.0)), 2.0**30))
+        if not lam <= max_sigma * max_sigma:  # also NaN: culled before any int conversion
+            continue
+        r = math.ceil(3.0 * math.sqrt(max(lam, 0.0)))
         mx, my = means2d[g, 0], means2d[g, 1]
         if r > 0 and mx + r > 0 and mx - r < width and my + r > 0 and my - r < height:
             radii[g] = r
 
 
 def project_np(means, quats, scales, opacities, viewmat, K, width, height, near=NEAR_PLANE,
-               antialiased=False, far=FAR_PLANE, eps2d=EPS2D):
+               antialiased=False, far=FAR_PLANE, eps2d=EPS2D, max_sigma_px=MAX_SIGMA_PX):
     """numpy in (float32 or float64), -> ``(means2d [N, 2], conics [N, 3], depths [N],
     radii [N] int32, opacities [N])``, float32; the conventions of ``project_gaussians``."""
     n = means.shape[0]
@@ -102,8 +125,14 @@ def project_np(means, quats, scales, opacities, viewmat, K, width, height, near=
     opac = np.empty(n, np.float32)
     _project_kernel(means, quats, scales, opacities, np.asarray(viewmat, np.float64),
                     np.asarray(K, np.float64), width, height, near, far, eps2d,
-                    bool(antialiased), means2d, conics, depths, radii, opac)
+                    float(max_sigma_px), bool(antialiased), means2d, conics, depths, radii, opac)
     return means2d, conics, depths, radii, opac
+
+
+@njit(cache=True, inline="always")
+def _c(x):
+    """An SH coefficient clamped to +-SH_COEFF_MAX, float64 (as sh_to_rgb)."""
+    return min(max(float(x), -SH_COEFF_MAX), SH_COEFF_MAX)
 
 
 @njit(parallel=True, cache=True)
@@ -120,25 +149,27 @@ def _sh_kernel(degree, sh, means, campos, radii, out):
         x, y, z = x * inv, y * inv, z * inv
         xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
         for c in range(3):
-            v = SH_C0 * sh[g, 0, c]
+            v = SH_C0 * _c(sh[g, 0, c])
             if degree > 0:
-                v += SH_C1 * (-y * sh[g, 1, c] + z * sh[g, 2, c] - x * sh[g, 3, c])
+                v += SH_C1 * (-y * _c(sh[g, 1, c]) + z * _c(sh[g, 2, c]) - x * _c(sh[g, 3, c]))
             if degree > 1:
-                v += (C2[0] * xy * sh[g, 4, c] + C2[1] * yz * sh[g, 5, c]
-                      + C2[2] * (2.0 * zz - xx - yy) * sh[g, 6, c] + C2[3] * xz * sh[g, 7, c]
-                      + C2[4] * (xx - yy) * sh[g, 8, c])
+                v += (C2[0] * xy * _c(sh[g, 4, c]) + C2[1] * yz * _c(sh[g, 5, c])
+                      + C2[2] * (2.0 * zz - xx - yy) * _c(sh[g, 6, c])
+                      + C2[3] * xz * _c(sh[g, 7, c])
+                      + C2[4] * (xx - yy) * _c(sh[g, 8, c]))
             if degree > 2:
-                v += (C3[0] * y * (3.0 * xx - yy) * sh[g, 9, c]
-                      + C3[1] * xy * z * sh[g, 10, c]
-                      + C3[2] * y * (4.0 * zz - xx - yy) * sh[g, 11, c]
-                      + C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy) * sh[g, 12, c]
-                      + C3[4] * x * (4.0 * zz - xx - yy) * sh[g, 13, c]
-                      + C3[5] * z * (xx - yy) * sh[g, 14, c]
-                      + C3[6] * x * (xx - 3.0 * yy) * sh[g, 15, c])
+                v += (C3[0] * y * (3.0 * xx - yy) * _c(sh[g, 9, c])
+                      + C3[1] * xy * z * _c(sh[g, 10, c])
+                      + C3[2] * y * (4.0 * zz - xx - yy) * _c(sh[g, 11, c])
+                      + C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy) * _c(sh[g, 12, c])
+                      + C3[4] * x * (4.0 * zz - xx - yy) * _c(sh[g, 13, c])
+                      + C3[5] * z * (xx - yy) * _c(sh[g, 14, c])
+                      + C3[6] * x * (xx - 3.0 * yy) * _c(sh[g, 15, c]))
             out[g, c] = max(v + 0.5, 0.0)
 
 
 def sh_rgb_np(degree, sh, means, campos, radii, out):
     """``out[:, :3] = max(SH(normalize(mean - campos)) + 0.5, 0)`` for Gaussians with
-    ``radii > 0`` (others untouched); ``sh [N, K >= (degree + 1)^2, 3]``."""
+    ``radii > 0`` (others untouched); ``sh [N, K >= (degree + 1)^2, 3]``, each coefficient
+    clamped to ``+-SH_COEFF_MAX`` (as ``sh_to_rgb``)."""
     _sh_kernel(int(degree), sh, means, np.asarray(campos, np.float64), radii, out)

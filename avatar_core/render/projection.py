@@ -14,8 +14,15 @@ gsplat / 3DGS conventions (``gsplat/cuda/_torch_impl.py: _fully_fused_projection
 * ``radius = ceil(3 * sqrt(lambda_max))`` pixels; Gaussians with a non-positive determinant
   or whose radius box misses the image get radius 0.
 
-Culled rows stay finite (means, conics and gradients): divisions use guarded denominators, so
-no NaN leaks through ``torch.where`` in the backward pass.
+Absurd but finite Gaussians are culled before any product can overflow: a projected mean
+farther than ``MAX_SCREEN_PX`` from the origin, a footprint bound ``f / z (1 + lim) max(scale)``
+above ``MAX_BOUND_PX``, a 2D standard deviation above ``max_sigma_px`` (``MAX_SIGMA_PX``), or a
+conic that is not positive definite in the working precision. What passes keeps every later
+quantity (radius, tile range, pixel offsets) small enough for float32 and int32.
+
+Culled rows stay finite (means, conics and gradients): divisions use guarded denominators and
+absurd rows are replaced before the products, so no NaN leaks through ``torch.where`` in the
+backward pass.
 """
 
 from __future__ import annotations
@@ -29,10 +36,14 @@ from torch import Tensor
 __all__ = [
     "EPS2D",
     "FAR_PLANE",
+    "MAX_BOUND_PX",
+    "MAX_SCREEN_PX",
+    "MAX_SIGMA_PX",
     "NEAR_PLANE",
     "Projected",
     "check_finite",
     "covariance_3d",
+    "depth_key",
     "project_gaussians",
     "quat_to_rotmat",
 ]
@@ -40,8 +51,18 @@ __all__ = [
 NEAR_PLANE = 0.01
 FAR_PLANE = 1e10
 EPS2D = 0.3  # low-pass dilation added to the 2D covariance, px^2
+# Wider splats are culled: over any image they are a uniform veil, and beyond this float32
+# conics lose their precision; the 3-sigma radius stays far below int32's range.
+MAX_SIGMA_PX = 1e7
+# Projected means farther out cannot reach an image (radius <= 3 MAX_SIGMA_PX): culled, so
+# pixel offsets stay finite in float32.
+MAX_SCREEN_PX = 1e9
+# Upper bound of the 2D standard deviation (f / z (1 + lim) max scale) above which a Gaussian
+# is culled before its covariance is formed: keeps cov2d and its determinant inside float32.
+MAX_BOUND_PX = 1e9
 _RADIUS_SIGMAS = 3.0
 _QUAT_EPS = 1e-12
+_QUAT_TINY = 1e-30  # floor of the max-abs rescale in quat_to_rotmat
 
 
 @dataclass
@@ -74,9 +95,13 @@ def check_finite(**tensors: Tensor) -> None:
 def quat_to_rotmat(quats: Tensor) -> Tensor:
     """(w, x, y, z) quaternions [N, 4] -> rotation matrices [N, 3, 3]; normalised here, a zero
     quaternion gives the identity."""
-    norm = quats.norm(dim=-1, keepdim=True)  # [N, 1]
-    ok = norm > _QUAT_EPS
-    unit = torch.where(ok, quats / norm.clamp_min(_QUAT_EPS), torch.zeros_like(quats))
+    # rescaled by the largest component first, so the norm of a huge quaternion cannot
+    # overflow (float32 squares overflow above ~1.8e19)
+    amax = quats.detach().abs().amax(-1, keepdim=True)  # [N, 1]
+    q1 = quats / amax.clamp_min(_QUAT_TINY)
+    n1 = q1.norm(dim=-1, keepdim=True)
+    ok = amax * n1 > _QUAT_EPS
+    unit = torch.where(ok, q1 / n1.clamp_min(_QUAT_EPS), torch.zeros_like(quats))
     w, x, y, z = unit.unbind(-1)  # zero quaternion -> all zero -> identity below
     R = torch.stack([
         1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
@@ -106,6 +131,7 @@ def project_gaussians(
     *,
     far: float = FAR_PLANE,
     eps2d: float = EPS2D,
+    max_sigma_px: float = MAX_SIGMA_PX,
     validate: bool = True,
 ) -> Projected:
     """Project Gaussians to the image (see the module docstring for the conventions).
@@ -122,19 +148,26 @@ def project_gaussians(
     n = means.shape[0]
     Rw, tw = viewmat[:3, :3], viewmat[:3, 3]
     means_c = means @ Rw.T + tw  # [N, 3]
+    tz_raw = means_c[:, 2]
     # camera-space factor Mc = Rw R S (cov_c = Mc Mc^T), as one [3N, 3] x [3, 3] product;
     # P[n, k] is column k of Mc[n] (batched 3x3 matmuls are slow on CPU)
     M = quat_to_rotmat(quats) * scales[:, None, :]  # [N, 3, 3] = R diag(s)
     P = (M.transpose(1, 2).reshape(-1, 3) @ Rw.T).reshape(n, 3, 3)
 
-    tx, ty, tz = means_c.unbind(-1)  # [N]
-    in_depth = (tz > near) & (tz < far)
-    tz_s = torch.where(in_depth, tz, torch.ones_like(tz))  # guarded denominator
-
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     tan_fovx, tan_fovy = 0.5 * width / fx, 0.5 * height / fy
     lim_x_pos, lim_x_neg = (width - cx) / fx + 0.3 * tan_fovx, cx / fx + 0.3 * tan_fovx
     lim_y_pos, lim_y_neg = (height - cy) / fy + 0.3 * tan_fovy, cy / fy + 0.3 * tan_fovy
+
+    sane = _sane_rows(means_c, scales, K, (lim_x_pos, lim_x_neg, lim_y_pos, lim_y_neg),
+                      near, far)
+    # culled rows get harmless stand-ins before any product, so nothing overflows forward and
+    # where() passes them zero gradients backward
+    means_c = torch.where(sane[:, None], means_c, means_c.new_tensor([0.0, 0.0, 1.0]))
+    P = torch.where(sane[:, None, None], P, torch.zeros_like(P))
+    tx, ty, tz = means_c.unbind(-1)  # [N]
+    in_depth = sane
+    tz_s = torch.where(in_depth, tz, torch.ones_like(tz))  # guarded denominator
     u = torch.maximum(torch.minimum(tx / tz_s, lim_x_pos), -lim_x_neg)  # clamped x / z
     v = torch.maximum(torch.minimum(ty / tz_s, lim_y_pos), -lim_y_neg)
     # J = [[fx / z, 0, -fx u / z], [0, fy / z, -fy v / z]]; T = J Mc [N, 2, 3] row by row
@@ -152,6 +185,9 @@ def project_gaussians(
     valid = in_depth & (det > 0) & torch.isfinite(det)
     det_s = torch.where(valid, det, torch.ones_like(det))
     conics = torch.stack([c11 / det_s, -c01 / det_s, c00 / det_s], dim=-1)  # [N, 3]
+    with torch.no_grad():  # positive definite as stored, or the kernels' extents break down
+        ca, cb, cc = conics.unbind(-1)
+        valid = valid & (ca > 0) & (cc > 0) & (ca * cc - cb * cb > 0)
     conics = torch.where(valid[:, None], conics, torch.zeros_like(conics))
 
     if antialiased:
@@ -165,12 +201,43 @@ def project_gaussians(
         mx, my = means2d[:, 0], means2d[:, 1]
         inside = (mx + radius > 0) & (mx - radius < width) & (my + radius > 0) \
             & (my - radius < height)
-        keep = valid & inside & (radius > 0) & torch.isfinite(radius)
+        keep = valid & inside & (radius > 0) & (lam_max <= max_sigma_px * max_sigma_px)
         radius = torch.where(keep, radius, torch.zeros_like(radius))
         radii = radius.clamp_max(2**30).to(torch.int32)
 
-    return Projected(means2d=means2d, conics=conics, depths=tz, radii=radii,
+    depths = torch.where(sane, tz_raw, torch.zeros_like(tz))  # culled: 0, never Inf
+    return Projected(means2d=means2d, conics=conics, depths=depths, radii=radii,
                      opacities=opacities, valid=radii > 0)
+
+
+def _sane_rows(means_c: Tensor, scales: Tensor, K: Tensor, lims: tuple, near: float,
+               far: float) -> Tensor:
+    """[N] bool: in the depth range, the projected mean within ``MAX_SCREEN_PX`` and the
+    footprint bound within ``MAX_BOUND_PX``; evaluated in float64 so that the test itself
+    cannot overflow (NaN compares false: culled)."""
+    with torch.no_grad():
+        m = means_c.detach().double()
+        k = K.detach().double()
+        x, y, z = m.unbind(-1)
+        zs = torch.where(z > 0, z, torch.ones_like(z))
+        mx = (k[0, 0] * x + k[0, 1] * y + k[0, 2] * z) / zs
+        my = (k[1, 1] * y + k[1, 2] * z) / zs
+        f = torch.maximum(k[0, 0].abs(), k[1, 1].abs())
+        lim = 1.0 + torch.stack([v.detach().double() for v in lims]).abs().max()
+        s_max = scales.detach().double().abs().amax(-1)
+        bound = f / zs * lim * s_max
+        return (z > near) & (z < far) & (mx.abs() <= MAX_SCREEN_PX) \
+            & (my.abs() <= MAX_SCREEN_PX) & (bound <= MAX_BOUND_PX)
+
+
+def depth_key(means: Tensor, viewmat) -> Tensor:
+    """[N] float64 camera z, the front-to-back sort key of every backend: formed element by
+    element in float64 in one fixed order from the means as given and the float64 view
+    matrix, so each backend gets the same bits and breaks no near-tie differently (a key
+    rounded to float32 turns pairs 5e-8 m apart into ties)."""
+    m = means.detach().double()
+    v = torch.as_tensor(viewmat, dtype=torch.float64, device=m.device)
+    return m[:, 0] * v[2, 0] + m[:, 1] * v[2, 1] + m[:, 2] * v[2, 2] + v[2, 3]
 
 
 def footprint_area(conics: Tensor) -> Tensor:

@@ -22,6 +22,7 @@ from .projection import (
     NEAR_PLANE,
     Projected,
     check_finite,
+    depth_key,
     footprint_area,
     project_gaussians,
 )
@@ -170,9 +171,10 @@ def rasterize(gaussians: GaussianSet, camera: Camera,
     else:
         from .rasterize_torch import rasterize_to_pixels
     with_depth = "depth" in outputs
+    keys = depth_key(gaussians.means, camera.viewmat())[take]
     rgb, alpha, depth_acc = rasterize_to_pixels(
         proj.means2d[take], proj.conics[take], colors, proj.opacities[take], proj.depths[take],
-        proj.radii[take], width, height, background=bg, with_depth=with_depth)
+        proj.radii[take], width, height, background=bg, with_depth=with_depth, sort_keys=keys)
     depth = _expected_depth(depth_acc, alpha) if with_depth else None
     stats["raster_ms"] = _ms(t0)
     stats["total_ms"] = _ms(t_start)
@@ -241,7 +243,8 @@ def _rasterize_cpu_no_grad(g: GaussianSet, camera: Camera, request: RenderReques
     t0 = time.perf_counter()
     bg = np.zeros(4)
     bg[:n_col] = request.background[:n_col]
-    out, T, _ = composite_np(m2, co, op, feats, de, rad, width, height, bg)
+    keys = depth_key(g.means, camera.viewmat()).cpu().numpy()
+    out, T, _ = composite_np(m2, co, op, feats, keys, rad, width, height, bg)
     to = dict(dtype=dtype, device=g.means.device)
     alpha = torch.from_numpy(1.0 - T).to(**to)
     rgb = torch.from_numpy(out[..., :3]).to(**to) if n_col else None

@@ -71,13 +71,33 @@ def _tile_reaches(tx, ty, mx, my, a, b, c, smax, width, height):
 
 
 @njit(cache=True, inline="always")
+def _clamp_int(x, lo, hi):
+    """int(x) clamped to [lo, hi], NaN giving lo: clamped while still a float, because a
+    float -> int cast of NaN, Inf or anything out of range is undefined (LLVM poison)."""
+    if not x >= lo:
+        return lo
+    if x > hi:
+        return hi
+    return int(x)
+
+
+@njit(cache=True, inline="always")
 def _tile_box(mx, my, r, tw, th):
-    """gsplat's tile range [x0, x1) x [y0, y1) of a splat with radius r."""
-    x0 = int(min(max(math.floor((mx - r) / _TS), 0.0), tw))
-    x1 = int(min(max(math.ceil((mx + r) / _TS), 0.0), tw))
-    y0 = int(min(max(math.floor((my - r) / _TS), 0.0), th))
-    y1 = int(min(max(math.ceil((my + r) / _TS), 0.0), th))
+    """gsplat's tile range [x0, x1) x [y0, y1) of a splat with radius r (np.floor / np.ceil:
+    math's return ints, converted before any clamp)."""
+    x0 = _clamp_int(np.floor((mx - r) / _TS), 0, tw)
+    x1 = _clamp_int(np.ceil((mx + r) / _TS), 0, tw)
+    y0 = _clamp_int(np.floor((my - r) / _TS), 0, th)
+    y1 = _clamp_int(np.ceil((my + r) / _TS), 0, th)
     return x0, x1, y0, y1
+
+
+@njit(cache=True, inline="always")
+def _drawable(mx, my, a, b, c):
+    """Finite mean and a positive definite conic: what every extent below divides by. The
+    projection emits nothing else; direct callers' degenerate splats are skipped."""
+    return (math.isfinite(mx) and math.isfinite(my) and math.isfinite(b) and a > 0.0
+            and c > 0.0 and math.isfinite(a) and math.isfinite(c) and a * c - b * b > 0.0)
 
 
 _MASK_TILES = 64  # tile boxes up to this size keep their hits in a bit mask
@@ -92,14 +112,16 @@ def _find_hits(means2d, conics, opacities, radii, width, height, smax, boxes, ma
     for g in prange(means2d.shape[0]):
         counts[g] = 0
         op = float(opacities[g])
-        if radii[g] <= 0 or not op >= ALPHA_MIN:
+        mx, my = float(means2d[g, 0]), float(means2d[g, 1])
+        a, b, c = float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2])
+        boxes[g, 0] = boxes[g, 1] = boxes[g, 2] = boxes[g, 3] = 0
+        masks[g] = 0
+        if radii[g] <= 0 or not (ALPHA_MIN <= op < np.inf) or not _drawable(mx, my, a, b, c):
             smax[g] = -1.0
             continue
         s = math.log(op / ALPHA_MIN)
         s = s + _SMAX_REL * s + _SMAX_ABS
         smax[g] = s
-        mx, my = float(means2d[g, 0]), float(means2d[g, 1])
-        a, b, c = float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2])
         x0, x1, y0, y1 = _tile_box(mx, my, float(radii[g]), tw, th)
         boxes[g, 0], boxes[g, 1], boxes[g, 2], boxes[g, 3] = x0, x1, y0, y1
         bits = np.uint64(0)
@@ -168,24 +190,33 @@ def _fill_lists(order, boxes, masks, means2d, conics, smax, width, height, n_blo
                     bit += 1
 
 
+_SIGN64 = np.uint64(1) << np.uint64(63)
+
+
 @njit(cache=True)
 def _depth_order(depths, counts):
-    """Indices of the Gaussians with tile pairs, front to back; ties keep index order. An LSD
-    radix sort (3 x 11 bits) of the float32 bit patterns: depths here are > near > 0, so
-    their bits sort like the values."""
-    keys = depths.view(np.uint32)
+    """Indices of the Gaussians with tile pairs, front to back by the float64 key
+    ``depths``; ties keep index order (as torch's stable sort). An LSD radix sort (6 x 11
+    bits) of the bit patterns mapped to sort like the values: negatives all bits flipped,
+    others the sign bit."""
+    bits = depths.view(np.uint64)
     idx = np.nonzero(counts > 0)[0].astype(np.int32)
+    keys = np.empty(bits.shape[0], np.uint64)
+    for i in idx:
+        keys[i] = ~bits[i] if bits[i] & _SIGN64 else bits[i] | _SIGN64
     tmp = np.empty_like(idx)
     hist = np.zeros(2048, np.int64)
-    for shift in (0, 11, 22):
+    mask = np.uint64(2047)
+    for shift in range(0, 64, 11):
+        sh = np.uint64(shift)
         hist[:] = 0
         for i in idx:
-            hist[(keys[i] >> shift) & 2047] += 1
+            hist[(keys[i] >> sh) & mask] += 1
         total = 0
         for d in range(2048):
             total, hist[d] = total + hist[d], total
         for i in idx:
-            d = (keys[i] >> shift) & 2047
+            d = (keys[i] >> sh) & mask
             tmp[hist[d]] = i
             hist[d] += 1
         idx, tmp = tmp, idx
@@ -196,7 +227,7 @@ def bin_tiles(means2d: np.ndarray, conics: np.ndarray, opacities: np.ndarray,
               depths: np.ndarray, radii: np.ndarray, width: int, height: int):
     """Per-tile front-to-back lists -> ``(offsets [n_tiles + 1], ids [n_pairs], smax [N])``
     (int64, int32, float64); only tiles the splat can reach with ``alpha >= 1/255``.
-    ``depths`` float32."""
+    ``depths``: the sort key, float64 (``projection.depth_key``)."""
     n = means2d.shape[0]
     n_tiles = ((width + _TS - 1) // _TS) * ((height + _TS - 1) // _TS)
     counts = np.empty(n, np.int64)
@@ -204,7 +235,7 @@ def bin_tiles(means2d: np.ndarray, conics: np.ndarray, opacities: np.ndarray,
     boxes = np.empty((n, 4), np.int32)
     masks = np.empty(n, np.uint64)
     _find_hits(means2d, conics, opacities, radii, width, height, smax, boxes, masks, counts)
-    order = _depth_order(depths, counts)
+    order = _depth_order(np.ascontiguousarray(depths, np.float64), counts)
     offsets = np.empty(n_tiles + 1, np.int64)
     ids = np.empty(int(counts.sum()), np.int32)
     n_blocks = 4 * max(1, numba.get_num_threads())
@@ -250,9 +281,9 @@ def _exp_neg(s):
 def _rows(my, a, c, detc, s, ty0, ty1):
     """Rows [r0, r1] (clamped to [ty0, ty1)) whose centres can lie inside sigma <= s."""
     ey = math.sqrt(max(2.0 * s * a / detc, 0.0))  # y half-extent: sqrt(2 s cov_yy)
-    r0 = math.ceil(max(my - ey - 0.5, ty0 - 1.0))
-    r1 = math.floor(min(my + ey - 0.5, ty1 + 0.0))
-    return max(int(r0), ty0), min(int(r1), ty1 - 1)
+    # clamped as floats (see _clamp_int); an empty range stays empty
+    return (_clamp_int(np.ceil(my - ey - 0.5), ty0, ty1),
+            _clamp_int(np.floor(my + ey - 0.5), ty0 - 1, ty1 - 1))
 
 
 @njit(cache=True, inline="always")
@@ -496,8 +527,9 @@ _MAX_FEATS = 4  # rgb + depth; the kernels carry four feature channels
 
 
 def composite_np(means2d, conics, opacities, feats, depths, radii, width, height, background):
-    """numpy float32 in (feats [N, 4], background [4]) -> (feats image [H, W, 4] with
-    background, final transmittance [H, W], the state the backward pass needs)."""
+    """numpy float32 in (feats [N, 4], background [4]; ``depths`` the float64 sort key) ->
+    (feats image [H, W, 4] with background, final transmittance [H, W], the state the
+    backward pass needs)."""
     offsets, ids, smax = bin_tiles(means2d, conics, opacities, depths, radii, width, height)
     tiles = _tile_order(offsets.shape[0] - 1)
     out = np.empty((height, width, _MAX_FEATS), np.float32)
@@ -512,7 +544,7 @@ def composite_np(means2d, conics, opacities, feats, depths, radii, width, height
 
 class RasterizeCPU(torch.autograd.Function):
     """(means2d, conics, feats [N, C <= 4], opacities) -> (feats image [H, W, C] incl.
-    background [C], alpha [H, W]); depths only order the splats (append them to feats to
+    background [C], alpha [H, W]); depths are only the sort key (append them to feats to
     accumulate them)."""
 
     @staticmethod
@@ -525,7 +557,8 @@ class RasterizeCPU(torch.autograd.Function):
         bg = np.zeros(_MAX_FEATS)
         bg[:nc] = background.detach().cpu().double().numpy()
         rad = np.ascontiguousarray(radii.detach().cpu().numpy().astype(np.int32))
-        out, T, state = composite_np(m2, co, op, fe, _np32(depths), rad, width, height, bg)
+        keys = np.ascontiguousarray(depths.detach().cpu().double().numpy())
+        out, T, state = composite_np(m2, co, op, fe, keys, rad, width, height, bg)
         ctx.state = state
         ctx.dtype = dtype = means2d.dtype
         ctx.nc = nc
@@ -560,9 +593,10 @@ def rasterize_to_pixels(
     height: int,
     background: Tensor | None = None,  # [C]
     with_depth: bool = False,
+    sort_keys: Tensor | None = None,  # [N] front-to-back key; None: depths
 ) -> tuple[Tensor | None, Tensor, Tensor | None]:
     """Same contract as :func:`avatar_core.render.rasterize_torch.rasterize_to_pixels`
-    (float32 inside; outputs and gradients in the inputs' dtype)."""
+    (float32 inside, float64 sort keys; outputs and gradients in the inputs' dtype)."""
     n = means2d.shape[0]
     feats, n_col = pack_features(colors, depths, with_depth, n, means2d)  # [N, C']
     if feats.shape[1] > _MAX_FEATS:
@@ -571,7 +605,8 @@ def rasterize_to_pixels(
     bg = torch.zeros(feats.shape[1], dtype=torch.float64)
     if background is not None and n_col:
         bg[:n_col] = background.detach().cpu().double()
-    out, alpha = RasterizeCPU.apply(means2d, conics, feats, opacities, depths, radii,
+    keys = depths if sort_keys is None else sort_keys
+    out, alpha = RasterizeCPU.apply(means2d, conics, feats, opacities, keys, radii,
                                     int(width), int(height), bg)
     out, alpha = out.to(means2d.device), alpha.to(means2d.device)
     rgb = out[..., :n_col] if n_col else None

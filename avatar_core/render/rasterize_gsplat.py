@@ -7,6 +7,11 @@ for ``antialiased``, ``render_mode`` "RGB" / "RGB+ED" / "ED" (expected depth, 0 
 is 0) and the background for the colour channels only. A ``budget`` is applied before the
 call, with the shared importance (opacity x 3-sigma footprint area, from our projection).
 
+gsplat's kernels get only what our projection keeps (visible, sane: see
+:mod:`projection`), unit quaternions (a zero one as the identity) and SH coefficients clamped
+to ``+-SH_COEFF_MAX``, so an absurd but finite Gaussian cannot reach its float32 tile and
+colour arithmetic (overflowing tile ranges, Inf or NaN colours).
+
 Known differences from the contract that gsplat itself fixes: it clamps alpha at 0.999
 (3DGS and our other backends: 0.99), and recent releases bound each splat's tiles with an
 opacity-aware, per-axis radius. Pictures agree closely, not to float rounding.
@@ -21,6 +26,7 @@ import torch
 from .camera import Camera
 from .projection import EPS2D, FAR_PLANE, NEAR_PLANE, project_gaussians
 from .rasterize_torch import TILE_SIZE
+from .sh import SH_COEFF_MAX
 from .types import GaussianSet, RenderOutput, RenderRequest
 
 __all__ = ["available", "gsplat_arguments", "rasterize_gsplat"]
@@ -51,8 +57,9 @@ def gsplat_arguments(gaussians: GaussianSet, camera: Camera, request: RenderRequ
     bg = torch.tensor(request.background, dtype=dtype, device=device)[None]  # [1, 3]
     mode = _render_mode(set(request.outputs))
     return dict(
-        means=gaussians.means, quats=gaussians.quats, scales=gaussians.scales,
-        opacities=gaussians.opacities, colors=gaussians.sh[:, :k], sh_degree=sh_degree,
+        means=gaussians.means, quats=_unit_quats(gaussians.quats), scales=gaussians.scales,
+        opacities=gaussians.opacities,
+        colors=gaussians.sh[:, :k].clamp(-SH_COEFF_MAX, SH_COEFF_MAX), sh_degree=sh_degree,
         viewmats=viewmat[None], Ks=K[None], width=camera.width, height=camera.height,
         near_plane=NEAR_PLANE, far_plane=FAR_PLANE, eps2d=EPS2D, tile_size=TILE_SIZE,
         backgrounds=bg if mode != "ED" else None, render_mode=mode,
@@ -61,9 +68,21 @@ def gsplat_arguments(gaussians: GaussianSet, camera: Camera, request: RenderRequ
     )
 
 
+def _unit_quats(quats: torch.Tensor) -> torch.Tensor:
+    """Normalised after a max-abs rescale (a huge quaternion's norm overflows float32), the
+    zero quaternion as the identity (``projection.quat_to_rotmat``'s rules)."""
+    amax = quats.detach().abs().amax(-1, keepdim=True)
+    q = quats / amax.clamp_min(1e-30)
+    n = q.norm(dim=-1, keepdim=True)
+    ident = torch.zeros_like(q)
+    ident[:, 0] = 1.0
+    return torch.where(amax * n > 1e-12, q / n.clamp_min(1e-12), ident)
+
+
 def _apply_budget(gaussians: GaussianSet, camera: Camera,
                   request: RenderRequest) -> tuple[GaussianSet, int]:
-    """The subset that ``request.budget`` keeps (the shared importance rule)."""
+    """The subset that our projection keeps and ``request.budget`` (if any) selects (the
+    shared importance rule)."""
     from .rasterize import select_rendered
 
     viewmat, K = camera.to_torch(gaussians.means.device, gaussians.means.dtype)
@@ -83,18 +102,19 @@ def rasterize_gsplat(gaussians: GaussianSet, camera: Camera, request: RenderRequ
     from gsplat import rasterization
 
     stats: dict = {"backend": "gsplat", "n_gaussians": gaussians.num}
-    if request.budget is not None:
-        gaussians, stats["n_rendered"] = _apply_budget(gaussians, camera, request)
+    # always through our projection: gsplat never sees a Gaussian that it culls
+    gaussians, stats["n_rendered"] = _apply_budget(gaussians, camera, request)
+    if stats["n_rendered"] == 0:
+        from .rasterize import _background_only
+
+        return _background_only(request, camera.width, camera.height, gaussians.means.dtype,
+                                gaussians.means.device, stats, t_start)
     outputs = set(request.outputs)
     t0 = time.perf_counter()
-    colors, alphas, meta = rasterization(**gsplat_arguments(gaussians, camera, request,
+    colors, alphas, _ = rasterization(**gsplat_arguments(gaussians, camera, request,
                                                             sh_degree))
     colors, alphas = colors[0], alphas[0, ..., 0]  # [H, W, X], [H, W]
     stats["raster_ms"] = (time.perf_counter() - t0) * 1e3
-    if "n_rendered" not in stats:
-        radii = meta.get("radii")
-        stats["n_rendered"] = int((radii > 0).any(-1).sum()) if radii is not None and \
-            radii.ndim == 3 else int((radii > 0).sum()) if radii is not None else -1
     stats["total_ms"] = (time.perf_counter() - t_start) * 1e3
     rgb = colors[..., :3] if "rgb" in outputs else None
     depth = colors[..., -1] if "depth" in outputs else None

@@ -48,7 +48,8 @@ def isect_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, width: int, heig
     device = means2d.device
     tw, th = -(-width // tile_size), -(-height // tile_size)
     with torch.no_grad():
-        vis = torch.nonzero(radii > 0).squeeze(1)  # [V]
+        # a non-finite mean would make a tile range of garbage: not drawn (as the cpu kernels)
+        vis = torch.nonzero((radii > 0) & torch.isfinite(means2d).all(-1)).squeeze(1)  # [V]
         m = means2d[vis].double()  # [V, 2]; float64 so the tile range is exact
         r = radii[vis].double()[:, None]  # [V, 1]
         lo = torch.floor((m - r) / tile_size)
@@ -127,6 +128,7 @@ def rasterize_to_pixels(
     background: Tensor | None = None,  # [C]
     with_depth: bool = False,
     tile_size: int = TILE_SIZE,
+    sort_keys: Tensor | None = None,  # [N] front-to-back key (projection.depth_key); None: depths
 ) -> tuple[Tensor | None, Tensor, Tensor | None]:
     """Composite the projected Gaussians -> ``(colors [H, W, C] | None, alphas [H, W],
     depth_acc [H, W] | None)``; ``depth_acc = sum_i w_i z_i`` (divide by alpha for the
@@ -134,7 +136,8 @@ def rasterize_to_pixels(
     device, dtype = means2d.device, means2d.dtype
     n = means2d.shape[0]
     feats, n_col = pack_features(colors, depths, with_depth, n, means2d)  # [N, C']
-    offsets, ids = isect_tiles(means2d, radii, depths, width, height, tile_size)
+    keys = depths if sort_keys is None else sort_keys
+    offsets, ids = isect_tiles(means2d, radii, keys, width, height, tile_size)
 
     tw, th = -(-width // tile_size), -(-height // tile_size)
     n_tiles, tp = tw * th, tile_size * tile_size

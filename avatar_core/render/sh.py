@@ -12,7 +12,13 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-__all__ = ["SH_C0", "eval_sh", "num_sh_bases", "rgb_to_sh0", "sh0_to_rgb", "sh_to_rgb"]
+__all__ = ["SH_C0", "SH_COEFF_MAX", "eval_sh", "num_sh_bases", "rgb_to_sh0", "sh0_to_rgb",
+           "sh_to_rgb"]
+
+# Coefficients are clamped to +-this when colouring: a sum of huge ones overflows float32
+# (Inf, or NaN from Inf - Inf) and a NaN colour poisons every pixel it is weighed into.
+# Trained coefficients are a few units at most.
+SH_COEFF_MAX = 1e6
 
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
@@ -78,7 +84,9 @@ def eval_sh(degree: int, coeffs: Tensor, dirs: Tensor) -> Tensor:
 
 
 def sh_to_rgb(degree: int, coeffs: Tensor, dirs: Tensor) -> Tensor:
-    """3DGS colour: ``max(SH(dirs) + 0.5, 0)`` -> [N, 3]."""
+    """3DGS colour: ``max(SH(dirs) + 0.5, 0)`` -> [N, 3], coefficients clamped to
+    ``+-SH_COEFF_MAX``."""
+    coeffs = coeffs.clamp(-SH_COEFF_MAX, SH_COEFF_MAX)
     return torch.clamp_min(eval_sh(degree, coeffs, dirs) + 0.5, 0.0)
 
 
