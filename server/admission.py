@@ -1,4 +1,4 @@
-"""Who may hold a WebSocket: connections waiting to authenticate, and sessions per user.
+"""Who may hold a WebSocket: connections waiting to authenticate, sessions per user, tickets.
 
 Both are counters behind a lock, taken before the work they guard and released in a
 ``finally``; nothing here touches the socket.
@@ -9,6 +9,8 @@ from __future__ import annotations
 import threading
 from collections import Counter
 from dataclasses import dataclass
+
+from .tickets import TicketBook
 
 
 class KeyedSlots:
@@ -52,9 +54,11 @@ class Admission:
 
     waiting: KeyedSlots   # per client address, and in total, until authenticated
     sessions: KeyedSlots  # per token subject
+    tickets: TicketBook   # single-use stand-ins for a token in a WebSocket URL
 
     @classmethod
     def from_settings(cls, settings) -> Admission:
         return cls(waiting=KeyedSlots(settings.max_unauthenticated_per_address,
                                       settings.max_unauthenticated),
-                   sessions=KeyedSlots(settings.max_sessions_per_user))
+                   sessions=KeyedSlots(settings.max_sessions_per_user),
+                   tickets=TicketBook(settings.ticket_ttl_s, settings.max_tickets_per_user))

@@ -60,6 +60,12 @@ class Settings(BaseModel):
         16 * 2**20, gt=0, description="Bytes per second one session may send (token bucket, "
                                       "burst max(16 MiB, limits.max_message_bytes)); past it "
                                       "the session's socket is read more slowly (backpressure).")
+    ticket_ttl_s: float = Field(
+        30.0, gt=0, description="Seconds a stream ticket (POST /v1/stream/tickets) stays valid; "
+                                "each opens one /v1/stream?ticket=... connection.")
+    max_tickets_per_user: int = Field(
+        16, ge=1, description="Unspent, unexpired stream tickets one token subject may hold; "
+                              "past it POST /v1/stream/tickets is 429.")
     tokens_reload_interval_s: float = Field(
         1.0, ge=0, description="How often, at most, the token file's mtime and size are "
                                "checked; a change (e.g. telesplat serve --issue-token) is "

@@ -1,8 +1,9 @@
 """WebSocket ``/v1/stream?avatar=ID``: authenticate, admit, welcome, then run the session.
 
 The token comes in an ``Authorization: Bearer`` header or, from a browser (which cannot set
-one), in the first message, a ``hello``; ``?token=`` is still accepted from old clients but
-keeps the token in URLs. Until it is authenticated a connection may send one small message
+one), in the first message, a ``hello``; or a single-use ``?ticket=`` from
+``POST /v1/stream/tickets`` stands in for it. ``?token=`` is still accepted from old clients
+but keeps the token in URLs. Until it is authenticated a connection may send one small message
 within a short time, and holds one of a few waiting slots per address and in total.
 
 Refusals are sent as an ``error`` message and then a close with one of the codes below, since
@@ -15,7 +16,8 @@ import asyncio
 import contextlib
 import logging
 
-from fastapi import APIRouter, WebSocket
+from fastapi import APIRouter, HTTPException, WebSocket
+from fastapi import Request as HTTPRequest
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from protocol import (
@@ -32,15 +34,17 @@ from protocol import (
 )
 from protocol.messages import Orbit
 
-from .auth import Principal, token_from_websocket
+from .auth import Principal, require_scope, token_from_websocket
 from .context import ServerContext
 from .inbound import InboundLimits
 from .registry import DEMO_ID, AvatarNotFound, AvatarRecord
 from .renderer import SessionRenderer
 from .session import SessionConfig, StreamSession, error_message
+from .tickets import TicketsExhausted
 
 log = logging.getLogger(__name__)
 router = APIRouter()
+_STREAM = require_scope("stream")
 
 # Close codes: 4000 + the HTTP status the refusal would have had; 1013 "try again later".
 CLOSE_BAD_HELLO = 4400
@@ -110,8 +114,15 @@ async def _hello_token(ws: WebSocket, ctx: ServerContext) -> str:
 
 
 async def _authenticate(ws: WebSocket, ctx: ServerContext) -> Principal:
-    """The principal of the header's (or a legacy ``?token=``'s) token, else of the hello's;
-    while the hello is awaited the connection holds a waiting slot of its address."""
+    """The principal of a ``?ticket=``, else of the header's (or a legacy ``?token=``'s)
+    token, else of the hello's; while the hello is awaited the connection holds a waiting
+    slot of its address."""
+    ticket = ws.query_params.get("ticket")
+    if ticket:
+        principal = ctx.admission.tickets.redeem(ticket)
+        if principal is None:
+            raise Refusal("unauthorized", "invalid, spent or expired ticket", CLOSE_UNAUTHORIZED)
+        return principal
     token = token_from_websocket(ws)
     if not token:
         address = _client_address(ws)
@@ -159,6 +170,18 @@ async def _refuse(ws: WebSocket, refusal: Refusal, ctx: ServerContext) -> None:
     with contextlib.suppress(Exception):  # the client may be gone already
         await ws.send_bytes(encode(error_message(refusal.code, refusal.message)))
         await ws.close(refusal.close_code, refusal.message[:120])
+
+
+@router.post("/v1/stream/tickets", status_code=201)
+def stream_ticket(request: HTTPRequest, principal: Principal = _STREAM) -> dict:
+    """A single-use ticket for ``/v1/stream?ticket=...``, valid ``ticket_ttl_s`` seconds: for
+    clients that can send neither an Authorization header nor a hello with the token."""
+    ctx: ServerContext = request.app.state.ctx
+    try:
+        ticket = ctx.admission.tickets.issue(principal)
+    except TicketsExhausted as exc:
+        raise HTTPException(429, str(exc)) from None
+    return {"ticket": ticket, "expires_in_s": ctx.settings.ticket_ttl_s}
 
 
 @router.websocket("/v1/stream")

@@ -44,7 +44,8 @@ HEAVY_BYTES = 7 * 2**20
 def srv(tmp_path_factory):
     with run_server(tmp_path_factory.mktemp("preauth"), max_unauthenticated_per_address=PER_ADDRESS,
                     max_unauthenticated=WAITING_TOTAL, hello_timeout_s=60.0,
-                    max_sessions_per_user=1, tokens_reload_interval_s=0.05) as running:
+                    max_sessions_per_user=1, tokens_reload_interval_s=0.05,
+                    max_tickets_per_user=2) as running:
         yield running
 
 
@@ -260,3 +261,38 @@ def test_the_byte_budget_delays_instead_of_dropping():
     assert budget.reserve(100) == 0.0  # the burst
     assert 9.0 < budget.reserve(10) <= 10.0  # 10 bytes of debt: wait ~10 s
     assert 19.0 < budget.reserve(10) <= 20.0  # debts add up
+
+
+def test_stream_tickets_are_single_use_and_capped(srv):
+    tess = srv.issue("tess", ("stream",))
+    with httpx.Client(base_url=srv.url, timeout=WS_TIMEOUT_S) as c:
+        assert c.post("/v1/stream/tickets").status_code == 401  # the token, in the header
+        tickets = [c.post("/v1/stream/tickets", headers=srv.headers(tess)) for _ in range(3)]
+    assert [r.status_code for r in tickets] == [201, 201, 429]  # max_tickets_per_user=2
+    ticket = tickets[0].json()["ticket"]
+    assert ticket.startswith("tkt_") and tickets[0].json()["expires_in_s"] > 0
+
+    async def run():
+        url = srv.ws_url("demo", ticket=ticket)
+        async with websockets.connect(url, max_size=None, open_timeout=WS_TIMEOUT_S) as ws:
+            welcome = await recv_until(ws, is_type("welcome"))
+            assert welcome.type == "welcome"
+            await recv_until(ws, is_type("frame"))
+        async with websockets.connect(url, max_size=None, open_timeout=WS_TIMEOUT_S) as ws:
+            code, message, close = await _refusal(ws)  # spent
+            assert (code, close) == ("unauthorized", 4401) and "ticket" in message
+    asyncio.run(run())
+
+
+def test_an_expired_ticket_is_refused():
+    from server.auth import Principal
+    from server.tickets import TicketBook
+
+    who = Principal("tess", frozenset({"stream"}))
+    assert TicketBook(ttl_s=0.0, max_per_subject=4).redeem(
+        TicketBook(ttl_s=0.0, max_per_subject=4).issue(who)) is None  # another book's
+    book = TicketBook(ttl_s=0.0, max_per_subject=4)
+    assert book.redeem(book.issue(who)) is None  # expired the moment it was made
+    book = TicketBook(ttl_s=3600.0, max_per_subject=4)
+    ticket = book.issue(who)
+    assert book.redeem(ticket) == who and book.redeem(ticket) is None and len(book) == 0
