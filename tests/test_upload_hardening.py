@@ -2,6 +2,7 @@
 impossible shapes in avatar packages and dataset archives, damaged zips, split paths outside
 the upload, per-user quotas, private files and no server path in what clients see."""
 
+import asyncio
 import dataclasses
 import io
 import json
@@ -16,7 +17,7 @@ import pytest
 
 from server.quotas import dir_size
 from tests.dataset_fixtures import write_tiny_dataset
-from tests.server_fixtures import run_server
+from tests.server_fixtures import run_server, stream
 
 from .test_bounded_npz import MiB, peak_memory
 from .test_jobs_support import zip_dataset
@@ -250,5 +251,35 @@ def test_no_server_path_reaches_a_client(srv, demo_zip, tmp_path):
         stored = zipfile.ZipFile(io.BytesIO(download.content)).read("avatar.json").decode()
         assert data not in stored and "/srv/" not in stored
         assert json.loads(stored)["training"] == {"iterations": 3}
+
+        async def welcome():
+            async with stream(srv) as ws:
+                return ws.welcome
+
+        sent = asyncio.run(welcome())  # what every streaming client is told about the avatar
+        assert sent.avatar.metadata["files"] == ["a.npz", "b.npz"]
+        text = sent.model_dump_json()
+        assert data not in text and str(tmp_path) not in text and "/srv/" not in text
     finally:
         registry.register_demo("synthetic")
+
+
+def test_stored_bytes_count_avatars_and_job_folders(tmp_path):
+    from server.jobs.service import JobService
+    from server.jobs.store import NewJob
+    from server.quotas import stored_bytes
+    from server.registry import AvatarRegistry
+
+    registry = AvatarRegistry(tmp_path / "avatars")
+    service = JobService(tmp_path, register=lambda job, package: "unused")  # worker not started
+    try:
+        job = service.store.create(NewJob(owner="carol", dataset="upload", dataset_path="x",
+                                          config={}, total=1))
+        folder = service.worker.job_dir(job.id)
+        (folder / "dataset").mkdir(parents=True)
+        (folder / "dataset" / "images.bin").write_bytes(b"\0" * 300_000)
+        (folder / "train.log").write_bytes(b"x" * 1000)
+        assert stored_bytes("carol", registry, service) == 301_000
+        assert stored_bytes("dave", registry, service) == 0
+    finally:
+        service.store.close()
