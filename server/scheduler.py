@@ -9,11 +9,12 @@ asking 128 px JPEG. Instead the scheduler measures each job (pose, rasterize, en
 * serves the waiting session that used the least render time recently (decayed with a
   half-life of ``window_s``), and
 * paces a session that takes more than its share (:meth:`pace_s`): with N sessions active
-  in the last ``window_s`` the fair share is ``f = render_threads / N`` of the render time; a
-  session whose recent share reaches f (``PACE_FROM`` of it) leaves ``c / f`` seconds between
-  the starts of its frames (c: what its frames cost), so it gets f and the others the rest.
-  A session below its share, or alone, is not held back, so time that nobody else wants is
-  used.
+  in the last ``window_s`` (N > render_threads) the fair share is ``f = render_threads / N``
+  of the render time. Each session has a credit of render seconds that refills at f per
+  second (at most ``f * window_s`` saved up) and that each of its frames spends; a session in
+  debt waits until the refill pays it back, so over time it holds f and the others the rest.
+  A session within its share, or alone, is not held back, so time that nobody else wants is
+  used; what a capped session leaves unused of its share stays idle.
 
 Policy ``"frames"`` keeps the plain first-in first-out round-robin (equal frame rates).
 
@@ -37,9 +38,6 @@ from typing import Any, Literal, TypeVar
 T = TypeVar("T")
 Policy = Literal["time", "frames"]
 POLICIES: tuple[Policy, ...] = ("time", "frames")
-COST_SMOOTHING = 0.3  # weight of the newest job in a session's cost average
-PACE_FROM = 0.9       # a session is paced from this fraction of its fair share on (hysteresis:
-                      # paced to exactly its share, it stays paced instead of overshooting)
 
 
 def limit_threads(threads: int) -> None:
@@ -58,55 +56,67 @@ def limit_threads(threads: int) -> None:
 
 @dataclass
 class _Account:
-    usage_s: float = 0.0     # render seconds, decayed to `stamp`
+    usage_s: float = 0.0           # render seconds, decayed to `stamp`: the serving order
     stamp: float = 0.0
-    cost_s: float = 0.0      # moving average of one job's seconds
-    last_seen: float = 0.0   # last submit or finish
-    total_s: float = 0.0     # all render seconds, never decayed (metrics, tests)
-    jobs: int = 0
+    credit_s: float = math.inf     # render seconds it may take before it is paced
+    credit_stamp: float = 0.0
+    last_seen: float = 0.0         # last submit or finish
+    total_s: float = 0.0           # all render seconds, never decayed (metrics, tests)
 
 
 class FairShare:
-    """Per-session render time: decayed usage, the cost of a job, who is active."""
+    """Per-session render time: decayed usage (who goes first), credit (who must wait), and
+    who is active. Credit refills at the fair share f (render seconds per second) up to
+    ``f * window_s``, and each job takes what it cost; a session in debt waits until it is
+    paid back. While no more sessions are active than there are threads, nobody is in debt."""
 
-    def __init__(self, window_s: float) -> None:
+    def __init__(self, window_s: float, threads: int) -> None:
         self.window_s = window_s
+        self.threads = threads
         self._accounts: dict[Hashable, _Account] = {}
 
     def _decayed(self, acc: _Account, now: float) -> float:
         return acc.usage_s * math.exp2(-(now - acc.stamp) / self.window_s)
 
+    def fair(self, now: float) -> float | None:
+        """Each active session's share of one second of render time; None: a thread each."""
+        active = sum(now - acc.last_seen <= self.window_s for acc in self._accounts.values())
+        return None if active <= self.threads else self.threads / active
+
+    def _credit(self, acc: _Account, now: float, fair: float) -> float:
+        return min(fair * self.window_s, acc.credit_s + fair * (now - acc.credit_stamp))
+
     def seen(self, key: Hashable, now: float) -> None:
-        self._accounts.setdefault(key, _Account(stamp=now)).last_seen = now
+        self._accounts.setdefault(key, _Account(stamp=now, credit_stamp=now)).last_seen = now
 
     def add(self, key: Hashable, seconds: float, now: float) -> None:
-        acc = self._accounts.setdefault(key, _Account(stamp=now))
+        acc = self._accounts.setdefault(key, _Account(stamp=now, credit_stamp=now))
         acc.usage_s, acc.stamp = self._decayed(acc, now) + seconds, now
-        acc.cost_s = seconds if acc.jobs == 0 else \
-            (1 - COST_SMOOTHING) * acc.cost_s + COST_SMOOTHING * seconds
+        fair = self.fair(now)
+        credit = math.inf if fair is None else self._credit(acc, now, fair)
+        acc.credit_s, acc.credit_stamp = credit - seconds, now
         acc.total_s += seconds
-        acc.jobs += 1
         acc.last_seen = now
 
     def usage(self, key: Hashable, now: float) -> float:
         acc = self._accounts.get(key)
         return 0.0 if acc is None else self._decayed(acc, now)
 
-    def share(self, key: Hashable, now: float) -> float:
-        """Recent fraction of the time this session's jobs ran (steady usage p decays to
-        p * window_s / ln 2)."""
-        return self.usage(key, now) * math.log(2) / self.window_s
-
-    def active(self, now: float) -> int:
-        return sum(now - acc.last_seen <= self.window_s for acc in self._accounts.values())
-
-    def cost(self, key: Hashable) -> float:
-        acc = self._accounts.get(key)
-        return 0.0 if acc is None else acc.cost_s
+    def wait_s(self, key: Hashable, now: float) -> float:
+        """Seconds until this session's credit is back to zero (0: it may go now)."""
+        acc, fair = self._accounts.get(key), self.fair(now)
+        if acc is None or fair is None:
+            return 0.0
+        return max(0.0, -self._credit(acc, now, fair)) / fair
 
     def total(self, key: Hashable) -> float:
         acc = self._accounts.get(key)
         return 0.0 if acc is None else acc.total_s
+
+    def stalled(self, key: Hashable) -> None:
+        acc = self._accounts.get(key)
+        if acc is not None:
+            acc.last_seen = -math.inf  # active again at its next submit
 
     def forget(self, key: Hashable) -> None:
         self._accounts.pop(key, None)
@@ -132,7 +142,7 @@ class RenderScheduler:
         self.render_threads = render_threads
         self.threads_per_render = threads_per_render
         self.policy = policy
-        self.share = FairShare(window_s)
+        self.share = FairShare(window_s, render_threads)
         self._cond = threading.Condition()
         self._pending: list[_Job] = []
         self._order = itertools.count()
@@ -170,23 +180,22 @@ class RenderScheduler:
     # -- fairness ------------------------------------------------------------------------------
 
     def pace_s(self, key: Hashable) -> float:
-        """Seconds to leave between the starts of this session's frames for its fair share."""
+        """Seconds this session should wait, from now, before its next frame starts."""
         if self.policy != "time":
             return 0.0
         with self._cond:
-            now = time.monotonic()
-            active = self.share.active(now)
-            if active <= self.render_threads:
-                return 0.0  # a thread each
-            fair = self.render_threads / active
-            if self.share.share(key, now) < PACE_FROM * fair:
-                return 0.0
-            return self.share.cost(key) / fair
+            return self.share.wait_s(key, time.monotonic())
 
     def render_seconds(self, key: Hashable) -> float:
         """All render time this session's jobs took so far."""
         with self._cond:
             return self.share.total(key)
+
+    def stalled(self, key: Hashable) -> None:
+        """The session waits on its client, not on the renderer: until its next job it does
+        not count as active (its share goes to the others)."""
+        with self._cond:
+            self.share.stalled(key)
 
     def forget(self, key: Hashable) -> None:
         """The session ended: it no longer counts as active."""

@@ -60,6 +60,7 @@ log = logging.getLogger(__name__)
 CONTROL_QUEUE = 64        # pending control messages; past it new ones are dropped
 RENDER_MS_WINDOW = 50     # frames in the stats median
 H264_ALIGN = 2            # H.264 wants even sizes
+SEND_STALL_S = 0.1        # a frame not sent by then: the client stalls, wants no render time
 
 
 class TokenBucket:
@@ -255,8 +256,8 @@ class StreamSession:
     def _next_frame_at(self, started: float) -> float:
         """When the next frame may start: the frame-rate cap and the fair share of render
         time, both read now (a request or another session may have changed them)."""
-        gap = max(1.0 / self.request.max_fps, self.scheduler.pace_s(self.id))
-        return started + gap
+        now = asyncio.get_running_loop().time()  # time.monotonic, as the scheduler's
+        return max(started + 1.0 / self.request.max_fps, now + self.scheduler.pace_s(self.id))
 
     async def _pace(self, started: float) -> None:
         """Wait until the next frame may start; inputs keep coalescing meanwhile."""
@@ -291,7 +292,7 @@ class StreamSession:
                                             "session keeps its last state that rendered")
                 continue
             self._good = job
-            await self._send_frame(frame)
+            await self._send_watched(frame)
 
     def _restore(self, failed: FrameJob, drive_only: bool) -> None:
         """Put back the last state that rendered wherever the failed frame's state is still
@@ -336,6 +337,18 @@ class StreamSession:
             self._track_ms = tracked.track_ms
             self._pending_drives += 1
             self._changed()
+
+    async def _send_watched(self, frame: RenderedFrame) -> None:
+        """Send a frame; while its client does not take it, the session leaves the render
+        time to the others (it is not counted among the active sessions)."""
+        send = asyncio.create_task(self._send_frame(frame))
+        try:
+            done, _ = await asyncio.wait({send}, timeout=SEND_STALL_S)
+            if not done:
+                self.scheduler.stalled(self.id)
+            await send
+        finally:
+            send.cancel()  # the session ends: the send goes with it
 
     async def _send_frame(self, f: RenderedFrame) -> None:
         msg = Frame(seq=f.seq, frame=self.frames, codec=f.codec, width=f.width, height=f.height,

@@ -318,14 +318,17 @@ def test_the_scheduler_serves_the_least_recent_render_time_first(policy, first):
 
 
 def test_only_a_session_over_its_share_is_paced_and_only_while_others_are_active():
-    sched = RenderScheduler(1, 1, "time", window_s=1.0)
+    sched = RenderScheduler(1, 1, "time", window_s=1.0)  # two sessions: half a second each
     try:
         now = time.monotonic()
-        sched.share.add("heavy", 0.5, now)   # a recent share of 0.35: below its half
+        for key in ("heavy", "light"):
+            sched.share.seen(key, now)
         sched.share.add("light", 0.01, now)
+        sched.share.add("heavy", 0.3, now)   # within its saved-up credit (0.5 s): goes on
         assert sched.pace_s("heavy") == 0.0
-        sched.share.add("heavy", 1.0, now)   # now over its half
-        assert sched.pace_s("heavy") > 0 and sched.pace_s("light") == 0.0
+        sched.share.add("heavy", 1.0, now)   # 0.8 s in debt, refilled at 0.5 s per second
+        assert 1.5 < sched.pace_s("heavy") <= 1.6
+        assert sched.pace_s("light") == 0.0
         sched.forget("light")                # alone: never held back
         assert sched.pace_s("heavy") == 0.0
         assert RenderScheduler(1, 1, "frames").pace_s("heavy") == 0.0
