@@ -45,7 +45,7 @@ class Settings(BaseModel):
         4096, ge=1024, description="Largest first message before authentication, bytes; checked "
                                    "on the frame's length before any decoding (close 4413).")
     max_unauthenticated: int = Field(
-        64, ge=1, description="WebSocket connections waiting to authenticate, in total; past it "
+        32, ge=1, description="WebSocket connections waiting to authenticate, in total; past it "
                               "a new one gets error 'busy', close code 1013.")
     max_unauthenticated_per_address: int = Field(
         8, ge=1, description="WebSocket connections waiting to authenticate from one client "
