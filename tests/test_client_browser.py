@@ -202,6 +202,9 @@ def test_an_old_link_with_a_query_token_still_works(page, server, server_log):  
     page.get(f"{server.url}/?token={server.token}&avatar=demo")
     wait_for(page, "window.telesplat.framesShown > 0", 60, "a frame")
     assert "token" not in page.current_url and "avatar=demo" in page.current_url
+    # Nor does it travel on in the Referer of the page's own requests (scripts, API calls).
+    assert page.execute_script(
+        "return document.querySelector('meta[name=referrer]').content") == "no-referrer"
     # The first request carried it; the log shows it redacted, and no WebSocket URL has it.
     assert any("GET /?token=[redacted]&avatar=demo" in line for line in server_log), server_log
     sockets = [line for line in server_log if '"WebSocket /v1/stream' in line]
