@@ -7,17 +7,27 @@ private too (a copied or moved data dir keeps that).
 
 from __future__ import annotations
 
+import logging
 import os
+import stat
 from pathlib import Path
 
 __all__ = ["make_private", "private_dir"]
 
+log = logging.getLogger("telesplat.server")
+
 
 def private_dir(path: str | Path) -> Path:
-    """``path`` created if missing (parents too) and set to 0700."""
+    """``path`` created if missing (parents too) and set to 0700 (a folder of another user's
+    that we may use but not chmod is kept as it is, with a warning)."""
     path = Path(path)
     path.mkdir(parents=True, exist_ok=True, mode=0o700)
-    os.chmod(path, 0o700)
+    try:
+        os.chmod(path, 0o700)
+    except PermissionError:
+        mode = stat.S_IMODE(path.stat().st_mode)
+        log.warning("%s is not ours to make private (mode %o): other users may read it",
+                    path, mode)
     return path
 
 
