@@ -12,7 +12,7 @@ import tomllib
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from protocol import Limits
 
@@ -158,6 +158,13 @@ class Settings(BaseModel):
         if not value:
             raise ValueError("demo_avatar is synthetic, trained, none or a package path")
         return value
+
+    @model_validator(mode="after")
+    def _frame_rate(self) -> Settings:
+        if self.default_max_fps < self.limits.min_fps:
+            raise ValueError(f"default_max_fps {self.default_max_fps} is below "
+                             f"limits.min_fps {self.limits.min_fps}")
+        return self
 
     @property
     def tokens_path(self) -> Path:
