@@ -8,6 +8,8 @@ import struct
 import zipfile
 
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from server.jobs.archive import ArchiveError, UploadLimits, check_archive, extract_archive
 
@@ -122,3 +124,40 @@ def test_damaged_archives_are_400(tmp_path, damage, words):
     with pytest.raises(ArchiveError, match=words) as err:
         extract_archive(io.BytesIO(damage(buf.getvalue())), tmp_path / "u", UploadLimits())
     assert err.value.status == 400 and not (tmp_path / "u").exists()
+
+
+def _dataset_like_zip() -> bytes:
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as z:
+        z.writestr("take/dataset.json", b'{"name": "take"}' * 20)
+        z.writestr("take/cameras.json", os.urandom(3000))
+        z.writestr("take/sequences/a/params.npz", bytes(5000), zipfile.ZIP_STORED)
+        z.writestr("take/sequences/a/images/cam00/00000.png", os.urandom(2000))
+    return buf.getvalue()
+
+
+VALID_ZIP = _dataset_like_zip()
+FUZZ_LIMITS = UploadLimits(max_unpacked_bytes=1 << 20, max_member_bytes=1 << 19,
+                           max_files=64, max_ratio=50, ratio_floor_bytes=1 << 16)
+
+
+@settings(max_examples=200, deadline=None,
+          suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+@given(flips=st.lists(st.tuples(st.integers(0, len(VALID_ZIP) - 1), st.integers(0, 255)),
+                      max_size=8),
+       keep=st.integers(0, len(VALID_ZIP)))
+def test_fuzz_mutated_archives(tmp_path_factory, flips, keep):
+    """A damaged archive is an ArchiveError (and leaves nothing) or unpacks within the limits."""
+    data = bytearray(VALID_ZIP)
+    for at, value in flips:
+        data[at] = value
+    dest = tmp_path_factory.mktemp("fuzz") / "u"
+    try:
+        root = extract_archive(io.BytesIO(bytes(data[:keep])), dest, FUZZ_LIMITS)
+    except ArchiveError as exc:
+        assert exc.status in (400, 413)
+        assert not dest.exists()
+    else:
+        assert root.is_relative_to(dest)
+        written = sum(p.stat().st_size for p in dest.rglob("*") if p.is_file())
+        assert written <= FUZZ_LIMITS.max_unpacked_bytes
