@@ -197,6 +197,8 @@ ABSURD_DRIVES = [
 def test_absurd_drives_are_refused_and_the_next_frame_renders(srv):
     async def run():
         async with stream(srv) as ws:
+            lim = ws.welcome.limits  # the ranges are announced up front
+            assert (lim.max_coefficient, lim.min_fps) == (Limits().max_coefficient, 1.0)
             await recv_until(ws, is_type("frame"))
             for seq, families in enumerate(ABSURD_DRIVES, start=100):
                 await ws.send(_raw_drive(seq, **families))
