@@ -13,6 +13,7 @@ from avatar_core.track.anchors import FACE_SHORT_RANGE, PALM_192, POSE_224, ssd_
 from avatar_core.track.image import decode_image
 from avatar_core.track.models import ModelFetchError, fetch_models
 from avatar_core.track.nms import Detection, decode_boxes, weighted_nms
+from avatar_core.track.pose import PosePipeline
 from avatar_core.track.roi import (
     crop_matrix,
     crop_rgb,
@@ -116,6 +117,44 @@ def test_crop_then_project_back_round_trip():
     np.testing.assert_allclose(back @ m[:, :2].T + m[:, 2], uv, atol=1e-3)
 
 
+def _opencv4_fixed_point_crop(frame: np.ndarray, rect: RotatedRect, size: int,
+                              zero_border: bool) -> np.ndarray:
+    """OpenCV 4's warp, written out: the source position of each crop pixel rounded to 1/32 px,
+    bilinear weights in 1/1024ths, the weighted sum rounded; outside the frame edge pixels
+    (replicate) or 0. The positions come from the crop's own affine map (`crop_matrix`)."""
+    m = cv2.invertAffineTransform(crop_matrix(rect, size, size)).astype(np.float64)
+    v, u = np.mgrid[0:size, 0:size].astype(np.float64)
+    fx = np.rint((m[0, 0] * u + m[0, 1] * v + m[0, 2]) * 32).astype(np.int64)
+    fy = np.rint((m[1, 0] * u + m[1, 1] * v + m[1, 2]) * 32).astype(np.int64)
+    x0, y0, ax, ay = fx >> 5, fy >> 5, fx & 31, fy & 31
+    h, w = frame.shape[:2]
+    acc = np.zeros((size, size, 3), np.int64)
+    for dy, wy in ((0, 32 - ay), (1, ay)):
+        for dx, wx in ((0, 32 - ax), (1, ax)):
+            xs, ys = x0 + dx, y0 + dy
+            px = frame[np.clip(ys, 0, h - 1), np.clip(xs, 0, w - 1)].astype(np.int64)
+            if zero_border:
+                px[(xs < 0) | (xs >= w) | (ys < 0) | (ys >= h)] = 0
+            acc += (wx * wy)[..., None] * px
+    return ((acc + 512) >> 10).astype(np.uint8)[..., ::-1]  # BGR -> RGB
+
+
+@pytest.mark.parametrize("zero_border", [False, True])
+def test_crop_resamples_like_mediapipe(zero_border):
+    """crop_rgb is OpenCV 4's fixed-point bilinear warp (what MediaPipe's bundled OpenCV
+    does), not OpenCV 5's float one: equal to a written-out reference up to the rare pixel
+    whose 1/32 px rounding the two position formulas tip differently (0.02% of the values
+    here; OpenCV 5's cv2.warpAffine differs from the reference in about half of them)."""
+    frame = np.random.default_rng(3).integers(0, 256, (120, 160, 3), np.uint8)
+    rect = RotatedRect(70.3, 66.9, 150.0, 150.0, math.radians(27))  # reaches past the frame
+    crop = crop_rgb(frame, rect, 64, 64, zero_border=zero_border)
+    ref = _opencv4_fixed_point_crop(frame, rect, 64, zero_border)
+    diff = np.abs(crop.astype(int) - ref.astype(int))
+    assert (diff > 0).mean() < 0.01 and diff.max() <= 64
+    outside = crop[:4, :4]  # the crop's corner lies outside the frame
+    assert (outside == 0).all() if zero_border else (outside > 0).any()
+
+
 # ------------------------------------------------------------------ decode_image
 
 def test_decode_image_round_trip_and_errors():
@@ -204,6 +243,17 @@ def test_person_mask(astronaut_result):
     x0, y0, x1, y1 = FACE_BOX
     assert mask[y0 + 30:y1 - 30, x0 + 30:x1 - 30].mean() > 0.9  # the face
     assert mask[:60, 380:480].mean() < 0.1  # the sky behind the shuttle
+
+
+def test_pose_crop_replicates_the_border(onnx_models):
+    """pose_landmark_by_roi_cpu leaves ImageToTensor's border_mode unset, i.e. replicate: a
+    body ROI three times the frame is filled with the frame's edge colours, never black."""
+    pose = PosePipeline(onnx_models, threads=1)
+    frame = np.full((100, 80, 3), 200, np.uint8)
+    frame[:, :40] = 90
+    x = pose.input_tensor(frame, RotatedRect(40, 50, 300, 300, 0.2))
+    assert x.shape == (1, 256, 256, 3)
+    assert x.min() >= 89 / 255 and x.max() <= 201 / 255  # edge colours (and blends), no black
 
 
 def test_no_detection_on_blank_and_noise_frames(onnx_models):

@@ -82,12 +82,17 @@ class PosePipeline(SingleTargetPipeline):
         kps = found[0].keypoints  # [4, 2]: hips centre, body scale, shoulders centre, scale
         return roi_from_alignment(kps[0], kps[1])
 
-    def landmarks(self, frame_bgr: np.ndarray, roi: RotatedRect
-                  ) -> tuple[PoseLandmarks, RotatedRect] | None:
+    def input_tensor(self, frame_bgr: np.ndarray, roi: RotatedRect) -> np.ndarray:
+        """The landmark model's input: [1, 256, 256, 3] in [0, 1]."""
         w, h = self.landmarker.input_size
         # pose_landmark_by_roi_cpu.pbtxt: ImageToTensorCalculator border_mode unset ->
         # BORDER_REPLICATE. The body ROI of a portrait is 2-4x the photo, so the fill matters.
-        x = to_tensor(crop_rgb(frame_bgr, roi, w, h), 0.0, 1.0)
+        return to_tensor(crop_rgb(frame_bgr, roi, w, h), 0.0, 1.0)
+
+    def landmarks(self, frame_bgr: np.ndarray, roi: RotatedRect
+                  ) -> tuple[PoseLandmarks, RotatedRect] | None:
+        w, _h = self.landmarker.input_size
+        x = self.input_tensor(frame_bgr, roi)
         raw, flag, _seg, heatmap = self.landmarker(x)[:4]  # [1,195] [1,1] _ [1,64,64,39]
         score = float(flag.reshape(-1)[0])  # the model ends in a sigmoid
         if score < self.min_presence:
