@@ -24,6 +24,7 @@ import torch
 
 from ..bounded_npz import NpzError, NpzLimits, check_zip_members, open_zip, read_npz
 from .avatar import GaussianAvatar
+from .validate import GaussianRanges, RangeError, check_gaussian_ranges
 
 SCHEMA_VERSION = 1
 MANIFEST, GAUSSIANS = "avatar.json", "gaussians.npz"
@@ -135,8 +136,10 @@ def _check_manifest_types(path: Path, manifest: dict, body: BodyReference) -> No
 
 def load_package(path: str | Path, *, max_bytes: int = MAX_PACKAGE_BYTES,
                  dtype: torch.dtype = torch.float32,
-                 npz_limits: NpzLimits | None = None) -> AvatarPackage:
-    """Read and validate a package directory or zip. ``max_bytes`` bounds the files, and
+                 npz_limits: NpzLimits | None = None,
+                 ranges: GaussianRanges | None = None) -> AvatarPackage:
+    """Read and validate a package directory or zip; ``ranges`` bounds the Gaussians' values
+    (default :class:`GaussianRanges`). ``max_bytes`` bounds the files, and
     (unless ``npz_limits`` says otherwise) each array and all of them, unpacked."""
     path = Path(path)
     if not path.exists():
@@ -182,7 +185,8 @@ def load_package(path: str | Path, *, max_bytes: int = MAX_PACKAGE_BYTES,
         raise PackageError(f"{path}: parent triangle indices outside [0, {body.num_faces})")
     try:
         avatar = GaussianAvatar(**tensors)
-    except ValueError as exc:
+        check_gaussian_ranges(**avatar.tensors(), num_faces=body.num_faces, ranges=ranges)
+    except (ValueError, RangeError) as exc:
         raise PackageError(f"{path}: {exc}") from exc
     return AvatarPackage(avatar=avatar, body=body, name=str(manifest.get("name", path.stem)),
                          metadata=manifest.get("metadata", {}), metrics=manifest.get("metrics", {}),

@@ -1,0 +1,89 @@
+"""Value ranges of a Gaussian avatar: what any trained avatar satisfies, with a wide margin.
+
+Finite is not enough: a package with log-scales of 80 is finite and describes splats of 10^34
+triangle sizes, each a veil over the whole picture. Loaders check ranges before an avatar is
+stored or served (:func:`check_gaussian_ranges`), so an absurd package is refused up front,
+with the field, the offending value and the allowed range in the message.
+
+The defaults, and why they hold for trained avatars (``avatar_core.train``):
+
+* log-scales (triangle-local, units of the triangle's size k): a fresh Gaussian starts at
+  log 0.4 and log 0.05 (-0.9, -3.0); splits divide by 1.6 and densification prunes splats
+  wider than a tenth of the scene, a few k. Allowed: [-30, 6] (e^6 ~ 400 triangle sizes).
+* local means (units of k): start at the centroid (0) and stay near the surface, within a
+  few k. Allowed: norm <= 1000.
+* opacity logits: start at logit(0.9) = 2.2, reset to logit(0.01) = -4.6; float32 sigmoid
+  is exactly 0 or 1 beyond |17|. Allowed: |logit| <= 100.
+* SH coefficients: a colour in [0, 1] is a DC of at most 1.8, higher bands are small.
+  Allowed: |c| <= 100.
+* quaternions (stored unnormalised): Adam moves their norm slowly from 1. Allowed norm:
+  [1e-6, 1e6] (the zero quaternion, the identity by convention, is allowed too).
+* count: the trainer's default cap is 200,000 (``DensifyConfig.max_gaussians``). Allowed:
+  1,000,000.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+__all__ = ["GaussianRanges", "RangeError", "check_gaussian_ranges"]
+
+
+class RangeError(ValueError):
+    """A Gaussian parameter outside its allowed range (the message names which)."""
+
+
+@dataclass(frozen=True)
+class GaussianRanges:
+    """Allowed value ranges of an avatar's Gaussians (see the module docstring)."""
+
+    max_gaussians: int = 1_000_000
+    log_scale_min: float = -30.0
+    log_scale_max: float = 6.0
+    max_local_mean_norm: float = 1e3
+    max_abs_opacity_logit: float = 100.0
+    max_abs_sh: float = 100.0
+    quat_norm_min: float = 1e-6   # below it (and above 0) the rotation is numerically noise
+    quat_norm_max: float = 1e6
+
+
+def check_gaussian_ranges(*, parents: Tensor, local_means: Tensor, log_scales: Tensor,
+                          quats: Tensor, opacity_logits: Tensor, sh: Tensor,
+                          num_faces: int | None = None,
+                          ranges: GaussianRanges | None = None) -> None:
+    """Raise :class:`RangeError` naming the first field outside ``ranges`` (defaults:
+    :class:`GaussianRanges`), its worst value, the Gaussian's index and the allowed range.
+    NaN and Inf fail every range. ``num_faces``: parents must index a mesh of this many."""
+    r = ranges or GaussianRanges()
+    n = int(parents.shape[0])
+    if n > r.max_gaussians:
+        raise RangeError(f"{n} Gaussians, more than the allowed {r.max_gaussians}")
+    if n == 0:
+        return
+    if num_faces is not None:
+        _check("parents", parents, 0, num_faces - 1)
+    _check("log_scales", log_scales, r.log_scale_min, r.log_scale_max)
+    _check("local_means (norm)", local_means.double().norm(dim=-1), 0.0,
+           r.max_local_mean_norm)  # float64: a norm of float32 values can overflow
+    _check("opacity_logits", opacity_logits, -r.max_abs_opacity_logit,
+           r.max_abs_opacity_logit)
+    _check("sh", sh, -r.max_abs_sh, r.max_abs_sh)
+    norms = quats.double().norm(dim=-1)
+    _check("quats (norm)", torch.where(norms == 0, torch.ones_like(norms), norms),
+           r.quat_norm_min, r.quat_norm_max)
+
+
+def _check(field: str, values: Tensor, lo: float, hi: float) -> None:
+    v = values.detach().reshape(values.shape[0], -1)
+    bad = torch.nonzero(~((v >= lo) & (v <= hi)))  # [B, 2]; NaN is never in range
+    if not bad.numel():
+        return
+    vals = v[bad[:, 0], bad[:, 1]].double()
+    outside = torch.nan_to_num(torch.maximum(vals - hi, lo - vals), nan=float("inf"))
+    row, col = (int(i) for i in bad[int(torch.argmax(outside))])
+    where = f"Gaussian {row}" + ("" if v.shape[1] == 1 else f", column {col}")
+    raise RangeError(f"{field} = {float(v[row, col]):.6g} at {where} is outside the allowed "
+                     f"range [{lo:g}, {hi:g}]")
