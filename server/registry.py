@@ -13,6 +13,7 @@ path reaches a client: path-like strings are scrubbed from a package's manifest 
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import json
 import re
@@ -124,6 +125,8 @@ class AvatarRegistry:
                 rec.metadata = scrub_paths(rec.metadata)  # records written before scrubbing
                 if rec.source.startswith("demo:") and _PATH_LIKE.match(rec.source[5:]):
                     rec.source = "demo:package"
+                with contextlib.suppress(OSError, ValueError, AttributeError):
+                    _scrub_manifest(rec_file.parent / PACKAGE_DIR / MANIFEST)
                 self._records[rec.id] = rec
         for tmp in self.root.glob(".incoming-*"):  # leftovers of a crash mid-add
             shutil.rmtree(tmp, ignore_errors=True)

@@ -295,3 +295,23 @@ def test_stored_bytes_count_avatars_and_job_folders(tmp_path):
         assert stored_bytes("dave", registry, service) == 0
     finally:
         service.store.close()
+
+
+def test_records_and_manifests_stored_before_scrubbing_are_scrubbed_on_open(tmp_path):
+    from avatar_core.gaussians.package import save_package
+    from avatar_core.pipeline import load_avatar
+    from server.registry import AvatarRegistry
+
+    package = save_package(load_avatar("synthetic").package, tmp_path / "pkg")
+    registry = AvatarRegistry(tmp_path / "avatars")
+    rec = registry.add_package(package, "erin")
+    folder = tmp_path / "avatars" / rec.id
+    old = {"dataset_path": "/home/erin/captures/take", "trained": True}
+    record = json.loads((folder / "record.json").read_text())
+    (folder / "record.json").write_text(json.dumps({**record, "metadata": old}))
+    manifest = json.loads((folder / "package" / "avatar.json").read_text())
+    (folder / "package" / "avatar.json").write_text(json.dumps({**manifest, "metadata": old}))
+
+    reopened = AvatarRegistry(tmp_path / "avatars")
+    assert reopened.get(rec.id).metadata == {"trained": True}
+    assert "/home/erin" not in (folder / "package" / "avatar.json").read_text()
