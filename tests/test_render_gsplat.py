@@ -61,3 +61,24 @@ def test_budget_subset_uses_the_shared_rule():
     ref = rasterize(gs, CAM, RenderRequest(backend="cpu", budget=7, outputs=ALL))
     out = rasterize(sub, CAM, RenderRequest(backend="cpu", outputs=ALL))
     assert torch.allclose(ref.rgb, out.rgb, atol=1e-6)
+
+
+def test_gsplat_only_gets_sane_gaussians():
+    """What reaches gsplat's float32 kernels: our projection's survivors, unit quaternions
+    (zero -> identity), SH clamped (issue 13: absurd but finite avatars)."""
+    from avatar_core.render.rasterize_gsplat import _apply_budget
+    from avatar_core.render.sh import SH_COEFF_MAX
+
+    gs = random_scene(6, 4)
+    gs.scales[0] = 5.5e34        # log-scale 80: a veil, culled
+    gs.means[1] = torch.tensor([1e30, 0.0, 0.0])
+    gs.quats[2] = torch.tensor([3e38, 3e38, 0.0, 0.0])
+    gs.quats[3] = 0.0
+    gs.sh[4] = 1e30
+    sub, n = _apply_budget(gs, CAM, RenderRequest())  # no budget: still filtered
+    assert n == sub.means.shape[0] == 4 and torch.isfinite(sub.scales).all()
+    kw = gsplat_arguments(sub, CAM, RenderRequest(), 3)
+    norms = kw["quats"].norm(dim=-1)
+    assert torch.allclose(norms, torch.ones_like(norms))
+    assert torch.equal(kw["quats"][1], torch.tensor([1.0, 0.0, 0.0, 0.0]))  # the zero one
+    assert kw["colors"].abs().max() == SH_COEFF_MAX
