@@ -59,8 +59,9 @@ class IrisPipeline:
             ) -> tuple[np.ndarray, np.ndarray]:
         """One eye's contour [71, 3] and iris [5, 3] in frame px."""
         w, h = self.model.input_size
-        # iris_landmark_cpu.pbtxt: ImageCroppingCalculator border_mode: BORDER_REPLICATE (then
-        # a resize to 64x64; here one warp straight to 64x64).
+        # iris_landmark_cpu.pbtxt: ImageCroppingCalculator border_mode: BORDER_REPLICATE. (It
+        # crops nearest-neighbour on whole pixels, then resizes to 64x64; here one bilinear
+        # warp: docs/tracking.md, parity with MediaPipe.)
         crop = crop_rgb(frame_bgr, roi, w, h)  # [64, 64, 3]
         if flip:
             crop = crop[:, ::-1]
