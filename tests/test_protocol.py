@@ -329,6 +329,28 @@ def test_any_finite_view_or_rate_is_refused_cleanly_or_within_limits(orbit, max_
         assert exc.code in ("invalid", "too_large")
 
 
+_vec3 = st.tuples(_any_finite, _any_finite, _any_finite)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.tuples(_vec3, _vec3, _vec3), _vec3, st.integers(-10, 10**9), st.integers(-10, 10**9),
+       st.booleans())
+def test_any_finite_camera_is_refused_cleanly_or_within_limits(K, t, width, height, proper):
+    lim = Limits()
+    K = ((K[0][0], K[0][1], K[0][2]), (0.0, K[1][1], K[1][2]), (0.0, 0.0, 1.0)) if proper else K
+    camera = {"K": K, "R": EYE, "t": t, "width": width, "height": height}
+    try:
+        view = decode_client(_raw(type="view", camera=camera))
+    except ProtocolError as exc:
+        assert exc.code == "invalid"
+        return
+    c = view.camera
+    assert 0 < c.width <= lim.max_camera_size and 0 < c.height <= lim.max_camera_size
+    assert math.hypot(*c.t) <= lim.max_position_m
+    fov = math.degrees(2 * math.atan(c.height / (2 * c.K[1][1])))
+    assert lim.min_fov_deg <= fov <= lim.max_fov_deg
+
+
 _msgpack_values = st.recursive(
     st.none() | st.booleans() | st.integers(-2**63, 2**63 - 1) | st.floats() | st.text(max_size=20)
     | st.binary(max_size=64),
