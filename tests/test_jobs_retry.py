@@ -20,9 +20,9 @@ from .test_jobs_support import FAST, LONG, training_pids, wait_for, zip_dataset
 
 capture_dir = support.capture_dir  # the shared session fixture
 
-# long enough (~60 iterations at ~10/s) that the kill lands after the first checkpoint
+# long enough (~40 iterations at 5-10/s) that the kill lands after the first checkpoint
 # (iteration 10) and well before the end
-KILLABLE = {**FAST, "iterations": 60}
+KILLABLE = {**FAST, "iterations": 40}
 KILL_REASON = "killed by SIGKILL (likely out of memory)"
 
 
