@@ -45,7 +45,7 @@ def _set(name, index, value):
 
 BAD = {  # field -> (mutation, text the error must carry)
     "log_scales 80": (_set("log_scales", (3, 1), 80.0), "log_scales = 80 at Gaussian 3, "
-                      "column 1 is outside the allowed range [-30, 6]"),
+                      "column 1 is outside the allowed range [-50, 6]"),
     "log_scales -80": (_set("log_scales", (0, 0), -80.0), "log_scales = -80"),
     "local mean far": (_set("local_means", (5, 2), 1e6), "local_means (norm) = 1e+06 at "
                        "Gaussian 5"),
