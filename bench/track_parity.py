@@ -216,6 +216,10 @@ class Comparison:
         return float(self.distances.mean()) if self.distances.size else 0.0
 
     @property
+    def median_px(self) -> float:
+        return float(np.median(self.distances)) if self.distances.size else 0.0
+
+    @property
     def max_px(self) -> float:
         return float(self.distances.max()) if self.distances.size else 0.0
 
@@ -270,15 +274,16 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     kinds = tuple(k for k in args.kinds.split(",") if k)
     ours = Ours()
-    print("| picture | kind | found (ours / MediaPipe) | mean px | max px | > 2 px | "
+    print("| picture | kind | found (ours / MediaPipe) | median px | mean px | max px | > 2 px | "
           "max visibility diff |")
-    print("|---|---|---|---:|---:|---:|---:|")
+    print("|---|---|---|---:|---:|---:|---:|---:|")
     for case, rgb in cases():
         h, w = rgb.shape[:2]
         for c in compare(case, rgb, ours, kinds):
             vis = f"{c.visibility_error:.4f}" if c.kind == "pose" and c.distances.size else ""
             print(f"| {case} ({w}x{h}) | {c.kind} | {c.found_ours} / {c.found_reference} | "
-                  f"{c.mean_px:.2f} | {c.max_px:.2f} | {c.count_over(2.0)} | {vis} |", flush=True)
+                  f"{c.median_px:.2f} | {c.mean_px:.2f} | {c.max_px:.2f} | "
+                  f"{c.count_over(2.0)} | {vis} |", flush=True)
     return 0
 
 

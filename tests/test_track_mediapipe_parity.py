@@ -22,9 +22,10 @@ from bench import track_parity as tp  # noqa: E402
 # Pose: the crops agree to float32 rounding of the ROI, but a landmark whose heatmap window
 # peaks near the 0.5 refinement threshold, or whose raw point sits on a heatmap cell edge,
 # jumps when the crop moves by a fraction of a pixel (docs/tracking.md).
-POSE_MEAN_PX = 3.5        # worst picture 2.51 (grace_hopper upscaled); 0.14-1.97 at 1x
+POSE_MEDIAN_PX = 1.0      # worst picture 0.41 (cameraman): most landmarks agree exactly
+POSE_MEAN_PX = 4.0        # 2.51 (grace_hopper upscaled); 0.14-1.98 at 1x
 POSE_MAX_PX = 40.0        # 28.3 (one landmark of 33 at the refinement threshold)
-POSE_OVER_2PX = 12        # landmarks > 2 px off per picture: at most 10 of 33
+POSE_OVER_2PX = 14        # landmarks > 2 px off per picture: at most 10 of 33
 POSE_VISIBILITY = 0.01    # 0.0052
 FACE_MEAN_PX = 0.1        # 0.02
 FACE_MAX_PX = 0.5         # 0.05
@@ -63,6 +64,7 @@ def test_the_same_targets_are_found(comparisons):
 
 def test_pose_landmarks_match_mediapipe(comparisons):
     for c in _of(comparisons, "pose"):
+        assert c.median_px < POSE_MEDIAN_PX, (c.case, c.median_px)
         assert c.mean_px < POSE_MEAN_PX, (c.case, c.mean_px)
         assert c.max_px < POSE_MAX_PX, (c.case, c.max_px)
         assert c.count_over(2.0) <= POSE_OVER_2PX, (c.case, c.count_over(2.0))
