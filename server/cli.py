@@ -60,7 +60,7 @@ def serve(args: argparse.Namespace) -> int:
 
     from .app import create_app
     from .config import load_settings
-    from .net import listen_socket
+    from .net import listen_socket, websocket_protocol
 
     settings = load_settings(args.config, host=args.host, port=args.port,
                              data_dir=args.data_dir, demo_avatar=args.demo_avatar)
@@ -79,6 +79,7 @@ def serve(args: argparse.Namespace) -> int:
     host = f"[{settings.host}]" if ":" in settings.host else settings.host
     _announce(app, f"http://{host}:{sock.getsockname()[1]}")
     config = uvicorn.Config(app, log_level=args.log_level, lifespan="on",
+                            ws=websocket_protocol(settings.hello_max_bytes),
                             ws_max_size=settings.limits.max_message_bytes + 1024,
                             timeout_graceful_shutdown=5)
     uvicorn.Server(config).run(sockets=[sock])

@@ -37,6 +37,7 @@ from protocol.messages import Orbit
 from .auth import Principal, require_scope, token_from_websocket
 from .context import ServerContext
 from .inbound import InboundLimits
+from .net import PREAUTH_EXTENSION
 from .registry import DEMO_ID, AvatarNotFound, AvatarRecord
 from .renderer import SessionRenderer
 from .session import SessionConfig, StreamSession, error_message
@@ -134,6 +135,9 @@ async def _authenticate(ws: WebSocket, ctx: ServerContext) -> Principal:
     principal = ctx.tokens.principal(token)
     if principal is None:
         raise Refusal("unauthorized", "invalid token", CLOSE_UNAUTHORIZED)
+    preauth = ws.scope.get("extensions", {}).get(PREAUTH_EXTENSION)
+    if preauth is not None:
+        preauth["lift"]()  # authenticated: the full message size from now on
     return principal
 
 

@@ -27,7 +27,7 @@ import uvicorn
 
 from server.app import create_app
 from server.config import Settings
-from server.net import listen_socket
+from server.net import listen_socket, websocket_protocol
 
 START_TIMEOUT_S = 180.0  # the first warm-up compiles numba kernels (cached afterwards)
 STOP_TIMEOUT_S = 15.0
@@ -69,9 +69,10 @@ def wait_until(predicate, timeout: float, interval: float = 0.01, what: str = "c
 
 
 @contextlib.contextmanager
-def run_server(data_dir: Path, **overrides: Any) -> Iterator[RunningServer]:
+def run_server(data_dir: Path, *, ws: Any = None, **overrides: Any) -> Iterator[RunningServer]:
     """A server with ``Settings(data_dir=data_dir, demo_avatar="synthetic", 128 px, ...)``
-    updated by ``overrides``; stopped (with bounded waits) on exit."""
+    updated by ``overrides``; stopped (with bounded waits) on exit. ``ws``: uvicorn's WebSocket
+    protocol (default: the one ``telesplat serve`` uses)."""
     fields = {"data_dir": data_dir, "demo_avatar": "synthetic", "default_width": TEST_SIZE,
               "default_height": TEST_SIZE, "auth": "local", "stats_interval_s": 0.5,
               "torch_threads": 1,  # two xdist workers share the two cores
@@ -81,6 +82,7 @@ def run_server(data_dir: Path, **overrides: Any) -> Iterator[RunningServer]:
     sock = listen_socket("127.0.0.1", 0, settings.send_buffer_bytes)
     port = sock.getsockname()[1]
     config = uvicorn.Config(app, log_level="warning", lifespan="on",
+                            ws=ws or websocket_protocol(settings.hello_max_bytes),
                             ws_max_size=settings.limits.max_message_bytes + 1024,
                             timeout_graceful_shutdown=5)
     server = uvicorn.Server(config)

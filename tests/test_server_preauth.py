@@ -90,22 +90,60 @@ async def _wait(predicate, what: str) -> None:
     await asyncio.to_thread(wait_until, predicate, 20, what=what)
 
 
-def test_an_oversize_first_message_is_refused_undecoded_while_health_answers(srv):
-    heavy = heavy_message()
+async def _closed_unread(ws) -> tuple[int, str]:
+    """The close that the frame parser sent on an oversize frame (no error message first)."""
+    with pytest.raises(websockets.ConnectionClosed) as closed:
+        await asyncio.wait_for(ws.recv(), WS_TIMEOUT_S)
+    return closed.value.rcvd.code, closed.value.rcvd.reason
 
+
+async def _flood_and_check_health(srv, refused) -> list:
+    """Every waiting slot taken by a peer that then sends the heavy message; /v1/health
+    answers throughout; the refusals, as ``refused(ws)`` reads them."""
+    heavy = heavy_message()
+    peers = [await _connect(srv, f"127.0.0.{i + 2}") for i in range(WAITING_TOTAL)]
+    await _wait(lambda: _waiting(srv) == WAITING_TOTAL, "the peers to wait")
+    assert (await _health(srv))["status"] == "ok"  # while they hold every waiting slot
+    sends = [asyncio.create_task(ws.send(heavy)) for ws in peers]
+    health, *refusals = await asyncio.gather(_health(srv), *map(refused, peers))
+    await asyncio.gather(*sends, return_exceptions=True)  # may fail: the server closed
+    assert health["status"] == "ok"
+    await _wait(lambda: _waiting(srv) == 0, "the waiting slots to be released")
+    return refusals
+
+
+def test_an_oversize_first_frame_is_refused_unread_while_health_answers(srv):
     async def run():
-        peers = [await _connect(srv, f"127.0.0.{i + 2}") for i in range(WAITING_TOTAL)]
-        await _wait(lambda: _waiting(srv) == WAITING_TOTAL, "the peers to wait")
-        assert (await _health(srv))["status"] == "ok"  # while they hold every waiting slot
-        await asyncio.gather(*(ws.send(heavy) for ws in peers))
-        health, *refusals = await asyncio.gather(_health(srv), *map(_refusal, peers))
-        assert health["status"] == "ok"
-        for code, message, close in refusals:
-            # The frame's length alone refused it: a decode would have said bad_message,
-            # invalid or "exceeds the limit".
-            assert (code, close) == ("too_large", CLOSE_TOO_LARGE)
-            assert "before authentication" in message
-        await _wait(lambda: _waiting(srv) == 0, "the waiting slots to be released")
+        for close, reason in await _flood_and_check_health(srv, _closed_unread):
+            # The frame parser refused it from its header: 1009 "message too big", no
+            # error message (the app never saw it).
+            assert close == 1009 and "4096" in reason, (close, reason)
+    asyncio.run(run())
+
+
+def test_without_the_transport_bound_the_app_refuses_by_length_undecoded(tmp_path):
+    with run_server(tmp_path, ws="auto", warmup=False,  # e.g. wsproto: the app's check alone
+                    max_unauthenticated=WAITING_TOTAL) as plain:
+        async def run():
+            for code, message, close in await _flood_and_check_health(plain, _refusal):
+                # The frame's length alone refused it: a decode would have said
+                # bad_message, invalid or "exceeds the limit".
+                assert (code, close) == ("too_large", CLOSE_TOO_LARGE)
+                assert "before authentication" in message
+        asyncio.run(run())
+
+
+def test_after_the_hello_messages_may_be_large_again(srv):
+    async def run():
+        async with stream(srv, token="", welcome=False) as ws:  # no credentials in the URL
+            await ws.send(encode(Hello(token=srv.token, client="test")))
+            await recv_until(ws, is_type("welcome"))
+            big = msgpack.packb({"type": "ping", "t": 3.0, "pad": b"x" * 100_000})
+            await ws.send(big)  # over the hello's size: read and decoded (then refused)
+            err = await recv_until(ws, is_type("error"))
+            assert err.code == "invalid" and "pad" in err.message
+            await ws.send(encode(Ping(t=5.0)))
+            assert (await recv_until(ws, is_type("pong"))).t == 5.0
     asyncio.run(run())
 
 
