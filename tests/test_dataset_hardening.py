@@ -151,3 +151,17 @@ def test_fuzz_params_npz_bytes(tiny_root, tmp_path_factory, flips, keep):
     _params(root).write_bytes(bytes(data[:int(keep * len(data))]))
     _validate_bounded(root)
     shutil.rmtree(root)
+
+
+def test_a_huge_declared_frame_count_costs_what_is_present(tiny):
+    meta = json.loads((tiny / "dataset.json").read_text())
+    meta["sequences"]["seq0"]["num_frames"] = 10**12  # a few bytes of JSON
+    (tiny / "dataset.json").write_text(json.dumps(meta))
+    with peak_memory() as mem:
+        problems = validate_dataset(tiny)
+    assert mem["peak"] < 4 * MiB, mem
+    missing = [p for p in problems if p.code == "missing_image" and p.where.camera == "cam00"]
+    assert [p.where.frames for p in missing[:2]] == [(3,), (4,)]  # 0..2 are there
+    assert len(missing) == 21 and missing[-1].message == (
+        f"sequences/seq0/images/cam00: {10**12 - 3 - 20} more of its {10**12} frames are "
+        "missing")

@@ -1,7 +1,9 @@
 """Checks of the per-view files (images, masks, part labels) of a dataset.
 
 Shallow checks need directory listings and the first bytes of each file (its header);
-deep checks decode every file.
+deep checks decode every file. The cost follows the files present, not the frame counts that
+dataset.json declares: missing files are listed up to MAX_MISSING_LISTED per camera folder,
+then counted (a declared count of 10^9 frames must not cost 10^9 problems).
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from .problems import WARNING, Problem, problem
 __all__ = ["Kind", "check_files"]
 
 _SINGULAR = {"images": "image", "masks": "mask", "parts": "parts"}
+MAX_MISSING_LISTED = 20  # missing files named one by one per camera folder; the rest counted
 
 
 @dataclass(frozen=True)
@@ -69,23 +72,50 @@ def _walk(root: Path, sequences: Mapping[str, int], kinds: list[Kind], cam_names
                 problems.append(problem("extra_file", f"{kind}/{extra} is not a camera",
                                         WARNING, sequence=seq,
                                         path=f"sequences/{seq}/{kind}/{extra}"))
-            expected = {frame_file(f, ext): f for f in range(T)}
             for cam in cam_names:
                 listed = set(_listdir(kind_dir / cam) or [])
-                for fname, f in expected.items():
-                    rel = f"sequences/{seq}/{kind}/{cam}/{fname}"
-                    if fname in listed:
-                        files.append(_File(kind, seq, cam, f, root / rel, rel))
-                    else:
-                        problems.append(problem(f"missing_{_SINGULAR[kind]}",
-                                                f"{rel} is missing", sequence=seq,
-                                                camera=cam, frames=(f,), path=rel))
-                for fname in sorted(listed - set(expected)):
+                present = _frames_in(listed, T, ext)
+                for f in sorted(present):
+                    rel = f"sequences/{seq}/{kind}/{cam}/{present[f]}"
+                    files.append(_File(kind, seq, cam, f, root / rel, rel))
+                problems += _missing(seq, kind, cam, ext, T, present)
+                for fname in sorted(listed - set(present.values())):
                     problems.append(problem(
                         "extra_file", f"{fname} is not a frame of this sequence "
                         f"({T} frames, .{ext})", WARNING, sequence=seq, camera=cam,
                         path=f"sequences/{seq}/{kind}/{cam}/{fname}"))
     return files, problems
+
+
+def _frames_in(listed: set[str], T: int, ext: str) -> dict[int, str]:
+    """{frame: file name} of the listed names that are frames 0..T-1 (``00042.png``)."""
+    out = {}
+    for name in listed:
+        stem, dot, suffix = name.rpartition(".")
+        if dot and suffix == ext and stem.isascii() and stem.isdigit() and len(stem) <= 12:
+            f = int(stem)
+            if f < T and frame_file(f, ext) == name:
+                out[f] = name
+    return out
+
+
+def _missing(seq: str, kind: str, cam: str, ext: str, T: int, present: dict[int, str]
+             ) -> list[Problem]:
+    """The first MAX_MISSING_LISTED missing frames of a camera folder, then one count."""
+    code, out = f"missing_{_SINGULAR[kind]}", []
+    missing = T - len(present)
+    f = 0
+    while len(out) < min(missing, MAX_MISSING_LISTED):  # ends: at most len(present) skipped
+        if f not in present:
+            rel = f"sequences/{seq}/{kind}/{cam}/{frame_file(f, ext)}"
+            out.append(problem(code, f"{rel} is missing", sequence=seq, camera=cam,
+                               frames=(f,), path=rel))
+        f += 1
+    if missing > len(out):
+        rel = f"sequences/{seq}/{kind}/{cam}"
+        out.append(problem(code, f"{rel}: {missing - len(out)} more of its {T} frames are "
+                                 "missing", sequence=seq, camera=cam, path=rel))
+    return out
 
 
 def _header_problems(f: _File, size: tuple[int, int] | None, ext: str, channels: int
