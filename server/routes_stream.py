@@ -86,7 +86,10 @@ async def _hello_token(ws: WebSocket, ctx: ServerContext) -> str:
     timeout and a small size, checked on the frame's length before anything is decoded."""
     s = ctx.settings
     try:
-        message = await asyncio.wait_for(ws.receive(), s.hello_timeout_s)
+        # Not wait_for: it would run receive() as a task and leave a loop turn between the
+        # read and the caller, in which the next frame could meet the parser's pre-auth limit.
+        async with asyncio.timeout(s.hello_timeout_s):
+            message = await ws.receive()
     except TimeoutError:
         raise Refusal("unauthorized", f"no hello within {s.hello_timeout_s:g} s: send a hello "
                                       "with a token first (or an Authorization header)",

@@ -62,7 +62,8 @@ export class Session extends EventTarget {
   }
 
   _send(message, options = {}) {
-    if (!this.open) return false;
+    // Nothing but the hello until welcome: before it the server reads one small message only.
+    if (!this.open || (!this.welcome && message.type !== "hello")) return false;
     this.ws.send(encode(message, options));
     return true;
   }
