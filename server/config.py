@@ -144,6 +144,10 @@ class Settings(BaseModel):
                                         "unpacked (413).")
     max_dataset_files: int = Field(
         100_000, ge=1, description="Most members of an uploaded dataset archive (413).")
+    max_dataset_json_bytes: int = Field(
+        16 * 2**20, ge=1024, description="Largest .json file of an uploaded dataset archive "
+                                         "(dataset.json, cameras.json, splits.json are parsed "
+                                         "whole; 413).")
     max_avatars_per_user: int = Field(
         100, ge=1, description="Avatars one user may own (uploads; trained avatars count "
                                "too); past it an upload is 429 (admins exempt).")

@@ -87,7 +87,7 @@ def test_a_member_that_lies_about_its_size_writes_no_more_than_declared(tmp_path
     assert err.value.status == 400 and not (tmp_path / "u").exists()
 
 
-def _zeros_zip(nbytes: int, name: str = "big.bin") -> io.BytesIO:
+def _zeros_zip(nbytes: int, name: str = "cameras.json") -> io.BytesIO:
     return io.BytesIO(zip_bomb(name, nbytes, {"dataset.json": b"{}"}))
 
 
@@ -97,6 +97,7 @@ def _zeros_zip(nbytes: int, name: str = "big.bin") -> io.BytesIO:
     (8 << 20, UploadLimits(max_ratio=1e9, max_unpacked_bytes=4 << 20), "4194304 bytes allowed"),
     (8 << 20, UploadLimits(max_ratio=1e9, quota_bytes=4 << 20), "left of your storage quota"),
     (8 << 20, UploadLimits(max_ratio=1e9, quota_bytes=-5), "the 0 bytes left"),
+    (8 << 20, UploadLimits(max_ratio=1e9, max_json_bytes=1 << 20), "bytes of JSON"),
 ])
 def test_bombs_and_budgets_are_413_before_anything_is_written(tmp_path, nbytes, limits, words):
     with pytest.raises(ArchiveError, match=words) as err:

@@ -36,6 +36,7 @@ class UploadLimits:
     max_unpacked_bytes: int = 8 * 2**30      # all members together, unpacked
     max_files: int = 100_000                 # members
     max_member_bytes: int = 1 * 2**30        # one member, unpacked
+    max_json_bytes: int = 16 * 2**20         # one .json member (parsed whole, ~10x in memory)
     max_ratio: float = 100.0                 # unpacked / packed of a member past ratio_floor
     ratio_floor_bytes: int = 1 << 20
     quota_bytes: int | None = None           # the owner's storage left (None: no quota)
@@ -125,6 +126,9 @@ def check_archive(path: str | Path | BinaryIO, limits: UploadLimits) -> list[zip
         if info.file_size > limits.max_member_bytes:
             raise ArchiveError(f"archive member {info.filename!r} unpacks to {info.file_size} "
                                f"bytes, more than the {limits.max_member_bytes} allowed", 413)
+        if info.filename.endswith(".json") and info.file_size > limits.max_json_bytes:
+            raise ArchiveError(f"archive member {info.filename!r} is {info.file_size} bytes of "
+                               f"JSON, more than the {limits.max_json_bytes} allowed", 413)
         total += info.file_size
         if total > limits.budget:
             raise _over_budget(limits)

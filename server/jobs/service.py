@@ -163,6 +163,7 @@ class JobService:
             max_files=getattr(settings, "max_dataset_files", limits.max_files),
             max_member_bytes=getattr(settings, "max_dataset_member_bytes",
                                      limits.max_member_bytes),
+            max_json_bytes=getattr(settings, "max_dataset_json_bytes", limits.max_json_bytes),
             max_ratio=getattr(settings, "max_unpack_ratio", limits.max_ratio),
             max_npz_array_bytes=getattr(settings, "max_npz_array_bytes",
                                         limits.max_npz_array_bytes),
