@@ -59,7 +59,7 @@ class StreamError(RuntimeError):
 
 def stream_url(server: str, avatar: str) -> str:
     """``ws(s)://host/v1/stream?avatar=...`` from an http(s) or ws(s) base URL. Never with the
-    token: URLs end up in logs; it goes in the ``hello`` message instead."""
+    token: URLs end up in logs; it goes in the ``Authorization`` header instead."""
     parts = urlsplit(server if "://" in server else f"http://{server}")
     scheme = {"http": "ws", "https": "wss"}.get(parts.scheme, parts.scheme)
     path = parts.path.rstrip("/")
@@ -110,12 +110,15 @@ class StreamClient:
         from websockets.asyncio.client import connect
         from websockets.exceptions import ConnectionClosed
 
-        url = stream_url(server, avatar)
-        ws = await connect(url, compression=None, max_size=MAX_WIRE_BYTES, proxy=None,
-                           open_timeout=timeout, user_agent_header=client_name)
+        # The token in the header: authenticated at the handshake, so the server's limits on
+        # connections still waiting for a hello (a few per address and in total) never apply.
+        headers = {"Authorization": f"Bearer {token}"} if token else None
+        ws = await connect(stream_url(server, avatar), compression=None,
+                           max_size=MAX_WIRE_BYTES, proxy=None, open_timeout=timeout,
+                           user_agent_header=client_name, additional_headers=headers)
         try:
             with contextlib.suppress(ConnectionClosed):  # refused already: read why below
-                await ws.send(encode(Hello(token=token, client=client_name)))  # authenticates
+                await ws.send(encode(Hello(client=client_name)))
             welcome = await asyncio.wait_for(cls._first(ws), timeout)
         except BaseException:
             await ws.close()

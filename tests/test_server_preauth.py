@@ -17,6 +17,7 @@ import msgpack
 import pytest
 import websockets
 
+from client.stream import StreamClient
 from protocol import Hello, Ping, encode
 from server.routes_stream import (
     CLOSE_BUSY,
@@ -159,6 +160,10 @@ def test_waiting_connections_are_capped_per_address_and_in_total(srv):
         over_total = await _connect(srv, "127.0.0.3")  # ... until the total is reached
         code, message, close = await _refusal(over_total)
         assert (code, close) == ("busy", CLOSE_BUSY) and "waiting to authenticate" in message
+        # The Python client's token comes in the header: it needs no waiting slot.
+        async with await StreamClient.connect(srv.url, "demo", srv.token,
+                                              timeout=WS_TIMEOUT_S) as client:
+            assert client.welcome.session
         # Authenticating frees the slot: the address may wait again.
         await first[0].send(encode(Hello(token=srv.token, client="test")))
         await recv_until(first[0], is_type("welcome"))
