@@ -60,6 +60,7 @@ log = logging.getLogger(__name__)
 CONTROL_QUEUE = 64        # pending control messages; past it new ones are dropped
 RENDER_MS_WINDOW = 50     # frames in the stats median
 H264_ALIGN = 2            # H.264 wants even sizes
+RATE_NOTICE_S = 1.0       # at most one rate_limited error per this many seconds
 SEND_STALL_S = 0.1        # a frame not sent by then: the client stalls, wants no render time
 
 
@@ -115,6 +116,8 @@ class StreamSession:
         self.shapes = renderer.shapes
         self.session_count = session_count  # () -> int, for stats
         self.bucket = TokenBucket(self.limits.max_messages_per_s)
+        self._rate_noticed = -RATE_NOTICE_S  # when the client was last told it is too fast
+        self._rate_dropped = 0
         self.inbound = InboundDecoder(self.limits, config.inbound)
         self._dirty = asyncio.Event()
         self._dirty.set()  # the first frame shows the rest pose
@@ -175,9 +178,7 @@ class StreamSession:
                 self.send_error("bad_message", "messages are binary msgpack frames, not text")
                 continue
             if not self.bucket.take():
-                self.metrics.messages.labels("rate_limited").inc()
-                self.send_error("rate_limited", f"more than {self.limits.max_messages_per_s:g} "
-                                                "messages per second; this one was dropped")
+                self._rate_limited(time.monotonic())
                 continue
             try:
                 msg = await self.inbound.decode(data)  # bounded; large ones off the loop
@@ -186,6 +187,18 @@ class StreamSession:
             except ProtocolError as exc:
                 self.metrics.messages.labels("invalid").inc()
                 self.send_error(exc.code, exc.message, exc.answers)
+
+    def _rate_limited(self, now: float) -> None:
+        """Drop the message; tell the client at most once per RATE_NOTICE_S, so that a flood
+        costs the server a counter, not an error message per message."""
+        self.metrics.messages.labels("rate_limited").inc()
+        self._rate_dropped += 1
+        if now - self._rate_noticed < RATE_NOTICE_S:
+            return
+        self.send_error("rate_limited", f"more than {self.limits.max_messages_per_s:g} "
+                                        f"messages per second: {self._rate_dropped} dropped "
+                                        f"since the last notice")
+        self._rate_noticed, self._rate_dropped = now, 0
 
     def handle(self, msg: Any) -> None:
         """Apply one decoded client message to the session state (never blocks)."""

@@ -1,0 +1,473 @@
+"""Soak: well-behaved sessions beside hostile clients, against a real server on loopback.
+
+Starts ``python -m server`` on a free port (fresh data dir, the demo avatar of ``--avatar``),
+issues a second token for a hostile user, then runs two phases side by side in one run:
+
+1. **undisturbed**: ``--good`` well-behaved sessions drive at 30 Hz for ``--baseline`` seconds;
+2. **soak**: the same sessions for ``--seconds`` beside ``--hostile`` hostile clients, each
+   cycling through one class of the review's attacks:
+
+   - ``preauth``: connections that never authenticate (silent, or a 7.6 MiB first message
+     without a token), many at a time;
+   - ``garbage``: an authenticated session sending absurd drives (1e300 betas, 1e38 eye
+     poses, NaN), malformed msgpack, oversize arrays and a 0.001 fps request, fast;
+   - ``expensive``: an authenticated session asking the largest frames allowed (PNG with
+     alpha and depth) as fast as it can;
+   - ``uploads``: REST abuse: npz decompression bombs, absurd avatars (log-scales 80),
+     truncated zips, job archives with zip bombs, and a slow reader that never reads frames.
+
+It reports the server's memory (RSS from /proc) at the start and end of the soak (target:
+growth <= 5%), the well-behaved sessions' fps in the soak against the undisturbed phase
+(target >= 80%), errors the well-behaved sessions saw (target: none), server 5xx answers
+(target: none) and the hostile clients' refusals by code (expected).
+
+    .venv/bin/python bench/soak.py [--seconds 300] [--baseline 30] [--good 4] [--hostile 4]
+                                   [--size 256] [--fps 10] [--avatar synthetic]
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import collections
+import io
+import json
+import math
+import os
+import platform
+import re
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import httpx
+import msgpack
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from client import StreamClient  # noqa: E402
+from client.stream import StreamError, stream_url  # noqa: E402
+from protocol import PROTOCOL_VERSION  # noqa: E402
+
+START_TIMEOUT_S = 300.0
+MAX_WIRE = 64 * 1024 * 1024
+
+
+# -- the server ----------------------------------------------------------------------------
+
+
+def issue_token(data_dir: Path, spec: str) -> str:
+    out = subprocess.run([sys.executable, "-m", "server", "--data-dir", str(data_dir),
+                          "--issue-token", spec], cwd=ROOT, capture_output=True, text=True,
+                         check=True, timeout=120)
+    return out.stdout.strip().splitlines()[-1]
+
+
+def _drain(stream, into: collections.deque) -> None:
+    for line in stream:
+        into.append(line)
+
+
+def start_server(data_dir: Path, avatar: str, max_sessions: int):
+    env = {**os.environ, "TELESPLAT_MAX_SESSIONS": str(max_sessions), "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "server", "--port", "0", "--data-dir", str(data_dir),
+         "--demo-avatar", avatar, "--log-level", "warning"],
+        cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    deadline = time.monotonic() + START_TIMEOUT_S
+    lines: list[str] = []
+    while time.monotonic() < deadline:  # readline blocks until the server prints
+        line = proc.stdout.readline()
+        if not line:
+            break
+        lines.append(line)
+        found = re.search(r"serving at (http://[^/\s]+)/[?#]token=(\S+)", line)
+        if found:
+            log: collections.deque[str] = collections.deque(maxlen=200)
+            # Keep draining the server's output so that its pipe never fills.
+            threading.Thread(target=_drain, args=(proc.stdout, log), daemon=True).start()
+            return proc, found.group(1), found.group(2), log
+    proc.kill()
+    raise RuntimeError("the server did not start:\n" + "".join(lines[-30:]))
+
+
+def rss_bytes(pid: int) -> int:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) * 1024
+    return 0
+
+
+# -- well-behaved sessions -----------------------------------------------------------------
+
+
+@dataclass
+class GoodResult:
+    frames: int = 0
+    seconds: float = 0.0
+    errors: list[str] = field(default_factory=list)
+
+    @property
+    def fps(self) -> float:
+        return self.frames / self.seconds if self.seconds else 0.0
+
+
+def talking(t: float, phase: float) -> dict[str, np.ndarray]:
+    body = np.zeros((21, 3), np.float32)
+    body[14] = (0.15 * math.sin(1.1 * t), 0.2 * math.sin(0.9 * t + phase), 0.0)
+    return {"body_pose": body,
+            "jaw_pose": np.array([0.12 + 0.12 * math.sin(9 * t + phase), 0, 0], np.float32)}
+
+
+async def good_session(url: str, token: str, index: int, size: int, fps: float,
+                       seconds: float) -> GoodResult:
+    result = GoodResult()
+    try:
+        async with await StreamClient.connect(url, "demo", token, timeout=60,
+                                              client_name=f"good-{index}") as client:
+            await client.request(width=size, height=size, max_fps=fps, codec="jpeg")
+            await client.view({"yaw_deg": 20.0 * index, "distance": 2.4})
+            t0 = time.monotonic()
+            end = t0 + seconds
+            next_drive = t0
+            while (now := time.monotonic()) < end:  # bounded by the deadline
+                if now >= next_drive:
+                    await client.drive(talking(now - t0, index))
+                    next_drive += 1 / 30
+                try:
+                    await client.next_frame(timeout=max(0.001, min(next_drive, end) - now))
+                    result.frames += 1
+                except TimeoutError:
+                    pass
+            result.seconds = seconds
+            result.errors = [f"{e.code}: {e.message}" for e in client.errors]
+    except (StreamError, OSError) as exc:
+        result.errors.append(f"session ended: {exc}")
+    return result
+
+
+# -- hostile clients -----------------------------------------------------------------------
+
+
+@dataclass
+class HostileTally:
+    refusals: collections.Counter = field(default_factory=collections.Counter)
+    server_errors: list[str] = field(default_factory=list)  # 5xx answers: none expected
+    accepted_bad: list[str] = field(default_factory=list)   # absurd input accepted
+
+
+def ws_url(url: str) -> str:
+    return stream_url(url, "demo")
+
+
+async def _close_code(ws, timeout: float = 15.0) -> str:
+    """Read until the server closes; the error code it sent (or the close code)."""
+    from websockets.exceptions import ConnectionClosed
+
+    code = None
+    try:
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            data = await asyncio.wait_for(ws.recv(), max(0.01, end - time.monotonic()))
+            if isinstance(data, bytes):
+                with _suppress():
+                    msg = msgpack.unpackb(data)
+                    if isinstance(msg, dict) and msg.get("type") == "error":
+                        code = msg.get("code")
+    except ConnectionClosed as exc:
+        return code or f"close {exc.rcvd.code if exc.rcvd else '?'}"
+    except TimeoutError:
+        return code or "no answer"
+    return code or "open"
+
+
+class _suppress:
+    def __enter__(self) -> None:
+        return None
+
+    def __exit__(self, *exc: object) -> bool:
+        return True
+
+
+async def hostile_preauth(url: str, end: float, tally: HostileTally) -> None:
+    from websockets.asyncio.client import connect
+
+    big = msgpack.packb({"type": "hello", "version": PROTOCOL_VERSION,
+                         "pad": b"\0" * int(7.6 * 2**20)})
+    while time.monotonic() < end:
+        silent = []
+        try:
+            for _ in range(6):  # a handful of silent connections, kept open
+                with _suppress():
+                    silent.append(await connect(ws_url(url), max_size=MAX_WIRE, proxy=None,
+                                                open_timeout=5))
+            ws = await connect(ws_url(url), max_size=MAX_WIRE, proxy=None, open_timeout=5)
+            with _suppress():
+                await ws.send(big)
+            tally.refusals["preauth big: " + await _close_code(ws)] += 1
+            for ws in silent:
+                tally.refusals["preauth silent: " + await _close_code(ws, 20)] += 1
+        except OSError as exc:
+            tally.refusals[f"preauth connect: {type(exc).__name__}"] += 1
+            await asyncio.sleep(0.2)
+
+
+def _drive(seq: int, **smplx) -> bytes:
+    return msgpack.packb({"type": "drive", "seq": seq, "smplx": smplx})
+
+
+async def hostile_garbage(url: str, token: str, end: float, tally: HostileTally) -> None:
+    from websockets.asyncio.client import connect
+    from websockets.exceptions import ConnectionClosed
+
+    bad = [
+        _drive(1, betas=[1e300] * 10),
+        _drive(2, leye_pose=[1e38, 0.0, 0.0]),
+        _drive(3, jaw_pose=[float("nan"), 0.0, 0.0]),
+        _drive(4, transl=[float("inf"), 0.0, 0.0]),
+        _drive(5, body_pose=[[0.0, 0.0, 0.0]] * 5000),
+        msgpack.packb({"type": "request", "max_fps": 0.001}),
+        msgpack.packb({"type": "request", "width": 10**9, "height": 10**9}),
+        msgpack.packb({"type": "view", "orbit": {"distance": 1e308}}),
+        b"\xc1\xc1\xc1 not msgpack",
+        msgpack.packb([1, 2, 3]),
+        msgpack.packb({"type": ["drive"]}),
+    ]
+    while time.monotonic() < end:
+        try:
+            ws = await connect(ws_url(url), max_size=MAX_WIRE, proxy=None, open_timeout=10)
+            await ws.send(msgpack.packb({"type": "hello", "version": PROTOCOL_VERSION,
+                                         "token": token, "client": "garbage"}))
+            n = 0
+            while time.monotonic() < end and n < 2000:  # one connection: a bounded burst
+                await ws.send(bad[n % len(bad)])
+                n += 1
+                with _suppress():
+                    data = await asyncio.wait_for(ws.recv(), 0.02)
+                    msg = msgpack.unpackb(data)
+                    if isinstance(msg, dict) and msg.get("type") == "error":
+                        tally.refusals["garbage: " + str(msg.get("code"))] += 1
+                    elif isinstance(msg, dict) and msg.get("type") == "welcome":
+                        tally.refusals["garbage: welcome"] += 1
+            await ws.close()
+        except (OSError, ConnectionClosed) as exc:
+            tally.refusals[f"garbage closed: {type(exc).__name__}"] += 1
+            await asyncio.sleep(0.2)
+
+
+async def hostile_expensive(url: str, token: str, end: float, tally: HostileTally) -> None:
+    try:
+        async with await StreamClient.connect(url, "demo", token, timeout=60,
+                                              client_name="expensive") as client:
+            lim = client.limits
+            await client.request(width=lim.max_width, height=lim.max_height,
+                                 outputs=["rgb", "alpha", "depth"], codec="png",
+                                 max_fps=lim.max_fps)
+            i = 0
+            while time.monotonic() < end:  # bounded by the deadline
+                await client.drive(talking(i / 30, 0.0))
+                i += 1
+                with _suppress():
+                    await client.next_frame(timeout=0.05)
+            for e in client.errors:
+                tally.refusals["expensive: " + e.code] += 1
+    except (StreamError, OSError) as exc:
+        tally.refusals[f"expensive refused: {exc}"[:80]] += 1
+
+
+def _npz_bomb() -> bytes:
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as z:
+        header = io.BytesIO()
+        np.lib.format.write_array_header_1_0(
+            header, {"descr": "<f4", "fortran_order": False, "shape": (10**13,)})
+        z.writestr("means.npy", header.getvalue() + b"\0" * 4096)
+        with z.open("log_scales.npy", "w") as member:  # 400 MB of zeros: ~400 KB deflated
+            np.lib.format.write_array_header_1_0(
+                member, {"descr": "<f4", "fortran_order": False, "shape": (10**8,)})
+            zeros = b"\0" * 2**20
+            for _ in range(400):
+                member.write(zeros)
+    return buf.getvalue()
+
+
+def _zip(members: dict[str, bytes]) -> bytes:
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as z:
+        for name, data in members.items():
+            z.writestr(name, data)
+    return buf.getvalue()
+
+
+def absurd_avatar(package_zip: bytes) -> bytes:
+    """The demo package with every log-scale set to 80 (finite, absurd)."""
+    src = zipfile.ZipFile(io.BytesIO(package_zip))
+    out = {}
+    for name in src.namelist():
+        data = src.read(name)
+        if name.endswith(".npz"):
+            with np.load(io.BytesIO(data), allow_pickle=False) as npz:
+                arrays = {k: npz[k] for k in npz.files}
+            for key in arrays:
+                if "scale" in key:
+                    arrays[key] = np.full_like(arrays[key], 80.0)
+            b = io.BytesIO()
+            np.savez_compressed(b, **arrays)
+            data = b.getvalue()
+        out[name] = data
+    return _zip(out)
+
+
+async def hostile_uploads(url: str, token: str, end: float, tally: HostileTally) -> None:
+    from websockets.asyncio.client import connect
+
+    headers = {"Authorization": f"Bearer {token}"}
+    async with httpx.AsyncClient(base_url=url, headers=headers, timeout=60) as http:
+        demo = await http.get("/v1/avatars/demo/package")
+        package = demo.content if demo.status_code == 200 else b""
+        bombs = {
+            "npz bomb avatar": _zip({"avatar.json": json.dumps({"schema": 1}).encode(),
+                                     "gaussians.npz": _npz_bomb()}),
+            "absurd avatar": absurd_avatar(package) if package else b"",
+            "truncated zip": package[: len(package) // 2] if package else b"PK\x03\x04",
+            "not a zip": b"definitely not a zip" * 100,
+        }
+        archive_bomb = io.BytesIO()
+        with zipfile.ZipFile(archive_bomb, "w", zipfile.ZIP_DEFLATED) as z:
+            with z.open("dataset/frames.bin", "w") as member:
+                for _ in range(1024):  # 1 GiB of zeros, ~1 MB deflated
+                    member.write(b"\0" * 2**20)
+        # A slow reader: a session that never reads its frames.
+        slow = await connect(ws_url(url), max_size=MAX_WIRE, proxy=None, open_timeout=10)
+        await slow.send(msgpack.packb({"type": "hello", "version": PROTOCOL_VERSION,
+                                       "token": token, "client": "slow-reader"}))
+        try:
+            while time.monotonic() < end:
+                for name, body in bombs.items():
+                    if not body:
+                        continue
+                    r = await http.post("/v1/avatars", content=body,
+                                        headers={"Content-Type": "application/zip"})
+                    if r.status_code >= 500:
+                        tally.server_errors.append(f"{name}: {r.status_code}")
+                    elif r.status_code < 300:
+                        tally.accepted_bad.append(f"{name}: {r.status_code}")
+                        with _suppress():
+                            await http.delete(f"/v1/avatars/{r.json()['id']}")
+                    tally.refusals[f"upload {name}: {r.status_code}"] += 1
+                r = await http.post("/v1/jobs", files={
+                    "archive": ("bomb.zip", archive_bomb.getvalue(), "application/zip")})
+                if r.status_code >= 500:
+                    tally.server_errors.append(f"job archive bomb: {r.status_code}")
+                elif r.status_code < 300:
+                    tally.accepted_bad.append(f"job archive bomb: {r.status_code}")
+                tally.refusals[f"job archive bomb: {r.status_code}"] += 1
+                await asyncio.sleep(0.5)
+        finally:
+            with _suppress():
+                await asyncio.wait_for(slow.close(), 5)
+
+
+# -- the run -------------------------------------------------------------------------------
+
+
+async def run_good(url: str, token: str, n: int, size: int, fps: float,
+                   seconds: float) -> list[GoodResult]:
+    return await asyncio.gather(*(good_session(url, token, i, size, fps, seconds)
+                                  for i in range(n)))
+
+
+async def run_soak(url: str, good_token: str, bad_token: str, args) -> tuple:
+    end = time.monotonic() + args.seconds
+    tally = HostileTally()
+    kinds = [hostile_preauth(url, end, tally),
+             hostile_garbage(url, bad_token, end, tally),
+             hostile_expensive(url, bad_token, end, tally),
+             hostile_uploads(url, bad_token, end, tally)][: args.hostile]
+    hostile = [asyncio.create_task(k) for k in kinds]
+    await asyncio.sleep(2.0)  # the hostile load is on before the measured sessions start
+    good = await run_good(url, good_token, args.good, args.size, args.fps, args.seconds - 4)
+    results = await asyncio.gather(*hostile, return_exceptions=True)
+    for r in results:
+        if isinstance(r, BaseException):
+            tally.refusals[f"hostile client raised {type(r).__name__}: {r}"[:100]] += 1
+    return good, tally
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--seconds", type=float, default=300.0, help="the soak phase")
+    parser.add_argument("--baseline", type=float, default=30.0, help="the undisturbed phase")
+    parser.add_argument("--good", type=int, default=4, help="well-behaved sessions")
+    parser.add_argument("--hostile", type=int, default=4, choices=range(0, 5))
+    parser.add_argument("--size", type=int, default=256)
+    parser.add_argument("--fps", type=float, default=10.0, help="well-behaved max_fps")
+    parser.add_argument("--avatar", default="synthetic")
+    args = parser.parse_args()
+
+    with tempfile.TemporaryDirectory(prefix="telesplat-soak-") as tmp:
+        data_dir = Path(tmp)
+        bad_token = issue_token(data_dir, "mallory:stream,train")
+        proc, url, good_token, log = start_server(data_dir, args.avatar,
+                                                  max_sessions=args.good + args.hostile + 8)
+        try:
+            baseline = asyncio.run(run_good(url, good_token, args.good, args.size, args.fps,
+                                            args.baseline))
+            rss_start = rss_bytes(proc.pid)
+            good, tally = asyncio.run(run_soak(url, good_token, bad_token, args))
+            time.sleep(2.0)  # let closed sessions release their buffers
+            rss_end = rss_bytes(proc.pid)
+            alive = proc.poll() is None
+            health = httpx.get(url + "/v1/health", timeout=10).status_code if alive else None
+        finally:
+            proc.terminate()
+            try:
+                proc.wait(15)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+
+    base_fps = float(np.mean([r.fps for r in baseline]))
+    soak_fps = float(np.mean([r.fps for r in good]))
+    growth = (rss_end - rss_start) / rss_start if rss_start else float("nan")
+    good_errors = [e for r in good for e in r.errors]
+    load = os.getloadavg()
+    print(f"\nSoak on loopback: {args.good} well-behaved sessions ({args.size}x{args.size} JPEG, "
+          f"max_fps {args.fps:g}, driving at 30 Hz) beside {args.hostile} hostile clients for "
+          f"{args.seconds:g} s; undisturbed phase {args.baseline:g} s; {args.avatar} avatar; "
+          f"{os.cpu_count()} CPUs ({platform.processor() or platform.machine()}), load "
+          f"average {load[0]:.1f} at the end.\n")
+    print("| measure | value | target |")
+    print("|---|---:|---|")
+    print(f"| well-behaved fps, undisturbed | {base_fps:.1f} | |")
+    print(f"| well-behaved fps, under attack | {soak_fps:.1f} "
+          f"({soak_fps / base_fps:.0%} of undisturbed) | >= 80% |")
+    print(f"| min fps of a well-behaved session under attack | "
+          f"{min(r.fps for r in good):.1f} | |")
+    print(f"| server RSS start -> end of soak | {rss_start / 2**20:.0f} -> "
+          f"{rss_end / 2**20:.0f} MiB ({growth:+.1%}) | <= +5% |")
+    print(f"| errors seen by well-behaved sessions | {len(good_errors)} | 0 |")
+    print(f"| server 5xx answers | {len(tally.server_errors)} | 0 |")
+    print(f"| absurd uploads accepted | {len(tally.accepted_bad)} | 0 |")
+    print(f"| server alive, /v1/health after the soak | {alive}, {health} | True, 200 |")
+    print("\nHostile clients' refusals (expected):\n")
+    print("| what | count |")
+    print("|---|---:|")
+    for what, count in sorted(tally.refusals.items()):
+        print(f"| {what} | {count} |")
+    for line in good_errors[:10] + tally.server_errors[:10] + tally.accepted_bad[:10]:
+        print("  !", line)
+    ok = (soak_fps >= 0.8 * base_fps and growth <= 0.05 and not good_errors
+          and not tally.server_errors and not tally.accepted_bad and alive)
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
