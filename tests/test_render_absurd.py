@@ -87,11 +87,13 @@ def test_absurd_gaussian_renders_finite(backend, case):
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
-def test_absurd_gaussians_have_finite_gradients(backend):
+@pytest.mark.parametrize("aa", [False, True])  # aa: sqrt of a zero determinant ratio
+def test_absurd_gaussians_have_finite_gradients(backend, aa):
     gs = scene(ROWS.values())
     params = [t.clone().requires_grad_() for t in
               (gs.means, gs.quats, gs.scales, gs.opacities, gs.sh)]
-    out = render(GaussianSet(*params), backend, outputs=ALL, background=(0.2, 0.4, 0.6))
+    out = render(GaussianSet(*params), backend, outputs=ALL, background=(0.2, 0.4, 0.6),
+                 antialiased=aa)
     assert_finite(out)
     (out.rgb.sum() + out.alpha.sum() + out.depth.sum()).backward()
     for p in params:
@@ -199,3 +201,17 @@ def test_property_any_finite_scene_renders_finite(gs, backend, aa, w, h):
     out = render(gs, backend, CAM.resized(w, h), outputs=ALL, antialiased=aa)
     assert_finite(out, (h, w))
     assert out.rgb.shape == (h, w, 3)
+
+
+@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(gs=absurd_scenes(), backend=st.sampled_from(BACKENDS), aa=st.booleans(),
+       w=st.integers(1, 33), h=st.integers(1, 33))
+def test_property_any_finite_scene_has_finite_gradients(gs, backend, aa, w, h):
+    params = [t.clone().requires_grad_() for t in
+              (gs.means, gs.quats, gs.scales, gs.opacities, gs.sh)]
+    out = render(GaussianSet(*params), backend, CAM.resized(w, h), outputs=ALL, antialiased=aa)
+    assert_finite(out, (h, w))
+    if out.rgb.requires_grad:  # else nothing was visible: the background has no graph
+        (out.rgb.sum() + out.alpha.sum() + out.depth.sum()).backward()
+        for p in params:
+            assert torch.isfinite(p.grad).all()

@@ -191,7 +191,11 @@ def project_gaussians(
     conics = torch.where(valid[:, None], conics, torch.zeros_like(conics))
 
     if antialiased:
-        comp = torch.sqrt(torch.clamp_min(det_orig / det_s, 0.0))
+        # sqrt(max(r, 0)) with a zero gradient where r <= 0 (sqrt's own is Inf at 0: NaN)
+        ratio = det_orig / det_s
+        pos = ratio > 0
+        comp = torch.where(pos, torch.sqrt(torch.where(pos, ratio, torch.ones_like(ratio))),
+                           torch.zeros_like(ratio))
         opacities = opacities * torch.where(valid, comp, torch.zeros_like(comp))
 
     with torch.no_grad():

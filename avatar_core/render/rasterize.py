@@ -124,6 +124,10 @@ def rasterize(gaussians: GaussianSet, camera: Camera,
     t_start = time.perf_counter()
     _check_request(request)
     _check_gaussians(gaussians)
+    # the contract's [0, 1], enforced: a huge opacity times a vanishing Gaussian overflows the
+    # gradients (Inf * 0); the clamp's gradient is 1 inside, so training is unaffected
+    gaussians = GaussianSet(gaussians.means, gaussians.quats, gaussians.scales,
+                            gaussians.opacities.clamp(0.0, 1.0), gaussians.sh)
     if request.width is not None or request.height is not None:
         camera = camera.resized(request.width or camera.width, request.height or camera.height)
     width, height = camera.width, camera.height
