@@ -5,7 +5,8 @@ Every other backend is tested against it. Conventions (gsplat's ``rasterize_to_p
 
 * tiles of 16 x 16 px. A Gaussian with radius ``r`` belongs to tiles ``floor((m - r) / 16)``
   up to (excluding) ``ceil((m + r) / 16)`` in x and y, clamped to the image (gsplat's
-  ``isect_tiles``); each tile's list is sorted by depth (ties: lower index first);
+  ``isect_tiles``); each tile's list is sorted by depth (``rasterize`` passes the float64
+  ``projection.depth_key``, as to every backend; ties: lower index first);
 * pixel ``(j, i)`` is sampled at ``(j + 0.5, i + 0.5)``; ``sigma = 0.5 d^T Conic d``,
   ``alpha = min(0.99, opacity * exp(-sigma))``; splats with ``sigma < 0`` or
   ``alpha < 1/255`` are skipped;
