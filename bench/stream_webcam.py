@@ -6,7 +6,7 @@
 Starts its own server (as `bench/stream.py` does: a subprocess on a free port, the demo
 avatar, a fresh data dir). One session streams at `--size` while it sends `image` messages at
 `--rate` Hz, as the browser page's webcam toggle does: renders of the synthetic actor
-talking with its hands (`bench/track_eval.py`'s scene, 640x480, JPEG quality 85), looped.
+talking with its hands (`synth.tracking_eval`'s scene, 640x480, JPEG quality 85), looped.
 The server tracks the newest image (latest wins), fits it and drives the avatar.
 
 Reported: frames received per second; tracked updates per second (frames whose
@@ -40,7 +40,7 @@ from client import StreamClient  # noqa: E402
 
 def webcam_jpegs(frames: int) -> list[bytes]:
     """Rendered webcam frames of talk_animated (hands rising into view), JPEG-encoded."""
-    import track_eval as te
+    from avatar_core.synth import tracking_eval as te
 
     scene = te.make_scene()
     rng = np.random.default_rng(0)

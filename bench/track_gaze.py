@@ -3,7 +3,7 @@ directions; `Tracker(iris=True)`, the body fit and `fit_gaze` recover them.
 
     OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python bench/track_gaze.py [--frames 10] [--scale 2]
 
-The scene is `track_eval.py`'s (identity 0, 640x480 webcam with a 60 deg field of view, the
+The scene is `synth.tracking_eval`'s (identity 0, 640x480 webcam with a 60 deg field of view, the
 subject 1.09 m away, noisy background, 2/255 sensor noise); the body holds the first pose of
 the "smile" clip while the eyes turn through `LOOKS`, one frame each, in order through one
 `Tracker` and one `FitSession`. Reported, in degrees (geodesic): the eye rotations fitted on
@@ -26,11 +26,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parent
+ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from track_eval import (  # noqa: E402
+from avatar_core.synth.tracking_eval import (  # noqa: E402
     FOV_X_DEG,
     HEIGHT,
     WIDTH,

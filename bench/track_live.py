@@ -3,7 +3,7 @@
     OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python bench/track_live.py [--clip talk_animated]
         [--frames 90] [--rounds 2]
 
-The frames are renders of the synthetic actor (`bench/track_eval.py`'s scene: 640x480, the
+The frames are renders of the synthetic actor (`synth.tracking_eval`'s scene: 640x480, the
 subject head to waist, both hands in view during talk_animated's gestures), rendered once
 before timing. Each round runs the live configuration (`Tracker(threads=1,
 palm_interval=LIVE_PALM_INTERVAL, iris=True)`, a fresh `FitSession` with smoothing and gaze)
@@ -30,12 +30,10 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-for path in (ROOT, ROOT / "bench"):
-    if str(path) not in sys.path:
-        sys.path.insert(0, str(path))
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
 
-import track_eval as te  # noqa: E402
-
+from avatar_core.synth import tracking_eval as te  # noqa: E402
 from avatar_core.track.fit.observations import from_track_result  # noqa: E402
 from avatar_core.track.fit.video import tracked_frames  # noqa: E402
 

@@ -91,13 +91,13 @@ TRANSFORMS: dict[str, Callable[[np.ndarray], np.ndarray]] = {
 
 
 # No photograph above shows a bare hand: the hand pipeline is also compared on renders of the
-# capture studio's actor (bench/track_eval.py's scene) in two-hand and one-hand gestures.
+# capture studio's actor (synth.tracking_eval's scene) in two-hand and one-hand gestures.
 RENDERED = (("peace", 1.2), ("heart", 1.5))
 
 
 def renders() -> dict[str, np.ndarray]:
     """name -> [H, W, 3] uint8 RGB: the textured actor mid-gesture, 640x480, no sensor noise."""
-    from bench import track_eval as te
+    from avatar_core.synth import tracking_eval as te
 
     scene = te.make_scene("noise")
     rng = np.random.default_rng(0)

@@ -16,8 +16,8 @@ import pytest
 
 pytest.importorskip("onnxruntime")
 
+from avatar_core.synth import tracking_eval as te  # noqa: E402
 from avatar_core.track.models import ModelFetchError, fetch_models  # noqa: E402
-from bench import track_eval as te  # noqa: E402
 
 FPS = 30.0
 FRAMES = 4
