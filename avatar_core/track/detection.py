@@ -9,8 +9,8 @@ import numpy as np
 
 from .anchors import AnchorSpec, ssd_anchors
 from .nms import Detection, decode_boxes, weighted_nms
+from .onnx_model import ModelSource, OnnxModel
 from .roi import crop_rgb, detection_to_px, letterbox_rect, to_tensor
-from .session import ModelSource, OnnxModel
 
 
 class Detector:

@@ -15,6 +15,7 @@ import numpy as np
 
 from .anchors import PALM_192
 from .detection import Detector
+from .onnx_model import ModelSource, OnnxModel
 from .roi import (
     crop_rgb,
     project,
@@ -25,7 +26,6 @@ from .roi import (
     to_tensor,
     transform_rect,
 )
-from .session import ModelSource, OnnxModel
 from .types import HandLandmarks, RotatedRect
 
 # Palm keypoints: 0 wrist centre, 2 middle-finger MCP (the rotation is wrist -> middle, up).

@@ -18,8 +18,8 @@ from dataclasses import replace
 
 import numpy as np
 
+from .onnx_model import ModelSource, OnnxModel
 from .roi import crop_rgb, project, rect_from_box, rotation_between, to_tensor, transform_rect
-from .session import ModelSource, OnnxModel
 from .types import FaceLandmarks, RotatedRect
 
 # (start, end) face-mesh corners per eye, person's right eye then left eye: MediaPipe's

@@ -14,6 +14,7 @@ from scipy.special import expit
 
 from .anchors import POSE_224
 from .detection import Detector
+from .onnx_model import ModelSource, OnnxModel
 from .roi import (
     crop_rgb,
     project,
@@ -21,7 +22,6 @@ from .roi import (
     to_tensor,
     transform_rect,
 )
-from .session import ModelSource, OnnxModel
 from .single import SingleTargetPipeline
 from .types import PoseLandmarks, RotatedRect
 

@@ -7,7 +7,7 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
-from .session import ModelSource, OnnxModel
+from .onnx_model import ModelSource, OnnxModel
 
 
 class SelfieSegmentation:

@@ -13,9 +13,9 @@ from .face import FacePipeline
 from .hands import HandPipeline
 from .image import DEFAULT_MAX_PIXELS, check_frame
 from .iris import IrisPipeline
+from .onnx_model import ModelSource
 from .pose import PosePipeline
 from .segmentation import SelfieSegmentation
-from .session import ModelSource
 from .types import TrackResult
 
 # Live driving (server-side webcam, remote tracker): a palm search every 5th frame while fewer

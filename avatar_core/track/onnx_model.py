@@ -1,4 +1,4 @@
-"""ONNX Runtime sessions for the converted models, with a call counter."""
+"""The converted models on ONNX Runtime (one inference session each), with a call counter."""
 
 from __future__ import annotations
 
@@ -39,14 +39,14 @@ class OnnxModel:
             # fight the other stages (and processes) for the cores.
             options.add_session_config_entry("session.intra_op.allow_spinning", "0")
         options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-        self.session = ort.InferenceSession(str(self.path), options,
-                                            providers=list(providers or
-                                                           ["CPUExecutionProvider"]))
-        inp = self.session.get_inputs()[0]
+        self.inference = ort.InferenceSession(str(self.path), options,
+                                              providers=list(providers or
+                                                             ["CPUExecutionProvider"]))
+        inp = self.inference.get_inputs()[0]
         self.input_name = inp.name
         self.input_size = (int(inp.shape[2]), int(inp.shape[1]))  # (w, h) of NHWC
         self.calls = 0
 
     def __call__(self, x: np.ndarray) -> list[np.ndarray]:
         self.calls += 1
-        return self.session.run(None, {self.input_name: x})
+        return self.inference.run(None, {self.input_name: x})
