@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 
 from avatar_core.render import rasterize
 from avatar_core.render.camera import look_at
-from avatar_core.render.projection import MAX_SIGMA_PX
+from avatar_core.render.contract import MAX_SIGMA_PX
 from avatar_core.render.rasterize_cpu import composite_np
 from avatar_core.render.rasterize_torch import rasterize_to_pixels
 from avatar_core.render.types import GaussianSet, RenderRequest

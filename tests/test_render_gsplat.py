@@ -66,8 +66,8 @@ def test_budget_subset_uses_the_shared_rule():
 def test_gsplat_only_gets_sane_gaussians():
     """What reaches gsplat's float32 kernels: our projection's survivors, unit quaternions
     (zero -> identity), SH clamped (issue 13: absurd but finite avatars)."""
+    from avatar_core.render.contract import SH_COEFF_MAX
     from avatar_core.render.rasterize_gsplat import _apply_budget
-    from avatar_core.render.sh import SH_COEFF_MAX
 
     gs = random_scene(6, 4)
     gs.scales[0] = 5.5e34        # log-scale 80: a veil, culled

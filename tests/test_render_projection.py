@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from avatar_core.render.camera import look_at
+from avatar_core.render.contract import EPS2D
 from avatar_core.render.projection import (
-    EPS2D,
     check_finite,
     covariance_3d,
     project_gaussians,

@@ -13,15 +13,19 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from .projection import (
+from .contract import (
+    EIG_FLOOR,
     EPS2D,
     FAR_PLANE,
+    FRUSTUM_MARGIN,
     MAX_BOUND_PX,
     MAX_SCREEN_PX,
     MAX_SIGMA_PX,
     NEAR_PLANE,
+    RADIUS_SIGMAS,
+    SH_COEFF_MAX,
 )
-from .sh import SH_C0, SH_C1, SH_C2, SH_C3, SH_COEFF_MAX
+from .sh import SH_C0, SH_C1, SH_C2, SH_C3
 
 __all__ = ["project_np", "sh_rgb_np"]
 
@@ -35,8 +39,9 @@ def _project_kernel(means, quats, scales, opacities, viewmat, K, width, height, 
     t = viewmat[:3, 3].astype(np.float64)
     fx, fy, cx, cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
     tan_fovx, tan_fovy = 0.5 * width / fx, 0.5 * height / fy
-    lim_x_pos, lim_x_neg = (width - cx) / fx + 0.3 * tan_fovx, cx / fx + 0.3 * tan_fovx
-    lim_y_pos, lim_y_neg = (height - cy) / fy + 0.3 * tan_fovy, cy / fy + 0.3 * tan_fovy
+    margin_x, margin_y = FRUSTUM_MARGIN * tan_fovx, FRUSTUM_MARGIN * tan_fovy
+    lim_x_pos, lim_x_neg = (width - cx) / fx + margin_x, cx / fx + margin_x
+    lim_y_pos, lim_y_neg = (height - cy) / fy + margin_y, cy / fy + margin_y
     lim = 1.0 + max(abs(lim_x_pos), abs(lim_x_neg), abs(lim_y_pos), abs(lim_y_neg))
     f_max = max(abs(fx), abs(fy))
     for g in prange(means.shape[0]):
@@ -104,10 +109,10 @@ def _project_kernel(means, quats, scales, opacities, viewmat, K, width, height, 
         if antialiased:
             opac_out[g] = opacities[g] * math.sqrt(max(det_orig / det, 0.0))
         b = 0.5 * (c00 + c11)
-        lam = b + math.sqrt(max(b * b - det, 0.01))
+        lam = b + math.sqrt(max(b * b - det, EIG_FLOOR))
         if not lam <= max_sigma * max_sigma:  # also NaN: culled before any int conversion
             continue
-        r = math.ceil(3.0 * math.sqrt(max(lam, 0.0)))
+        r = math.ceil(RADIUS_SIGMAS * math.sqrt(max(lam, 0.0)))
         mx, my = means2d[g, 0], means2d[g, 1]
         if r > 0 and mx + r > 0 and mx - r < width and my + r > 0 and my - r < height:
             radii[g] = r

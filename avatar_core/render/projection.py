@@ -27,19 +27,24 @@ backward pass.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
+from .contract import (
+    EIG_FLOOR,
+    EPS2D,
+    FAR_PLANE,
+    FRUSTUM_MARGIN,
+    MAX_BOUND_PX,
+    MAX_SCREEN_PX,
+    MAX_SIGMA_PX,
+    NEAR_PLANE,
+    RADIUS_SIGMAS,
+)
+
 __all__ = [
-    "EPS2D",
-    "FAR_PLANE",
-    "MAX_BOUND_PX",
-    "MAX_SCREEN_PX",
-    "MAX_SIGMA_PX",
-    "NEAR_PLANE",
     "Projected",
     "check_finite",
     "covariance_3d",
@@ -48,19 +53,6 @@ __all__ = [
     "quat_to_rotmat",
 ]
 
-NEAR_PLANE = 0.01
-FAR_PLANE = 1e10
-EPS2D = 0.3  # low-pass dilation added to the 2D covariance, px^2
-# Wider splats are culled: over any image they are a uniform veil, and beyond this float32
-# conics lose their precision; the 3-sigma radius stays far below int32's range.
-MAX_SIGMA_PX = 1e7
-# Projected means farther out cannot reach an image (radius <= 3 MAX_SIGMA_PX): culled, so
-# pixel offsets stay finite in float32.
-MAX_SCREEN_PX = 1e9
-# Upper bound of the 2D standard deviation (f / z (1 + lim) max scale) above which a Gaussian
-# is culled before its covariance is formed: keeps cov2d and its determinant inside float32.
-MAX_BOUND_PX = 1e9
-_RADIUS_SIGMAS = 3.0
 _QUAT_EPS = 1e-12
 _QUAT_TINY = 1e-30  # floor of the max-abs rescale in quat_to_rotmat
 
@@ -156,8 +148,9 @@ def project_gaussians(
 
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     tan_fovx, tan_fovy = 0.5 * width / fx, 0.5 * height / fy
-    lim_x_pos, lim_x_neg = (width - cx) / fx + 0.3 * tan_fovx, cx / fx + 0.3 * tan_fovx
-    lim_y_pos, lim_y_neg = (height - cy) / fy + 0.3 * tan_fovy, cy / fy + 0.3 * tan_fovy
+    margin_x, margin_y = FRUSTUM_MARGIN * tan_fovx, FRUSTUM_MARGIN * tan_fovy
+    lim_x_pos, lim_x_neg = (width - cx) / fx + margin_x, cx / fx + margin_x
+    lim_y_pos, lim_y_neg = (height - cy) / fy + margin_y, cy / fy + margin_y
 
     sane = _sane_rows(means_c, scales, K, (lim_x_pos, lim_x_neg, lim_y_pos, lim_y_neg),
                       near, far)
@@ -200,8 +193,8 @@ def project_gaussians(
 
     with torch.no_grad():
         b = 0.5 * (c00 + c11)
-        lam_max = b + torch.sqrt(torch.clamp_min(b * b - det, 0.01))
-        radius = torch.ceil(_RADIUS_SIGMAS * torch.sqrt(lam_max.clamp_min(0.0)))
+        lam_max = b + torch.sqrt(torch.clamp_min(b * b - det, EIG_FLOOR))
+        radius = torch.ceil(RADIUS_SIGMAS * torch.sqrt(lam_max.clamp_min(0.0)))
         mx, my = means2d[:, 0], means2d[:, 1]
         inside = (mx + radius > 0) & (mx - radius < width) & (my + radius > 0) \
             & (my - radius < height)
@@ -243,8 +236,3 @@ def depth_key(means: Tensor, viewmat) -> Tensor:
     v = torch.as_tensor(viewmat, dtype=torch.float64, device=m.device)
     return m[:, 0] * v[2, 0] + m[:, 1] * v[2, 1] + m[:, 2] * v[2, 2] + v[2, 3]
 
-
-def footprint_area(conics: Tensor) -> Tensor:
-    """Area in px^2 of the 3-sigma ellipse of each conic [N, 3] (``9 pi sqrt(det cov2d)``)."""
-    det_conic = (conics[:, 0] * conics[:, 2] - conics[:, 1] ** 2).clamp_min(1e-30)
-    return 9.0 * math.pi / torch.sqrt(det_conic)

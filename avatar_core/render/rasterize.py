@@ -10,26 +10,27 @@ needs gradients, the cpu backend runs projection and colour with their numba twi
 
 from __future__ import annotations
 
-import math
 import time
 
 import numpy as np
 import torch
 from torch import Tensor
 
+from .budget import drop_over_budget_np, select_rendered
 from .camera import Camera
-from .projection import (
-    NEAR_PLANE,
-    Projected,
-    check_finite,
-    depth_key,
-    footprint_area,
-    project_gaussians,
-)
+from .contract import NEAR_PLANE
+from .projection import check_finite, depth_key, project_gaussians
 from .sh import sh_to_rgb
-from .types import BACKENDS, OUTPUTS, GaussianSet, RenderOutput, RenderRequest
+from .types import (
+    BACKENDS,
+    OUTPUTS,
+    GaussianSet,
+    RenderOutput,
+    RenderRequest,
+    background_output,
+)
 
-__all__ = ["available_backends", "rasterize", "resolve_backend", "select_rendered"]
+__all__ = ["available_backends", "rasterize", "resolve_backend"]
 
 
 def _gsplat_available() -> bool:
@@ -88,28 +89,6 @@ def _check_gaussians(g: GaussianSet) -> None:
                  sh=g.sh)
 
 
-def _budget_count(budget: int | float | None, n_visible: int) -> int:
-    if budget is None:
-        return n_visible
-    if isinstance(budget, float):
-        return min(n_visible, math.ceil(budget * n_visible))
-    return min(n_visible, budget)
-
-
-def select_rendered(proj: Projected, budget: int | float | None) -> tuple[Tensor, int]:
-    """Indices [K] (ascending) of the Gaussians to composite, and the number visible: all
-    visible ones, or the ``budget`` most important (opacity x 3-sigma footprint area; ties
-    keep the lower index)."""
-    sel = torch.nonzero(proj.valid).squeeze(1)  # [V]
-    n_visible = int(sel.numel())
-    keep = _budget_count(budget, n_visible)
-    if keep < n_visible:
-        importance = (proj.opacities * footprint_area(proj.conics))[sel].detach()
-        order = torch.sort(importance, descending=True, stable=True).indices[:keep]
-        sel = torch.sort(sel[order]).values
-    return sel, n_visible
-
-
 def _ms(t0: float) -> float:
     return (time.perf_counter() - t0) * 1e3
 
@@ -156,7 +135,7 @@ def rasterize(gaussians: GaussianSet, camera: Camera,
 
     bg = torch.tensor(request.background, dtype=dtype, device=device)
     if sel.numel() == 0:
-        return _background_only(request, width, height, dtype, device, stats, t_start)
+        return background_output(request, width, height, dtype, device, stats, t_start)
 
     # all kept (the common case): slices instead of gathers, which cost ~5 ms at 20k
     # Gaussians with their backward (scatters into zeros)
@@ -191,18 +170,6 @@ def _needs_grad(g: GaussianSet) -> bool:
         t.requires_grad for t in (g.means, g.quats, g.scales, g.opacities, g.sh))
 
 
-def _background_only(request, width, height, dtype, device, stats, t_start) -> RenderOutput:
-    """Nothing to composite: the background, alpha 0, depth 0."""
-    stats["color_ms"] = stats["raster_ms"] = 0.0
-    stats["total_ms"] = _ms(t_start)
-    outputs = set(request.outputs)
-    bg = torch.tensor(request.background, dtype=dtype, device=device)
-    zeros = torch.zeros(height, width, dtype=dtype, device=device)
-    return RenderOutput(rgb=bg.expand(height, width, 3).clone() if "rgb" in outputs else None,
-                        alpha=zeros if "alpha" in outputs else None,
-                        depth=zeros.clone() if "depth" in outputs else None, stats=stats)
-
-
 def _np32(t: Tensor) -> np.ndarray:
     return np.ascontiguousarray(t.detach().to("cpu", torch.float32).numpy())
 
@@ -222,18 +189,12 @@ def _rasterize_cpu_no_grad(g: GaussianSet, camera: Camera, request: RenderReques
     m2, co, de, rad, op = project_np(means, _np32(g.quats), _np32(g.scales), opac,
                                      camera.viewmat(), camera.K, width, height, NEAR_PLANE,
                                      request.antialiased)
-    vis = np.flatnonzero(rad > 0)
-    stats["n_visible"] = int(vis.size)
-    keep = _budget_count(request.budget, int(vis.size))
-    if keep < vis.size:  # drop the least important (same rule as the torch path)
-        c = co[vis]
-        area = 9.0 * np.pi / np.sqrt(np.maximum(c[:, 0] * c[:, 2] - c[:, 1] ** 2, 1e-30))
-        order = np.argsort(-(op[vis] * area), kind="stable")
-        rad[vis[order[keep:]]] = 0
+    stats["n_visible"], keep = drop_over_budget_np(co, op, rad, request.budget)
     stats["n_rendered"] = keep
     stats["project_ms"] = _ms(t0)
     if keep == 0:
-        return _background_only(request, width, height, dtype, g.means.device, stats, t_start)
+        return background_output(request, width, height, dtype, g.means.device, stats,
+                                 t_start)
 
     t0 = time.perf_counter()
     feats = np.zeros((means.shape[0], 4), np.float32)  # rgb, then depth

@@ -36,7 +36,8 @@ import torch
 from numba import njit, prange
 from torch import Tensor
 
-from .rasterize_torch import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE_SIZE, pack_features
+from .contract import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE_SIZE
+from .rasterize_torch import pack_features
 
 __all__ = ["RasterizeCPU", "bin_tiles", "composite_np", "rasterize_to_pixels"]
 

@@ -23,11 +23,11 @@ import time
 
 import torch
 
+from .budget import select_rendered
 from .camera import Camera
-from .projection import EPS2D, FAR_PLANE, NEAR_PLANE, project_gaussians
-from .rasterize_torch import TILE_SIZE
-from .sh import SH_COEFF_MAX
-from .types import GaussianSet, RenderOutput, RenderRequest
+from .contract import EPS2D, FAR_PLANE, NEAR_PLANE, SH_COEFF_MAX, TILE_SIZE
+from .projection import project_gaussians
+from .types import GaussianSet, RenderOutput, RenderRequest, background_output
 
 __all__ = ["available", "gsplat_arguments", "rasterize_gsplat"]
 
@@ -83,8 +83,6 @@ def _apply_budget(gaussians: GaussianSet, camera: Camera,
                   request: RenderRequest) -> tuple[GaussianSet, int]:
     """The subset that our projection keeps and ``request.budget`` (if any) selects (the
     shared importance rule)."""
-    from .rasterize import select_rendered
-
     viewmat, K = camera.to_torch(gaussians.means.device, gaussians.means.dtype)
     with torch.no_grad():
         p = project_gaussians(gaussians.means, gaussians.quats, gaussians.scales,
@@ -105,10 +103,8 @@ def rasterize_gsplat(gaussians: GaussianSet, camera: Camera, request: RenderRequ
     # always through our projection: gsplat never sees a Gaussian that it culls
     gaussians, stats["n_rendered"] = _apply_budget(gaussians, camera, request)
     if stats["n_rendered"] == 0:
-        from .rasterize import _background_only
-
-        return _background_only(request, camera.width, camera.height, gaussians.means.dtype,
-                                gaussians.means.device, stats, t_start)
+        return background_output(request, camera.width, camera.height, gaussians.means.dtype,
+                                 gaussians.means.device, stats, t_start)
     outputs = set(request.outputs)
     t0 = time.perf_counter()
     colors, alphas, _ = rasterization(**gsplat_arguments(gaussians, camera, request,

@@ -25,19 +25,10 @@ import torch
 from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
-__all__ = [
-    "ALPHA_MAX",
-    "ALPHA_MIN",
-    "TILE_SIZE",
-    "T_MIN",
-    "isect_tiles",
-    "rasterize_to_pixels",
-]
+from .contract import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE_SIZE
 
-TILE_SIZE = 16
-ALPHA_MAX = 0.99        # alpha clamp (3DGS)
-ALPHA_MIN = 1.0 / 255.0  # splats below this alpha are skipped
-T_MIN = 1e-4            # a pixel is done when T would fall to this or below
+__all__ = ["isect_tiles", "pack_features", "rasterize_to_pixels"]
+
 _CHUNK_ELEMS = 1 << 21  # pixels x list entries evaluated at once
 
 

@@ -12,13 +12,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-__all__ = ["SH_C0", "SH_COEFF_MAX", "eval_sh", "num_sh_bases", "rgb_to_sh0", "sh0_to_rgb",
-           "sh_to_rgb"]
+from .contract import SH_COEFF_MAX
 
-# Coefficients are clamped to +-this when colouring: a sum of huge ones overflows float32
-# (Inf, or NaN from Inf - Inf) and a NaN colour poisons every pixel it is weighed into.
-# Trained coefficients are a few units at most.
-SH_COEFF_MAX = 1e6
+__all__ = ["SH_C0", "eval_sh", "num_sh_bases", "rgb_to_sh0", "sh0_to_rgb",
+           "sh_to_rgb"]
 
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199

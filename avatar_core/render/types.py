@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 
+import torch
 from torch import Tensor
 
 from .sh import sh_degree_from_bases
@@ -53,3 +55,16 @@ class RenderOutput:
     alpha: Tensor | None = None   # [H, W]
     depth: Tensor | None = None   # [H, W] expected camera z (alpha-weighted mean), 0 where empty
     stats: dict = field(default_factory=dict)  # backend, n_rendered, timings in ms
+
+
+def background_output(request: RenderRequest, width: int, height: int, dtype: torch.dtype,
+                      device: torch.device, stats: dict, t_start: float) -> RenderOutput:
+    """Nothing to composite (every backend's answer): the background, alpha 0, depth 0."""
+    stats["color_ms"] = stats["raster_ms"] = 0.0
+    stats["total_ms"] = (time.perf_counter() - t_start) * 1e3
+    outputs = set(request.outputs)
+    bg = torch.tensor(request.background, dtype=dtype, device=device)
+    zeros = torch.zeros(height, width, dtype=dtype, device=device)
+    return RenderOutput(rgb=bg.expand(height, width, 3).clone() if "rgb" in outputs else None,
+                        alpha=zeros if "alpha" in outputs else None,
+                        depth=zeros.clone() if "depth" in outputs else None, stats=stats)

@@ -30,7 +30,8 @@ import torch
 from torch import Tensor
 
 from ..render.camera import Camera
-from ..render.projection import NEAR_PLANE, project_gaussians
+from ..render.contract import NEAR_PLANE
+from ..render.projection import project_gaussians
 from ..render.types import GaussianSet
 from ..rotations import quaternion_to_matrix
 

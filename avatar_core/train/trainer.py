@@ -49,12 +49,13 @@ from torch import Tensor
 
 from ..dataset.loader import Dataset, ViewKey, load_dataset
 from ..gaussians.avatar import DEFAULT_COLOR, GaussianAvatar
+from ..gaussians.binding import FaceFrames
 from ..gaussians.package import AvatarPackage, BodyReference, faces_fingerprint, save_package
 from ..metrics.image import psnr
 from ..metrics.perceptual import lpips_metric, lpips_unavailable_reason
 from ..render.camera import Camera
+from ..render.contract import NEAR_PLANE
 from ..render.project_cpu import project_np
-from ..render.projection import NEAR_PLANE
 from ..render.rasterize import rasterize
 from ..render.sh import rgb_to_sh0
 from ..render.types import GaussianSet, RenderRequest
@@ -78,7 +79,6 @@ from .optim import (
 )
 from .photometric import photometric_loss_fast
 from .posing import (
-    FaceFrames,
     face_part_ids,
     fine_tune_deltas,
     frame_inputs,
