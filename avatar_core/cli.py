@@ -12,7 +12,7 @@ DEFAULT_CAPTURE_MOTIONS = "smile+grin+mouth_open,thumbs_up+peace+talk_calm,sad+a
 
 
 def _make_synthetic(args: argparse.Namespace) -> int:
-    from .synth.model_files import write_synthetic_models
+    from .synth.model_writer import write_synthetic_models
 
     files = write_synthetic_models(args.out, seed=args.seed, resolution=args.resolution,
                                    num_identities=args.identities)
@@ -72,7 +72,7 @@ def _capture(args: argparse.Namespace) -> int:
 
 def _motion_strip(args: argparse.Namespace) -> int:
     from .dataset.preview import write_png
-    from .synth.motions import motion_names
+    from .motion.library import motion_names
     from .synth.preview import motion_strip
 
     names = args.motions.split(",") if args.motions else [

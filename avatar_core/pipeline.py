@@ -17,22 +17,23 @@ import numpy as np
 import torch
 
 from .body.model_data import load_mano
+from .body.model_paths import BodyModelFiles, synthetic_body_models
 from .body.models import MANOModel
 from .gaussians.animate import AvatarAnimator, synthetic_package
 from .gaussians.package import AvatarPackage, load_package
+from .motion.library import demo_clip
+from .motion.rig import model_rig
 from .render.camera import Camera, orbit
+from .render.mp4_writer import Mp4Writer
 from .render.rasterize import rasterize
 from .render.types import RenderRequest
-from .synth.body_demo import demo_clip, ensure_models, model_rig
-from .synth.model_files import SyntheticModelFiles
-from .synth.video import Mp4Writer
 
 
 @dataclass
 class LoadedAvatar:
     package: AvatarPackage
     animator: AvatarAnimator
-    files: SyntheticModelFiles
+    files: BodyModelFiles
 
 
 def load_avatar(spec: str, model_dir: Path | None = None, **package_limits: Any
@@ -42,7 +43,7 @@ def load_avatar(spec: str, model_dir: Path | None = None, **package_limits: Any
     ``package_limits``: ``max_bytes`` / ``npz_limits`` for ``load_package``."""
     if spec == "synthetic" or spec.startswith("synthetic:"):
         identity = int(spec.split(":", 1)[1]) if ":" in spec else 0
-        files = ensure_models(model_dir)
+        files = synthetic_body_models(model_dir)
         package, model = synthetic_package(files.root, identity)
     else:
         package = load_package(spec, **package_limits)
@@ -50,7 +51,7 @@ def load_avatar(spec: str, model_dir: Path | None = None, **package_limits: Any
         if not ref.startswith("synthetic:seed"):
             raise ValueError(f"{spec}: bound to body model {ref!r}; only synthetic models can be "
                              "resolved here (the licensed SMPL-X files are not available)")
-        files = ensure_models(model_dir, seed=int(ref.removeprefix("synthetic:seed")))
+        files = synthetic_body_models(model_dir, seed=int(ref.removeprefix("synthetic:seed")))
         _, model = synthetic_package(files.root, 0)
         package.body.check_faces(model.faces.cpu().numpy())
     animator = AvatarAnimator(model, package.avatar, betas=np.asarray(package.body.betas))

@@ -23,7 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from avatar_core.body.model_data import load_smplx  # noqa: E402
 from avatar_core.body.upper_body import UpperBodyModel, load_segmentation  # noqa: E402
-from avatar_core.synth.body_demo import ensure_models  # noqa: E402
+from avatar_core.synth.model_writer import ensure_models  # noqa: E402
 
 
 def _params(batch: int, rng: np.random.Generator) -> dict[str, torch.Tensor]:

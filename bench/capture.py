@@ -19,9 +19,10 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from avatar_core.metrics.image import psnr  # noqa: E402
+from avatar_core.motion.library import motion  # noqa: E402
+from avatar_core.motion.rig import model_rig  # noqa: E402
 from avatar_core.synth.actor import Actor  # noqa: E402
-from avatar_core.synth.body_demo import ensure_models, model_rig  # noqa: E402
-from avatar_core.synth.motions import motion  # noqa: E402
+from avatar_core.synth.model_writer import ensure_models  # noqa: E402
 from avatar_core.synth.studio import studio_rig  # noqa: E402
 
 

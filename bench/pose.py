@@ -19,7 +19,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from avatar_core.gaussians.animate import AvatarAnimator, synthetic_package  # noqa: E402
 from avatar_core.gaussians.avatar import GaussianAvatar, pose_gaussians_torch  # noqa: E402
-from avatar_core.synth.body_demo import ensure_models  # noqa: E402
+from avatar_core.synth.model_writer import ensure_models  # noqa: E402
 
 
 def _avatar(num: int, num_faces: int, rng: np.random.Generator) -> GaussianAvatar:

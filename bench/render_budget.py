@@ -26,7 +26,7 @@ from avatar_core.gaussians.avatar import GaussianAvatar  # noqa: E402
 from avatar_core.render.camera import look_at  # noqa: E402
 from avatar_core.render.rasterize import rasterize  # noqa: E402
 from avatar_core.render.types import RenderRequest  # noqa: E402
-from avatar_core.synth.body_demo import ensure_models  # noqa: E402
+from avatar_core.synth.model_writer import ensure_models  # noqa: E402
 
 
 def densify(avatar: GaussianAvatar, count: int, seed: int = 0) -> GaussianAvatar:

@@ -33,7 +33,8 @@ for path in (ROOT, ROOT / "tests"):
 from test_track_fit import CAMERA, known_params  # noqa: E402
 
 from avatar_core.gaussians.animate import synthetic_package  # noqa: E402
-from avatar_core.synth.body_demo import ensure_models, model_rig  # noqa: E402
+from avatar_core.motion.rig import model_rig  # noqa: E402
+from avatar_core.synth.model_writer import ensure_models  # noqa: E402
 from avatar_core.track.fit.fitter import FrameFitter  # noqa: E402
 from avatar_core.track.fit.synthetic import synthetic_observations  # noqa: E402
 

@@ -40,8 +40,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from avatar_core.synth.body_demo import ensure_models  # noqa: E402
 from avatar_core.synth.capture import CaptureSpec, capture  # noqa: E402
+from avatar_core.synth.model_writer import ensure_models  # noqa: E402
 from avatar_core.train.config import preset  # noqa: E402
 from avatar_core.train.density import DensityStats, densify_and_prune  # noqa: E402
 from avatar_core.train.trainer import Trainer  # noqa: E402

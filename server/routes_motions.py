@@ -13,9 +13,9 @@ from typing import Any
 from fastapi import APIRouter, HTTPException, Query, Request
 from pydantic import BaseModel, Field
 
-from avatar_core.synth.body_demo import model_rig
-from avatar_core.synth.motion import Rig
-from avatar_core.synth.motions import ALIASES, MOTIONS, motion
+from avatar_core.motion.keyframes import Rig
+from avatar_core.motion.library import ALIASES, MOTIONS, motion
+from avatar_core.motion.rig import model_rig
 
 from .auth import Principal, require_scope
 from .context import ServerContext

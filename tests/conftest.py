@@ -6,7 +6,7 @@ import torch
 
 from avatar_core.body.model_data import load_flame, load_mano, load_smplx
 from avatar_core.body.upper_body import load_segmentation
-from avatar_core.synth.model_files import write_synthetic_models
+from avatar_core.synth.model_writer import write_synthetic_models
 
 
 @pytest.fixture(scope="session")

@@ -5,12 +5,12 @@ import numpy as np
 import pytest
 
 from avatar_core.body.skeleton import LOWER_BODY_PARTS, SMPLX_PART_NAMES
+from avatar_core.motion.keyframes import Pose, pose_to_params
+from avatar_core.motion.rig import model_rig
 from avatar_core.render.camera import Camera, look_at, orbit
 from avatar_core.synth.actor import Actor, _majority, render_actor_preview
 from avatar_core.synth.appearance import MATERIAL_GROUP
-from avatar_core.synth.body_demo import model_rig
 from avatar_core.synth.humanoid import MATERIALS
-from avatar_core.synth.motion import Pose, pose_to_params
 
 PART = {name: i for i, name in enumerate(SMPLX_PART_NAMES)}
 BG = (0.2, 0.4, 0.6)

@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
+from avatar_core.body.model_paths import BodyModelFiles
 from avatar_core.cli import main
 from avatar_core.dataset import load_dataset
 from avatar_core.gaussians.animate import AvatarAnimator, synthetic_package
@@ -28,7 +29,6 @@ from avatar_core.metrics.report import (
 )
 from avatar_core.pipeline import LoadedAvatar
 from avatar_core.synth.capture import CaptureSpec, capture
-from avatar_core.synth.model_files import SyntheticModelFiles
 
 FRAMES, CAMERAS = 3, 5
 IMAGE_METRICS = ("l1", "psnr", "ssim")
@@ -46,7 +46,7 @@ def dataset_dir(tmp_path_factory, synthetic_files):
 def _loaded(files, identity=0):
     package, model = synthetic_package(files.root, identity)
     animator = AvatarAnimator(model, package.avatar, betas=np.asarray(package.body.betas))
-    return LoadedAvatar(package, animator, SyntheticModelFiles(files.root))
+    return LoadedAvatar(package, animator, BodyModelFiles(files.root))
 
 
 @pytest.fixture(scope="module")

@@ -31,7 +31,7 @@ from avatar_core.metrics import (
 from avatar_core.metrics.image import gaussian_kernel
 from avatar_core.metrics.keypoints import FINGERTIP_VERTICES
 from avatar_core.render.camera import Camera, orbit
-from avatar_core.synth.model_files import SMPLX_SEMANTIC_VERTEX_IDS
+from avatar_core.synth.model_writer import SMPLX_SEMANTIC_VERTEX_IDS
 
 try:  # the reference implementation (dev extra); the other tests run without it
     import skimage.metrics as skm

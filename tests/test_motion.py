@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from avatar_core.synth.motion import Clip, Pose, Rig, chain, pose_to_params
+from avatar_core.motion.keyframes import Clip, Pose, Rig, chain, pose_to_params
 
 RIG = Rig(("smile", "blink_left"), {"relaxed": np.zeros((15, 3)), "fist": np.ones((15, 3))},
           {"left": np.zeros((15, 3)), "right": np.zeros((15, 3))})

@@ -8,16 +8,10 @@ import numpy as np
 import pytest
 import torch
 
+from avatar_core.body.joint_limits import JOINT_LIMITS_DEG
+from avatar_core.body.model_paths import BodyModelFiles
 from avatar_core.body.models import SMPLXModel
-from avatar_core.synth import body_demo
-from avatar_core.synth.body_demo import ensure_models, generator_version, model_rig
-from avatar_core.synth.model_files import (
-    GENERATOR_VERSION,
-    SMPLX_SEMANTIC_VERTEX_IDS,
-    SyntheticModelFiles,
-)
-from avatar_core.synth.motion import (
-    JOINT_LIMITS_DEG,
+from avatar_core.motion.keyframes import (
     Clip,
     Pose,
     Track,
@@ -26,12 +20,20 @@ from avatar_core.synth.motion import (
     check_joint_limits,
     pose_to_params,
 )
-from avatar_core.synth.motions import (
+from avatar_core.motion.library import (
     CATEGORIES,
     MOTIONS,
     motion,
     motion_names,
     motion_sequence,
+)
+from avatar_core.motion.rig import model_rig
+from avatar_core.synth import model_writer
+from avatar_core.synth.model_writer import (
+    GENERATOR_VERSION,
+    SMPLX_SEMANTIC_VERTEX_IDS,
+    ensure_models,
+    generator_version,
 )
 
 EXPRESSIONS = {"neutral", "smile", "grin", "mouth_open", "jaw_left", "jaw_right", "pucker",
@@ -325,9 +327,9 @@ def test_ensure_models_rewrites_a_stale_cache(tmp_path, monkeypatch):
         (root / "gestures.npz").write_bytes(b"new gestures")
         (root / "manifest.json").write_text(json.dumps({"generator_version": GENERATOR_VERSION,
                                                         "seed": seed}))
-        return SyntheticModelFiles(root)
+        return BodyModelFiles(root)
 
-    monkeypatch.setattr(body_demo, "write_synthetic_models", fake_writer)
+    monkeypatch.setattr(model_writer, "write_synthetic_models", fake_writer)
     root = tmp_path / "cache"
     files = ensure_models(root, seed=3)  # nothing there yet
     assert calls == [3] and generator_version(files) == GENERATOR_VERSION

@@ -6,7 +6,7 @@ import torch
 
 from avatar_core.body.model_data import load_smplx
 from avatar_core.body.models import SMPLXModel
-from avatar_core.synth.model_files import SMPLX_SEMANTIC_VERTEX_IDS
+from avatar_core.synth.model_writer import SMPLX_SEMANTIC_VERTEX_IDS
 from tests.conftest import as_torch, random_smplx_params
 
 smplx = pytest.importorskip("smplx")

@@ -7,7 +7,7 @@ import pytest
 
 from avatar_core.body.model_data import load_correspondence
 from avatar_core.body.skeleton import SMPLX_PART_NAMES
-from avatar_core.synth.model_files import write_synthetic_models
+from avatar_core.synth.model_writer import write_synthetic_models
 
 
 def test_counts_and_manifest(synthetic_files, smplx_data, flame_data, mano_data):

@@ -15,7 +15,8 @@ from avatar_core.body import lbs
 from avatar_core.body.skeleton import JOINT
 from avatar_core.gaussians.animate import synthetic_package
 from avatar_core.metrics.temporal import keypoint_tje
-from avatar_core.synth.body_demo import ensure_models, model_rig
+from avatar_core.motion.rig import model_rig
+from avatar_core.synth.model_writer import ensure_models
 from avatar_core.track.fit import correspondence as cor
 from avatar_core.track.fit.camera import WebcamCamera
 from avatar_core.track.fit.fitter import FrameFitter, neutral_params

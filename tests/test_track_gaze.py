@@ -15,7 +15,7 @@ from scipy.spatial.transform import Rotation
 from avatar_core.body.models import SMPLXModel
 from avatar_core.body.skeleton import JOINT
 from avatar_core.gaussians.animate import synthetic_package
-from avatar_core.synth.body_demo import ensure_models
+from avatar_core.synth.model_writer import ensure_models
 from avatar_core.track.fit import gaze
 from avatar_core.track.fit.camera import WebcamCamera
 from avatar_core.track.fit.fitter import neutral_params

@@ -9,7 +9,7 @@ import torch
 
 from avatar_core.body import lbs
 from avatar_core.gaussians.animate import synthetic_package
-from avatar_core.synth.body_demo import ensure_models
+from avatar_core.synth.model_writer import ensure_models
 from avatar_core.track.fit.camera import WebcamCamera
 from avatar_core.track.fit.fitter import FrameFitter, _Problem, neutral_params
 from avatar_core.track.fit.kinematics import rodrigues_and_left_jacobian

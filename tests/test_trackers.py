@@ -5,8 +5,8 @@ import torch
 
 from avatar_core.body.fusion import fuse
 from avatar_core.body.models import MANOModel, SMPLXModel
-from avatar_core.synth.body_demo import model_rig
-from avatar_core.synth.motions import motion_sequence
+from avatar_core.motion.library import motion_sequence
+from avatar_core.motion.rig import model_rig
 from avatar_core.synth.trackers import simulate_trackers
 
 

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import ModelFileError
-from .model_file import read_model_file, require, to_array
+from .model_reader import read_model_file, require, to_array
 
 FLAME_SHAPE_SPACE = 300
 SMPLX_SHAPE_SPACE, SMPLX_EXPRESSION_SPACE = 300, 100

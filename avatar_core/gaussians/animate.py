@@ -17,6 +17,7 @@ import torch
 from torch import Tensor
 
 from ..body.model_data import load_smplx
+from ..body.model_paths import BodyModelFiles
 from ..body.params import SMPLXParams
 from ..body.upper_body import UpperBodyModel, load_segmentation
 from ..render.types import GaussianSet
@@ -105,9 +106,7 @@ def synthetic_package(model_dir: str | Path, identity: int = 0, *, sh_degree: in
                       seed: int = 0) -> tuple[AvatarPackage, UpperBodyModel]:
     """An untrained avatar on the synthetic upper body: one Gaussian per triangle, coloured by
     the identity's vertex colours. Returns the package and its body model."""
-    from ..synth.model_files import SyntheticModelFiles
-
-    files = SyntheticModelFiles(Path(model_dir))
+    files = BodyModelFiles(Path(model_dir))
     identities = files.identities()
     if not 0 <= identity < len(identities):
         raise ValueError(f"identity must be in [0, {len(identities)}), got {identity}")

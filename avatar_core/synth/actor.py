@@ -34,7 +34,9 @@ import cv2
 import numpy as np
 import torch
 
+from ..body.joint_limits import RELAXED_ARMS
 from ..body.model_data import load_smplx
+from ..body.model_paths import BodyModelFiles
 from ..body.models import SMPLXModel
 from ..body.skeleton import JOINT, SMPLX_NUM_BODY_JOINTS, SMPLX_PART_NAMES
 from ..body.upper_body import load_segmentation
@@ -54,8 +56,7 @@ from .accessories import (
 )
 from .humanoid import MATERIALS, make_humanoid
 from .mesh_render import numba_available, render_mesh, vertex_normals
-from .model_files import PALETTES, SyntheticModelFiles, _vertex_order
-from .motion import RELAXED_ARMS
+from .model_writer import PALETTES, _vertex_order
 
 __all__ = ["Actor", "ActorView", "PosedActor", "render_actor_preview"]
 
@@ -112,7 +113,7 @@ class Actor:
         return self.model.num_vertices
 
     @classmethod
-    def load(cls, files: SyntheticModelFiles, identity: int) -> Actor:
+    def load(cls, files: BodyModelFiles, identity: int) -> Actor:
         """Identity `identity` of a written synthetic model family."""
         paths = files.identities()
         if not 0 <= identity < len(paths):
@@ -223,7 +224,7 @@ class Actor:
         return app.shade_albedo(app.albedo(self.appearance, canon, group, w), normal)
 
 
-def render_actor_preview(files: SyntheticModelFiles, identity: int, out_png: str | Path, *,
+def render_actor_preview(files: BodyModelFiles, identity: int, out_png: str | Path, *,
                          size: int = 384) -> Path:
     """A PNG for a person to look at: the actor in its relaxed stance, full body and head,
     from the front, the side and the back (two rows of three views)."""
@@ -343,7 +344,7 @@ def _kernel(name: str) -> Callable[..., None]:
     return numba.njit(cache=True, nogil=True)(compiled)
 
 
-def _materials(files: SyntheticModelFiles, v_template: np.ndarray) -> np.ndarray:
+def _materials(files: BodyModelFiles, v_template: np.ndarray) -> np.ndarray:
     """Per-vertex material of the written model (not stored in the files): rebuilt from the
     generator with the manifest's seed and resolution, checked against the template."""
     manifest = json.loads(files.manifest.read_text())
@@ -356,7 +357,7 @@ def _materials(files: SyntheticModelFiles, v_template: np.ndarray) -> np.ndarray
     return h.materials[order]
 
 
-def _vertex_parts(files: SyntheticModelFiles, num_vertices: int) -> np.ndarray:
+def _vertex_parts(files: BodyModelFiles, num_vertices: int) -> np.ndarray:
     parts = np.full(num_vertices, -1, dtype=np.int64)
     for name, ids in load_segmentation(files.segmentation, num_vertices).items():
         if name in SMPLX_PART_NAMES:

@@ -24,13 +24,14 @@ from pathlib import Path
 
 import numpy as np
 
+from ..body.model_paths import BodyModelFiles
 from ..body.skeleton import SMPLX_PART_NAMES, UPPER_BODY_PARTS
 from ..dataset.format import CameraSpec
 from ..dataset.writer import DatasetWriter
+from ..motion.library import motion_sequence
+from ..motion.rig import model_rig
 from .actor import Actor, ActorView
-from .body_demo import ensure_models, model_rig
-from .model_files import SyntheticModelFiles
-from .motions import motion_sequence
+from .model_writer import ensure_models
 from .studio import RigCamera, StudioConfig, studio_rig
 from .trackers import simulate_trackers
 
@@ -172,7 +173,7 @@ def count_views(spec: CaptureSpec) -> int:
 def capture(out: str | Path, spec: CaptureSpec, *, model_dir: Path | None = None,
             progress: Progress | None = None) -> Path:
     """Film `spec` into the dataset folder `out` (which must not hold a dataset yet)."""
-    files: SyntheticModelFiles = ensure_models(model_dir, seed=spec.seed)
+    files: BodyModelFiles = ensure_models(model_dir, seed=spec.seed)
     actor = Actor.load(files, spec.identity)
     config = replace(spec.studio, num_cameras=spec.num_cameras)
     rig = studio_rig(spec.resolution, config, seed=spec.seed)

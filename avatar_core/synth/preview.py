@@ -10,10 +10,11 @@ import numpy as np
 
 from ..body.skeleton import JOINT
 from ..dataset.preview import grid, tile
+from ..motion.library import motion
+from ..motion.rig import model_rig
 from ..render.camera import Camera
 from .actor import Actor
-from .body_demo import ensure_models, model_rig
-from .motions import motion
+from .model_writer import ensure_models
 from .studio import StudioConfig, studio_rig
 
 __all__ = ["motion_strip"]

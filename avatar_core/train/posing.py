@@ -21,13 +21,13 @@ import torch
 from torch import Tensor
 
 from ..body.model_data import ModelData, load_flame, load_mano, load_smplx
+from ..body.model_paths import BodyModelFiles, synthetic_body_models
 from ..body.models import FLAMEModel, MANOModel
 from ..body.upper_body import UpperBodyModel, load_segmentation
 from ..dataset.loader import View
 from ..gaussians.frames import triangle_frames
 from ..render.types import GaussianSet
 from ..rotations import matrix_to_quaternion, quaternion_multiply
-from ..synth.model_files import SyntheticModelFiles
 from .data import FusionModels
 
 __all__ = ["BodySetup", "FaceFrames", "face_part_ids", "fine_tune_deltas",
@@ -42,7 +42,7 @@ FINE_TUNED = ("transl", "expression", "body_pose")
 
 @dataclass
 class BodySetup:
-    files: SyntheticModelFiles          # official file names, whichever family
+    files: BodyModelFiles               # official file names, whichever family
     reference: str                      # BodyReference.model: "synthetic:seed0" or a file name
     data: ModelData                     # the full SMPL-X model data
     segmentation: dict[str, np.ndarray]  # part name -> SMPL-X vertex ids
@@ -54,8 +54,6 @@ class BodySetup:
 def resolve_body(meta_body: Mapping[str, Any], body_model_dir: str | Path | None,
                  device: torch.device) -> BodySetup:
     """The upper-body model a dataset's parameters drive (see the module docstring)."""
-    from ..synth.body_demo import ensure_models
-
     if meta_body.get("type", "smplx") != "smplx":
         raise ValueError(f"training needs SMPL-X parameters, the dataset has "
                          f"{meta_body.get('type')!r}")
@@ -65,14 +63,14 @@ def resolve_body(meta_body: Mapping[str, Any], body_model_dir: str | Path | None
     source = str(meta_body.get("source", ""))
     if source.startswith(SYNTHETIC_PREFIX):
         seed = int(source.removeprefix(SYNTHETIC_PREFIX))
-        files = (SyntheticModelFiles(Path(body_model_dir)) if body_model_dir is not None
-                 else ensure_models(seed=seed))
+        files = (BodyModelFiles(Path(body_model_dir)) if body_model_dir is not None
+                 else synthetic_body_models(seed=seed))
         reference = f"synthetic:seed{seed}"
     elif body_model_dir is None:
         raise ValueError(f"the dataset's parameters come from {source!r}: give the SMPL-X "
                          "model folder (--body-model DIR)")
     else:
-        files = SyntheticModelFiles(Path(body_model_dir))
+        files = BodyModelFiles(Path(body_model_dir))
         reference = files.smplx_npz.name
     for path in (files.smplx_npz, files.segmentation):
         if not path.is_file():

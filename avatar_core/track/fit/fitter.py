@@ -25,9 +25,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from ...body.joint_limits import EXPRESSION_LIMIT, JOINT_LIMITS_DEG, RELAXED_ARMS
 from ...body.models import SMPLXModel
 from ...body.skeleton import JOINT, LEFT_HAND_JOINTS, RIGHT_HAND_JOINTS, SMPLX_JOINT_NAMES
-from ...synth.motion import EXPRESSION_LIMIT, JOINT_LIMITS_DEG, RELAXED_ARMS
 from . import correspondence as cor
 from .camera import MIN_DEPTH_M, WebcamCamera, project_points
 from .keypoints import BodyKeypoints

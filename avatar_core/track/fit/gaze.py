@@ -41,9 +41,9 @@ import numpy as np
 import torch
 
 from ...body import lbs
+from ...body.joint_limits import JOINT_LIMITS_DEG
 from ...body.models import SMPLXModel
 from ...body.skeleton import JOINT
-from ...synth.motion import JOINT_LIMITS_DEG
 from .camera import MIN_DEPTH_M, WebcamCamera, project_points
 
 EYES = ("right", "left")  # rows of iris_px: the person's right eye, then left eye

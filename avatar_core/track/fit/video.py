@@ -108,10 +108,10 @@ def write_params(frames: list[dict[str, np.ndarray]], path: Path) -> Path:
 def default_session(fov_x_deg: float = 60.0, smoothing: bool = True,
                     model_dir: Path | None = None) -> FitSession:
     """A fit session on the synthetic avatar's body model (identity 0's shape)."""
+    from ...body.model_paths import synthetic_body_models
     from ...gaussians.animate import synthetic_package
-    from ...synth.body_demo import ensure_models
 
-    files = ensure_models(model_dir)
+    files = synthetic_body_models(model_dir)
     package, model = synthetic_package(files.root, 0)
     return FitSession(model, np.asarray(package.body.betas),
                       SessionConfig(fov_x_deg=fov_x_deg, smoothing=smoothing))

@@ -6,7 +6,8 @@ complete SMPL-X parameter set, interpolating each coefficient with smoothstep ea
 
 Anything with a `name`, a `duration` and `sample(t, rig)` is a `Track`: clips, `blend`s of two
 tracks and `chain`s of several. `check_joint_limits` reports rotations beyond what a human
-joint does (`JOINT_LIMITS_DEG`) and expression coefficients outside [-1.5, 1.5].
+joint does (`JOINT_LIMITS_DEG`, body/joint_limits.py) and expression coefficients outside
+[-1.5, 1.5].
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from ..body.joint_limits import EXPRESSION_LIMIT, JOINT_LIMITS_DEG, RELAXED_ARMS
 from ..body.skeleton import (
     JOINT,
     LEFT_HAND_JOINTS,
@@ -26,23 +28,6 @@ from ..body.skeleton import (
 )
 
 _FACE_JOINTS = {"jaw": "jaw_pose", "left_eye_smplhf": "leye_pose", "right_eye_smplhf": "reye_pose"}
-# Arms hang down and forward a little instead of the T-pose: the neutral stance of the clips.
-RELAXED_ARMS = {
-    "left_shoulder": (0.0, 0.0, -1.15), "right_shoulder": (0.0, 0.0, 1.15),
-    "left_elbow": (0.0, -0.35, 0.0), "right_elbow": (0.0, 0.35, 0.0),
-}  # fmt: skip
-# Largest rotation angle (degrees) a joint plausibly reaches from the rest pose, whatever the
-# axis: generous bounds that catch a wrong sign or a swapped axis, not an anatomy model.
-JOINT_LIMITS_DEG = {
-    "left_hip": 120.0, "right_hip": 120.0, "left_knee": 150.0, "right_knee": 150.0,
-    "left_ankle": 50.0, "right_ankle": 50.0, "left_foot": 40.0, "right_foot": 40.0,
-    "spine1": 30.0, "spine2": 30.0, "spine3": 30.0, "neck": 50.0, "head": 50.0,
-    "left_collar": 20.0, "right_collar": 20.0, "left_shoulder": 150.0, "right_shoulder": 150.0,
-    "left_elbow": 150.0, "right_elbow": 150.0, "left_wrist": 80.0, "right_wrist": 80.0,
-    "jaw": 30.0, "left_eye_smplhf": 30.0, "right_eye_smplhf": 30.0,
-    **{SMPLX_JOINT_NAMES[j]: 110.0 for j in (*LEFT_HAND_JOINTS, *RIGHT_HAND_JOINTS)},
-}  # fmt: skip
-EXPRESSION_LIMIT = 1.5  # |coefficient| of a plausible expression
 
 
 @dataclass(frozen=True)

@@ -2,8 +2,9 @@
 
 Every motion is a keyframed `Clip` of 1.5-4 s that starts and ends in the neutral stance
 (`Pose()`: relaxed arms and hands, neutral face), so any sequence of them chains smoothly, and
-that stays within `JOINT_LIMITS_DEG`. Gestures are made by the right hand; two-hand gestures use
-the mirror image of the right arm for the left, so the hands meet on the midline (x = 0).
+that stays within `JOINT_LIMITS_DEG` (body/joint_limits.py). Gestures are made by the right
+hand; two-hand gestures use the mirror image of the right arm for the left, so the hands meet
+on the midline (x = 0).
 
 The arm angles of the gesture key poses were fitted by least squares on the synthetic body
 (hand orientation and position in front of the chest, fingertips or palms on the midline for
@@ -19,8 +20,9 @@ from types import MappingProxyType
 
 import numpy as np
 
+from ..body.joint_limits import RELAXED_ARMS
 from ..body.skeleton import swap_left_right
-from .motion import RELAXED_ARMS, Chain, Clip, Pose, chain
+from .keyframes import Chain, Clip, Pose, Track, chain
 
 CATEGORIES = ("expressions", "gestures", "conversation")
 ALIASES = MappingProxyType({"talk": "talk_calm"})  # short names accepted by `motion`
@@ -313,3 +315,35 @@ def motion_sequence(names: str | Sequence[str], crossfade: float = 0.4) -> Chain
     if not names:
         raise ValueError("no motion names given")
     return chain("+".join(names), [motion(n) for n in names], crossfade)
+
+
+def demo_clip() -> Track:
+    """The body demo's clip and the render command's 'demo' motion (not among `MOTIONS`):
+    gestures and expressions, about eleven seconds long."""
+    look = {"neck": (0.0, 0.0, 0.0)}
+    wave_up = {"left_shoulder": (0.0, 0.0, 0.35), "left_elbow": (0.0, -0.3, 1.6)}
+    wave_a = {**wave_up, "left_wrist": (0.0, 0.0, 0.35)}
+    wave_b = {**wave_up, "left_wrist": (0.0, 0.0, -0.35)}
+    show = {"right_shoulder": (0.0, 0.0, 1.0), "right_elbow": (0.0, 2.1, 0.0),
+            "right_wrist": (-0.3, 0.0, 0.0)}
+    face = Clip("face", (
+        (0.0, Pose(look)),
+        (0.8, Pose(look, {"smile": 1.0})),
+        (1.6, Pose({"jaw": (0.35, 0.0, 0.0)}, {"lips_part": 0.8})),
+        (2.4, Pose(look, {"blink_left": 1.0, "blink_right": 1.0, "brows_raise": 0.3})),
+        (3.0, Pose(look, {"brows_raise": 1.2, "pucker": 0.8})),
+        (3.8, Pose({"head": (0.0, 0.45, 0.0)}, {"cheek_puff": 1.0, "brows_lower": 0.8})),
+        (4.6, Pose({"head": (0.0, -0.45, 0.1)}, {"frown": 1.0, "grin": 0.0})),
+    ))
+    hands = Clip("hands", (
+        (0.0, Pose(wave_a, left_hand="spread")),
+        (0.4, Pose(wave_b, left_hand="spread")),
+        (0.8, Pose(wave_a, left_hand="spread")),
+        (1.2, Pose(wave_b, {"grin": 0.8}, left_hand="spread")),
+        (2.0, Pose(show, {"smile": 0.8}, right_hand="thumbs_up")),
+        (2.8, Pose(show, right_hand="peace")),
+        (3.6, Pose(show, right_hand="point")),
+        (4.4, Pose(show, right_hand="fist")),
+        (5.2, Pose(look)),
+    ))
+    return chain("body demo", [face, hands])

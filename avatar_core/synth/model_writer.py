@@ -22,17 +22,19 @@ Everything is deterministic from the seed.
 from __future__ import annotations
 
 import json
+import os
 import pickle
 import sys
+import tempfile
 import types
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import scipy.sparse
 
+from ..body.model_paths import BodyModelFiles
 from ..body.skeleton import (
     FLAME_PARENTS,
     FLAME_TO_SMPLX_JOINT,
@@ -58,7 +60,7 @@ ROOT_PARENT = np.uint32(2**32 - 1)  # how official kintree tables mark the root
 # Pose-corrective bulge at a bent joint, metres per unit of (3 - trace R).
 CORRECTIVE_BULGE = 0.006
 # Bumped whenever the written files change (2: gestures three, four, L, heart_half, cupped), so
-# that caches written by an older generator are rewritten (`body_demo.ensure_models`).
+# that caches written by an older generator are rewritten (`ensure_models`).
 GENERATOR_VERSION = 2
 
 PALETTES = (
@@ -72,59 +74,6 @@ PALETTES = (
      "iris": (0.35, 0.50, 0.30), "shirt": (0.25, 0.55, 0.35), "lips": (0.80, 0.48, 0.50),
      "trousers": (0.12, 0.14, 0.30)},
 )  # fmt: skip
-
-
-@dataclass(frozen=True)
-class SyntheticModelFiles:
-    """Paths of one written family of synthetic model files."""
-
-    root: Path
-
-    @property
-    def smplx_npz(self) -> Path:
-        return self.root / "SMPLX_NEUTRAL.npz"
-
-    @property
-    def smplx_pkl(self) -> Path:
-        return self.root / "SMPLX_NEUTRAL.pkl"
-
-    @property
-    def segmentation(self) -> Path:
-        return self.root / "smplx_vert_segmentation.json"
-
-    @property
-    def flame_pkl(self) -> Path:
-        return self.root / "FLAME_NEUTRAL.pkl"
-
-    @property
-    def flame_static_embedding(self) -> Path:
-        return self.root / "flame_static_embedding.pkl"
-
-    @property
-    def flame_dynamic_embedding(self) -> Path:
-        return self.root / "flame_dynamic_embedding.npy"
-
-    @property
-    def flame_correspondence(self) -> Path:
-        return self.root / "SMPL-X__FLAME_vertex_ids.npy"
-
-    def mano_pkl(self, side: str) -> Path:
-        return self.root / f"MANO_{side.upper()}.pkl"
-
-    @property
-    def mano_correspondence(self) -> Path:
-        return self.root / "MANO_SMPLX_vertex_ids.pkl"
-
-    @property
-    def gestures(self) -> Path:
-        return self.root / "gestures.npz"
-
-    @property
-    def manifest(self) -> Path:
-        return self.root / "manifest.json"
-
-    def identities(self) -> list[Path]:
-        return sorted((self.root / "identities").glob("identity_*.npz"))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -271,11 +220,11 @@ def _identity_betas(index: int, seed: int) -> np.ndarray:
 
 
 def write_synthetic_models(out_dir: str | Path, *, seed: int = 0, resolution: float = 1.0,
-                           num_identities: int = 2) -> SyntheticModelFiles:
+                           num_identities: int = 2) -> BodyModelFiles:
     """Generate and write the synthetic SMPL-X / FLAME / MANO family into `out_dir`."""
     if num_identities < 1:
         raise ValueError("num_identities must be at least 1")
-    files = SyntheticModelFiles(Path(out_dir))
+    files = BodyModelFiles(Path(out_dir))
     files.root.mkdir(parents=True, exist_ok=True)
     (files.root / "identities").mkdir(exist_ok=True)
     h = make_humanoid(seed=seed, resolution=resolution)
@@ -370,3 +319,44 @@ def write_synthetic_models(out_dir: str | Path, *, seed: int = 0, resolution: fl
         "note": "Procedural stand-ins in the official formats; not the licensed models.",
     }, indent=2))
     return files
+
+
+# ---------------------------------------------------------------------------------------------
+# The cache of written families
+
+
+def default_model_dir(seed: int = 0) -> Path:
+    base = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache"))
+    return base / "telesplat" / f"synthetic-seed{seed}"
+
+
+def ensure_models(model_dir: Path | None = None, seed: int = 0) -> BodyModelFiles:
+    """The synthetic model files in `model_dir`, written first if they are not there yet or
+    were written by another generator version (an old cache lacks newer gestures)."""
+    files = BodyModelFiles(model_dir or default_model_dir(seed))
+    if generator_version(files) != GENERATOR_VERSION:
+        _rewrite(files.root, seed)
+    return files
+
+
+def generator_version(files: BodyModelFiles) -> int | None:
+    """The generator version a folder's manifest records; None without a readable manifest."""
+    try:
+        version = json.loads(files.manifest.read_text()).get("generator_version")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return version if isinstance(version, int) else None
+
+
+def _rewrite(root: Path, seed: int) -> None:
+    """Write the family into a scratch folder inside `root`, then move each file into place
+    (atomic per file, the manifest last): a process reading the cache meanwhile never sees a
+    half-written file, and other files in `root` are left alone."""
+    root.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix=".writing-", dir=root) as scratch:
+        write_synthetic_models(scratch, seed=seed)
+        names = sorted(p.relative_to(scratch) for p in Path(scratch).rglob("*") if p.is_file())
+        names.sort(key=lambda rel: rel.name == "manifest.json")  # stable: the manifest last
+        for rel in names:
+            (root / rel).parent.mkdir(parents=True, exist_ok=True)
+            os.replace(Path(scratch) / rel, root / rel)

@@ -8,8 +8,8 @@ import pytest
 
 from avatar_core.body.errors import ModelFileError
 from avatar_core.body.model_data import load_mano, load_smplx
-from avatar_core.body.model_file import read_model_file, require, to_array
-from avatar_core.synth.model_files import _write_official_pickle
+from avatar_core.body.model_reader import read_model_file, require, to_array
+from avatar_core.synth.model_writer import _write_official_pickle
 
 
 def test_chumpy_and_sparse_values_are_read_as_arrays(tmp_path):

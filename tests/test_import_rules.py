@@ -1,0 +1,249 @@
+"""The package rules of shared/ARCHITECTURE.md, read from the source with `ast`.
+
+Every import counts, at module level and inside functions (a lazy import still runs): the
+production packages import nothing from the studio (`avatar_core.synth`), `protocol` imports
+none of ours, the engine imports no server, client or web framework, and the module-level
+import graph of our packages has no circle. Exceptions are listed with the reason they stand.
+"""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+PACKAGES = ("avatar_core", "server", "client", "protocol")
+STUDIO = "avatar_core.synth"
+# Engine modules that are front ends to the studio, not production paths (issue 15: "the studio
+# CLI and the demo-avatar builder may keep using the studio").
+STUDIO_FRONT_ENDS = ("avatar_core.cli", "avatar_core.demo")
+# (importer, imported) pairs allowed to break a rule, and why.
+ALLOWED = {
+    ("avatar_core.body.model_paths", "avatar_core.synth.model_writer"):
+        "the resolver's last resort generates the synthetic family on first use; lazy, so "
+        "importing avatar_core.body never loads the studio",
+    ("avatar_core.cli", "server.cli"):
+        "`telesplat serve` is dispatched to the server's CLI by a lazy import",
+}
+# Circles closed only by lazy (function-level) imports, and why each stands. Remove an entry
+# when its circle goes; the module-level graph has none and gets none.
+KNOWN_LAZY_CYCLES: dict[frozenset[str], str] = {
+    frozenset({"avatar_core.body.model_paths", "avatar_core.synth.model_writer"}):
+        "the writer returns BodyModelFiles; the resolver calls the writer on first use",
+    frozenset({"avatar_core.render.rasterize", "avatar_core.render.rasterize_gsplat"}):
+        "issue 19: the render contract in one place removes it",
+}
+WEB_FRAMEWORKS = ("fastapi", "starlette", "uvicorn", "server", "client")
+
+
+@dataclass(frozen=True)
+class Import:
+    importer: str
+    target: str  # dotted name as written (resolved when relative); a module or a module.attr
+    line: int
+    module_level: bool
+
+
+def _module_name(path: Path) -> str:
+    parts = list(path.relative_to(ROOT).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+def _source_files() -> dict[str, Path]:
+    out = {}
+    for package in PACKAGES:
+        for path in sorted((ROOT / package).rglob("*.py")):
+            if "__pycache__" not in path.parts:
+                out[_module_name(path)] = path
+    return out
+
+
+MODULES = _source_files()
+
+
+def _resolve(importer: str, is_package: bool, level: int, module: str | None) -> str:
+    if level == 0:
+        return module or ""
+    base = importer.split(".") if is_package else importer.split(".")[:-1]
+    base = base[:len(base) - (level - 1)]
+    return ".".join([*base, module] if module else base)
+
+
+class _Collector(ast.NodeVisitor):
+    def __init__(self, name: str, is_package: bool) -> None:
+        self.name, self.is_package = name, is_package
+        self.depth = 0  # > 0 inside a function body
+        self.found: list[Import] = []
+
+    def _function(self, node: ast.AST) -> None:
+        self.depth += 1
+        self.generic_visit(node)
+        self.depth -= 1
+
+    visit_FunctionDef = visit_AsyncFunctionDef = visit_Lambda = _function
+
+    def visit_Import(self, node: ast.Import) -> None:
+        for alias in node.names:
+            self.found.append(Import(self.name, alias.name, node.lineno, self.depth == 0))
+
+    def visit_ImportFrom(self, node: ast.ImportFrom) -> None:
+        base = _resolve(self.name, self.is_package, node.level, node.module)
+        for alias in node.names:
+            target = base if alias.name == "*" else f"{base}.{alias.name}"
+            self.found.append(Import(self.name, target, node.lineno, self.depth == 0))
+
+
+def _imports() -> list[Import]:
+    out = []
+    for name, path in MODULES.items():
+        collector = _Collector(name, path.name == "__init__.py")
+        collector.visit(ast.parse(path.read_text(), filename=str(path)))
+        out.extend(collector.found)
+    return out
+
+
+IMPORTS = _imports()
+
+
+def _within(name: str, prefix: str) -> bool:
+    return name == prefix or name.startswith(prefix + ".")
+
+
+def _module_of(target: str) -> str | None:
+    """Our module that an import target names (`pkg.mod.attr` -> `pkg.mod`); None if not ours."""
+    parts = target.split(".")
+    for end in range(len(parts), 0, -1):  # bounded by the dotted name's length
+        if ".".join(parts[:end]) in MODULES:
+            return ".".join(parts[:end])
+    return None
+
+
+def _violations(importers, forbidden) -> list[str]:
+    out = []
+    for imp in IMPORTS:
+        if not importers(imp.importer) or not any(_within(imp.target, f) for f in forbidden):
+            continue
+        allowed = any(_within(imp.target, dst) for src, dst in ALLOWED if src == imp.importer)
+        if not allowed:
+            out.append(f"{imp.importer}:{imp.line} imports {imp.target}")
+    return out
+
+
+def _production(name: str) -> bool:
+    if _within(name, "server"):
+        return True
+    return (_within(name, "avatar_core") and not _within(name, STUDIO)
+            and name not in STUDIO_FRONT_ENDS)
+
+
+def test_the_rules_see_the_code():
+    # A scan that found nothing would pass every rule.
+    assert {"avatar_core.pipeline", "avatar_core.body.model_paths", "server.app",
+            "protocol.codec", "client.stream", "avatar_core.motion.library"} <= set(MODULES)
+    assert any(i.target == "avatar_core.synth.model_writer.ensure_models" and not i.module_level
+               for i in IMPORTS)  # function-level imports are seen
+
+
+def test_production_packages_do_not_import_the_studio():
+    assert _violations(_production, (STUDIO,)) == []
+
+
+def test_allowed_studio_imports_stay_lazy():
+    for imp in IMPORTS:
+        if (imp.importer, _module_of(imp.target)) in ALLOWED:
+            assert not imp.module_level, f"{imp.importer}:{imp.line} must import lazily"
+
+
+def test_protocol_imports_none_of_ours_nor_torch():
+    forbidden = ("avatar_core", "server", "client", "torch")
+    assert _violations(lambda n: _within(n, "protocol"), forbidden) == []
+
+
+def test_engine_imports_no_server_client_or_web_framework():
+    assert _violations(lambda n: _within(n, "avatar_core"), WEB_FRAMEWORKS) == []
+
+
+def test_client_imports_no_server():
+    assert _violations(lambda n: _within(n, "client"), ("server",)) == []
+
+
+def test_client_has_no_torch_at_import_time():
+    code = ("import sys, client, client.cli, client.stream, client.rest, client.images\n"
+            "assert 'torch' not in sys.modules, 'torch imported'\n"
+            "assert 'avatar_core' not in sys.modules, 'avatar_core imported'\n")
+    run = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,
+                         text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+
+
+def _module_graph(lazy: bool) -> dict[str, set[str]]:
+    """Module -> our modules it imports: at module level, and with `lazy` inside functions."""
+    graph: dict[str, set[str]] = {name: set() for name in MODULES}
+    for imp in IMPORTS:
+        target = _module_of(imp.target)
+        if (imp.module_level or lazy) and target is not None and target != imp.importer:
+            graph[imp.importer].add(target)
+    return graph
+
+
+def _cycles(graph: dict[str, set[str]]) -> set[frozenset[str]]:
+    """Strongly connected components of more than one module (Tarjan, iterative)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    found: set[frozenset[str]] = set()
+    for root in sorted(graph):
+        if root in index:
+            continue
+        work = [(root, iter(sorted(graph[root])))]
+        index[root] = low[root] = len(index)
+        stack.append(root)
+        on_stack.add(root)
+        while work:  # each module enters once, each edge is followed once
+            node, edges = work[-1]
+            nxt = next(edges, None)
+            if nxt is not None:
+                if nxt not in index:
+                    index[nxt] = low[nxt] = len(index)
+                    stack.append(nxt)
+                    on_stack.add(nxt)
+                    work.append((nxt, iter(sorted(graph[nxt]))))
+                elif nxt in on_stack:
+                    low[node] = min(low[node], index[nxt])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[node])
+            if low[node] == index[node]:
+                component = set()
+                while True:
+                    member = stack.pop()
+                    on_stack.discard(member)
+                    component.add(member)
+                    if member == node:
+                        break
+                if len(component) > 1:
+                    found.add(frozenset(component))
+    return found
+
+
+def test_cycle_finder_finds_a_cycle():
+    graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}
+    assert _cycles(graph) == {frozenset("abc")}
+    assert _cycles({"a": {"b"}, "b": set()}) == set()
+
+
+def test_no_import_cycle_between_modules():
+    cycles = [sorted(c) for c in _cycles(_module_graph(lazy=False))]
+    assert cycles == [], f"import cycles at module level: {cycles}"
+
+
+def test_no_new_cycle_through_lazy_imports():
+    new = [sorted(c) for c in _cycles(_module_graph(lazy=True)) - set(KNOWN_LAZY_CYCLES)]
+    assert new == [], f"import cycles through function-level imports: {new}"
