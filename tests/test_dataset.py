@@ -6,7 +6,6 @@ import argparse
 import json
 import os
 import threading
-import time
 from pathlib import Path
 
 import cv2
@@ -401,7 +400,24 @@ def test_all_problems_are_reported_together(tiny):
     assert "missing_image" in str(info.value) and "params_nonfinite" in str(info.value)
 
 
-def test_validation_of_17_cameras_by_100_frames_is_fast(tmp_path):
+def test_shallow_validation_reads_headers_and_decodes_nothing(tmp_path, monkeypatch):
+    """17 cameras x 100 frames: shallow validation reads each file's header and decodes no
+    image (what keeps it quick; `deep=True` decodes)."""
+    from avatar_core.dataset import validate_files
+
+    headers, decodes = [], []
+
+    def counted(fn, calls):
+        def wrapper(path, *args, **kwargs):
+            calls.append(path)
+            return fn(path, *args, **kwargs)
+        return wrapper
+
+    monkeypatch.setattr(validate_files, "read_header",
+                        counted(validate_files.read_header, headers))
+    for name in ("decode_rgb", "decode_gray"):
+        monkeypatch.setattr(validate_files, name, counted(getattr(validate_files, name),
+                                                          decodes))
     tiny = write_tiny_dataset(tmp_path / "big", num_cameras=17, frames=1, width=16, height=12)
     root = tiny.root
     for kind in ("images", "masks", "parts"):
@@ -412,11 +428,13 @@ def test_validation_of_17_cameras_by_100_frames_is_fast(tmp_path):
     _edit_params(root, lambda p: p.update({k: np.repeat(v, 100, axis=0) for k, v in p.items()
                                            if k != "betas"}))
     _edit_json(root / "dataset.json", lambda d: d["sequences"]["seq0"].update(num_frames=100))
-    start = time.perf_counter()
     problems = validate_dataset(root)
-    elapsed = time.perf_counter() - start
     assert problems == []
-    assert elapsed < 2.0, f"shallow validation of 5100 files took {elapsed:.2f} s"
+    assert decodes == []
+    files = 3 * len(tiny.cameras) * 100
+    assert len(set(headers)) == files
+    # The first frame of each camera and kind is read a second time (measured: 5151 reads).
+    assert len(headers) <= files + 3 * len(tiny.cameras)
 
 
 # -- command line ---------------------------------------------------------------------------
