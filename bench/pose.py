@@ -18,7 +18,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from avatar_core.gaussians.animate import AvatarAnimator, synthetic_package  # noqa: E402
-from avatar_core.gaussians.avatar import GaussianAvatar, pose_gaussians_torch  # noqa: E402
+from avatar_core.gaussians.avatar import GaussianAvatar, pose_gaussians  # noqa: E402
 from avatar_core.synth.model_writer import ensure_models  # noqa: E402
 
 
@@ -54,7 +54,7 @@ def main() -> None:
                 t0 = time.perf_counter()
                 posed = animator.pose(params)  # body model + kernel (cached constants)
                 t1 = time.perf_counter()
-                pose_gaussians_torch(animator.avatar, posed.vertices, faces)
+                pose_gaussians(animator.avatar, posed.vertices, faces, backend="torch")
                 t2 = time.perf_counter()
                 animator._gaussians(posed.vertices)
                 t3 = time.perf_counter()

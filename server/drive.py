@@ -1,7 +1,7 @@
 """A session's body-model state: partial ``drive`` updates merged per family, and the SMPL-X
 parameters they amount to, with FLAME (face) and MANO (hands) fused in.
 
-Fusion follows the trainer and the evaluator (``avatar_core.body.fusion.fuse``: world-frame
+Fusion goes through the trainer's and the evaluator's front door (``FusionModels.fuse``: world-frame
 head and wrist rotations) on the avatar's own upper-body model; MANO keys need the MANO model
 files next to the body model (the synthetic family has them).
 """
@@ -12,9 +12,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-import torch
 
-from avatar_core.body.fusion import fuse
+from avatar_core.body.fusion import FusionModels
 from avatar_core.body.models import MANOModel, SMPLXModel
 from protocol import Drive, ProtocolError
 from protocol.params import FAMILIES, FLAME_FIELDS
@@ -114,12 +113,6 @@ class DriveState:
         """SMPL-X parameters (no batch axis, or batch 1) with the face and hands fused in.
 
         Raises ValueError (ParameterError) when the parameters do not fit the model."""
-        body = dict(self.families["smplx"])
-        flame = self.families["flame"]
         hands = {side: self.families[f"mano_{side}"] for side in ("left", "right")}
-        if not flame and not any(hands.values()):
-            return body
-        with torch.no_grad():
-            fused = fuse(body, model, flame=flame or None, left_hand=hands["left"] or None,
-                         right_hand=hands["right"] or None, mano_models=manos)
-        return {k: v for k, v in fused.to_dict().items() if v is not None}
+        return FusionModels(model, manos).fuse(self.families["smplx"], self.families["flame"],
+                                               hands)

@@ -6,7 +6,14 @@ import torch
 
 from avatar_core.body import lbs
 from avatar_core.body.errors import ParameterError
-from avatar_core.body.fusion import fuse, fuse_flame, fuse_mano, mirror_axis_angle
+from avatar_core.body.fusion import (
+    FusionModels,
+    fuse,
+    fuse_flame,
+    fuse_mano,
+    fuse_sequence,
+    mirror_axis_angle,
+)
 from avatar_core.body.model_data import load_correspondence
 from avatar_core.body.models import FLAMEModel, MANOModel, SMPLXModel
 from avatar_core.body.skeleton import JOINT
@@ -131,3 +138,39 @@ def test_fuse_everything_and_reject_bad_calls(smplx_data, flame_data, mano_data,
         fuse_flame({}, {"jaw_pose": [np.nan, 0, 0]}, model)
     with pytest.raises(ParameterError, match="flame_model"):
         fuse_flame({}, {"shape": np.ones(10)}, model)
+
+
+def test_front_door_fuses_a_sequence_as_frame_by_frame(smplx_data, mano_data):
+    """fuse_sequence on params.npz arrays [T, ...] equals FusionModels.fuse one frame at a
+    time; nothing to fuse leaves the SMPL-X keys as they are; strict refuses what it cannot
+    fuse, lenient drops a FLAME shape with a warning."""
+    rng = np.random.default_rng(3)
+    models = FusionModels(SMPLXModel(smplx_data, **F64),
+                          {"left": MANOModel(mano_data["left"], **F64)})
+    t = 3
+    params = {"betas": rng.normal(0, 1, 10), "body_pose": rng.normal(0, 0.2, (t, 21, 3)),
+              "flame_expr": rng.normal(0, 1, (t, 10)), "flame_jaw_pose": rng.normal(0, .2, (t, 3)),
+              "flame_rotation": rng.normal(0, .2, (t, 3)),
+              "mano_left_hand_pose": rng.normal(0, .3, (t, 15, 3)),
+              "mano_left_global_orient": rng.normal(0, .3, (t, 3))}
+    seq, fused = fuse_sequence(params, t, models)
+    assert fused and seq["body_pose"].shape == (t, 21, 3) and seq["betas"].shape == (t, 10)
+    for f in range(t):
+        one = models.fuse({"betas": params["betas"], "body_pose": params["body_pose"][f]},
+                          {k[6:]: params[k][f] for k in params if k.startswith("flame_")},
+                          {"left": {k[10:]: params[k][f] for k in params
+                                    if k.startswith("mano_left_")}})
+        for k, v in one.items():
+            np.testing.assert_allclose(seq[k][f], v.numpy().reshape(seq[k][f].shape), atol=1e-12)
+    plain, fused = fuse_sequence(params, t, None)
+    assert not fused and set(plain) == {"betas", "body_pose"}
+    np.testing.assert_array_equal(plain["body_pose"], params["body_pose"])
+    assert models.fuse({"betas": params["betas"]}, {}, {"left": {}}) == {"betas": params["betas"]}
+    right = {**params, "mano_right_hand_pose": params["mano_left_hand_pose"]}
+    with pytest.raises(ParameterError, match="MANO"):
+        fuse_sequence(right, t, models, strict=True)
+    shaped = {**params, "flame_shape": np.ones(10)}
+    with pytest.raises(ParameterError, match="FLAME model"):
+        fuse_sequence(shaped, t, models, strict=True)
+    lenient, _ = fuse_sequence(shaped, t, models)
+    np.testing.assert_allclose(lenient["expression"], seq["expression"])

@@ -16,6 +16,7 @@ from scipy.ndimage import binary_dilation
 from avatar_core.cli import main
 from avatar_core.dataset import load_dataset
 from avatar_core.gaussians.avatar import GaussianAvatar, to_world
+from avatar_core.gaussians.binding import FaceFrames
 from avatar_core.gaussians.frames import triangle_frames
 from avatar_core.metrics.image import photometric_loss, psnr
 from avatar_core.pipeline import load_avatar, render_frames
@@ -38,7 +39,7 @@ from avatar_core.train.data import loss_weights, prepare_view, subject_box
 from avatar_core.train.density import screen_visibility
 from avatar_core.train.optim import GAUSSIAN_KEYS, avatar_state
 from avatar_core.train.photometric import photometric_loss_fast
-from avatar_core.train.posing import FaceFrames, world_gaussians
+from avatar_core.train.posing import world_gaussians
 from avatar_core.train.trainer import Trainer, visibility
 
 # Measured on the 64 px capture below (300 iterations, test preset, CPU): novel-view PSNR

@@ -37,17 +37,26 @@ MANO -> SMPL-X.
   wrist's world rotation equals it; "local" uses it as the wrist's local rotation; "keep"
   keeps the body's wrist.
 - `betas` and `transl` are ignored: SMPL-X's body shape defines its hands, and the arm places them.
+
+The front door. :class:`FusionModels` bundles the models fusion needs, built once by the caller
+(trainer, evaluator, streaming session); ``models.fuse(body, flame, hands)`` fuses one parameter
+set (one frame or a batch), :func:`fuse_sequence` a sequence's ``params.npz`` arrays (SMPL-X
+keys, FLAME keys prefixed ``flame_``, MANO keys ``mano_left_`` / ``mano_right_``).
 """
 
 from __future__ import annotations
 
+import logging
 import warnings
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import torch
 from torch import Tensor
 
+from ..dataset.params import frame_slice
 from . import lbs
 from .errors import ParameterError
 from .models import FLAMEModel, MANOModel, SMPLXModel
@@ -56,6 +65,13 @@ from .skeleton import JOINT
 
 _FACE_JOINTS = (JOINT["head"], JOINT["jaw"], JOINT["left_eye_smplhf"], JOINT["right_eye_smplhf"])
 _MODES = ("world", "local", "keep")
+
+log = logging.getLogger(__name__)
+
+SMPLX_KEYS = ("betas", "expression", "global_orient", "body_pose", "jaw_pose", "leye_pose",
+              "reye_pose", "left_hand_pose", "right_hand_pose", "transl", "vertex_offsets")
+# FLAME keys fusion uses; static/dynamic offsets (VHAP) have no SMPL-X counterpart here.
+FLAME_FUSED = ("shape", "expr", "rotation", "neck_pose", "jaw_pose", "eyes_pose", "translation")
 
 _MIRROR = torch.tensor([1.0, -1.0, -1.0])
 
@@ -226,3 +242,76 @@ def fuse(body: SMPLXParams | dict[str, Any], model: SMPLXModel, *,
             out = fuse_mano(out, hand, model, side=side,
                             mano_model=(mano_models or {}).get(side), wrist=wrist)
     return out
+
+
+# -- the front door -----------------------------------------------------------------------
+
+
+@dataclass
+class FusionModels:
+    """What fusion needs: the SMPL-X model (full hand poses: ``hand_pca=None``; float64 for
+    accuracy where the caller can afford it), the MANO models per side and, for a FLAME shape,
+    FLAME and its SMPL-X vertex correspondence."""
+
+    smplx: SMPLXModel
+    mano: dict[str, MANOModel] = field(default_factory=dict)
+    flame: FLAMEModel | None = None
+    correspondence: np.ndarray | None = None
+
+    def fuse(self, body: Mapping[str, Any], flame: Mapping[str, Any] | None = None,
+             hands: Mapping[str, Mapping[str, Any] | None] | None = None) -> dict[str, Any]:
+        """SMPL-X parameters (one frame or a batch) with the face and hands fused in, world-frame
+        head and wrists, no gradient; ``body`` as it is when there is nothing to fuse. ``hands``:
+        {side: MANO parameters}. None values are left out of the result."""
+        hands = {side: h for side, h in (hands or {}).items() if h}
+        if not flame and not hands:
+            return dict(body)
+        with torch.no_grad():
+            fused = fuse(dict(body), self.smplx, flame=flame or None, flame_model=self.flame,
+                         correspondence=self.correspondence, left_hand=hands.get("left"),
+                         right_hand=hands.get("right"), mano_models=self.mano)
+        return {k: v for k, v in fused.to_dict().items() if v is not None}
+
+
+def split_tracker_keys(params: Mapping[str, np.ndarray]
+                       ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray],
+                                  dict[str, dict[str, np.ndarray]]]:
+    """(SMPL-X keys, FLAME keys without ``flame_``, {side: MANO keys without
+    ``mano_<side>_``}); other keys are dropped."""
+    body = {k: v for k, v in params.items() if k in SMPLX_KEYS}
+    flame = {k[len("flame_"):]: v for k, v in params.items() if k.startswith("flame_")}
+    hands = {s: {k[len(f"mano_{s}_"):]: v for k, v in params.items()
+                 if k.startswith(f"mano_{s}_")} for s in ("left", "right")}
+    return body, flame, hands
+
+
+def per_frame(params: Mapping[str, np.ndarray], num_frames: int) -> dict[str, np.ndarray]:
+    """Every array [T, ...]: shared ones (betas [B], offsets [V, 3]) repeated per frame."""
+    frames = [frame_slice(params, f) for f in range(num_frames)]
+    return {k: np.stack([np.asarray(fr[k]) for fr in frames]) for k in params}
+
+
+def fuse_sequence(params: Mapping[str, np.ndarray], num_frames: int,
+                  models: FusionModels | None, *, strict: bool = False
+                  ) -> tuple[dict[str, np.ndarray], bool]:
+    """float64 SMPL-X arrays [T, ...] of one sequence's ``params.npz`` arrays, fused with its
+    FLAME/MANO keys when ``models`` is given and they exist (else its SMPL-X keys as they are),
+    and whether it was fused. A FLAME shape without a FLAME model is dropped with a warning,
+    or, ``strict``, raises ParameterError, as MANO keys without that side's MANO model do."""
+    body, flame, hands = split_tracker_keys(per_frame(params, num_frames))
+    flame = {k: v for k, v in flame.items() if k in FLAME_FUSED}
+    hands = {side: h for side, h in hands.items() if h}
+    fused = models is not None and bool(flame or hands)
+    if fused:
+        if "shape" in flame and models.flame is None:
+            if strict:
+                raise ParameterError("fusing a FLAME shape needs the FLAME model")
+            log.warning("fusion: no FLAME model given, the FLAME shape is ignored")
+            flame.pop("shape")
+        if strict and set(hands) - set(models.mano):
+            raise ParameterError("fusing MANO hand poses needs the MANO models")
+        body = {k: v.detach().cpu().numpy() if isinstance(v, Tensor) else np.asarray(v)
+                for k, v in models.fuse(body, flame, hands).items()}
+    return {k: np.array(np.broadcast_to(np.asarray(v, dtype=np.float64),
+                                        (num_frames, *np.shape(v)[1:])))
+            for k, v in body.items()}, fused

@@ -21,9 +21,9 @@ from ..body.model_paths import BodyModelFiles
 from ..body.params import SMPLXParams
 from ..body.upper_body import UpperBodyModel, load_segmentation
 from ..render.types import GaussianSet
-from .avatar import GaussianAvatar, pose_gaussians_torch, posing_tensors
+from .avatar import GaussianAvatar, pose_gaussians
+from .binding import bind_gaussians_numba, can_use_numba
 from .package import AvatarPackage, BodyReference, faces_fingerprint
-from .pose_cpu import can_use_kernel, pose_gaussians_cpu
 
 
 @dataclass
@@ -78,11 +78,13 @@ class AvatarAnimator:
 
     def _gaussians(self, vertices: Tensor) -> GaussianSet:
         a, faces = self.avatar, self.body_model.faces
-        if not can_use_kernel(posing_tensors(a), vertices, faces):
-            return pose_gaussians_torch(a, vertices, faces)  # autograd or CUDA: the reference
+        if not can_use_numba((a.parents, a.local_means, a.log_scales, a.quats,
+                              a.opacity_logits), vertices, faces):
+            return pose_gaussians(a, vertices, faces, backend="torch")  # autograd or CUDA
         scales, opacities = self._scales_opacities()
-        return pose_gaussians_cpu(a.parents, a.local_means, scales, a.quats, opacities, a.sh,
-                                  vertices, faces)
+        means, quats, scales = bind_gaussians_numba(vertices, faces, a.parents, a.local_means,
+                                                    a.quats, scales)
+        return GaussianSet(means=means, quats=quats, scales=scales, opacities=opacities, sh=a.sh)
 
     def pose(self, params: SMPLXParams | dict[str, Any] | None = None) -> PosedAvatar:
         raw = params.to_dict() if isinstance(params, SMPLXParams) else dict(params or {})

@@ -2,8 +2,8 @@
 
 Each Gaussian has a parent triangle, a local mean, a log-scale, a unit quaternion (w, x, y, z),
 an opacity logit and SH coefficients (degree 0-3). World space is derived every frame from the
-triangle frames (R, T, k) of the posed mesh: mean' = k R mean + T, rotation' = R rotation,
-scale' = k scale. It is never stored, except by the .ply export.
+triangle frames (R, T, k) of the posed mesh (``binding``): mean' = k R mean + T,
+rotation' = R rotation, scale' = k scale. It is never stored, except by the .ply export.
 """
 
 from __future__ import annotations
@@ -16,9 +16,7 @@ from torch import Tensor
 
 from ..render.sh import rgb_to_sh0, sh_degree_from_bases
 from ..render.types import GaussianSet
-from ..rotations import matrix_to_quaternion, quaternion_multiply
-from .frames import triangle_frames
-from .pose_cpu import can_use_kernel, pose_gaussians_cpu
+from .binding import FaceFrames, bind_gaussians, bind_gaussians_torch
 
 # A fresh Gaussian is a thin disc on its triangle: in-plane sigma 0.4 k, 0.05 k along the normal.
 INIT_LOCAL_SCALE = (0.4, 0.4, 0.05)
@@ -113,35 +111,24 @@ def sample_texture(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
 
 
 def to_world(avatar: GaussianAvatar, rot: Tensor, trans: Tensor, scale: Tensor) -> GaussianSet:
-    """World-space Gaussians from triangle frames rot [F, 3, 3], trans [F, 3], scale [F]."""
-    r, t, k = rot[avatar.parents], trans[avatar.parents], scale[avatar.parents]  # per Gaussian
-    means = k[:, None] * (r @ avatar.local_means[..., None])[..., 0] + t  # [N, 3]
-    quats = quaternion_multiply(matrix_to_quaternion(r), avatar.quats)
-    return GaussianSet(means=means, quats=quats, scales=k[:, None] * torch.exp(avatar.log_scales),
+    """World-space Gaussians from triangle frames rot [F, 3, 3], trans [F, 3], scale [F]
+    (binding's torch reference)."""
+    world = bind_gaussians_torch(FaceFrames.of_frames(rot, trans, scale), avatar.parents,
+                                 avatar.local_means, avatar.quats, torch.exp(avatar.log_scales))
+    return _gaussian_set(avatar, *world)
+
+
+def pose_gaussians(avatar: GaussianAvatar, vertices: Tensor, faces: Tensor, *,
+                   backend: str = "auto") -> GaussianSet:
+    """World-space Gaussians on a posed mesh. vertices [V, 3], faces [F, 3]; ``backend`` as
+    :func:`binding.bind_gaussians` ("auto": the numba twin on the CPU without gradients, else
+    the differentiable torch reference)."""
+    world = bind_gaussians(vertices, faces, avatar.parents, avatar.local_means, avatar.quats,
+                           torch.exp(avatar.log_scales), backend=backend)
+    return _gaussian_set(avatar, *world)
+
+
+def _gaussian_set(avatar: GaussianAvatar, means: Tensor, quats: Tensor, scales: Tensor
+                  ) -> GaussianSet:
+    return GaussianSet(means=means, quats=quats, scales=scales,
                        opacities=torch.sigmoid(avatar.opacity_logits), sh=avatar.sh)
-
-
-def pose_gaussians(avatar: GaussianAvatar, vertices: Tensor, faces: Tensor) -> GaussianSet:
-    """World-space Gaussians on a posed mesh. vertices [V, 3], faces [F, 3].
-
-    On the CPU with no gradient asked for, the numba twin (`pose_cpu`) computes the same thing;
-    otherwise (autograd, CUDA) the torch reference below does.
-    """
-    if can_use_kernel(posing_tensors(avatar), vertices, faces):
-        return pose_gaussians_cpu(avatar.parents, avatar.local_means, torch.exp(avatar.log_scales),
-                                  avatar.quats, torch.sigmoid(avatar.opacity_logits), avatar.sh,
-                                  vertices, faces)
-    return pose_gaussians_torch(avatar, vertices, faces)
-
-
-def posing_tensors(avatar: GaussianAvatar) -> tuple[Tensor, ...]:
-    """The avatar tensors that posing reads (sh is passed through)."""
-    return (avatar.parents, avatar.local_means, avatar.log_scales, avatar.quats,
-            avatar.opacity_logits)
-
-
-def pose_gaussians_torch(avatar: GaussianAvatar, vertices: Tensor, faces: Tensor
-                         ) -> GaussianSet:
-    """The reference (differentiable, any device) of `pose_gaussians`."""
-    rot, trans, scale = triangle_frames(vertices, faces)
-    return to_world(avatar, rot, trans, scale)

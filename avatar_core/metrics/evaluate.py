@@ -9,8 +9,8 @@ Protocols (``telesplat eval --protocol``) and the split each reads (docs/dataset
   is computed; image metrics and TJE are null with the reason in ``notes``.
 
 Parameters. A frame's parameters are the dataset's SMPL-X keys, fused with its FLAME and MANO
-keys (``avatar_core.body.fusion.fuse``, world-frame head and wrists) when ``fusion`` is on and
-those keys exist; with ``fusion=False`` the SMPL-X keys drive the avatar as they are (the
+keys (``avatar_core.body.fusion.fuse_sequence``, world-frame head and wrists) when ``fusion``
+is on and those keys exist; with ``fusion=False`` the SMPL-X keys drive the avatar as they are (the
 no-fusion ablation). For novel-view and self-reenactment the dataset's betas are used (same
 subject); they are checked against the package's and a mismatch is warned about.
 
@@ -47,11 +47,11 @@ import cv2
 import numpy as np
 import torch
 
-from ..body.fusion import fuse
-from ..body.models import BodyOutput, MANOModel, SMPLXModel
+from ..body.fusion import FusionModels, fuse_sequence
+from ..body.models import BodyOutput
 from ..dataset import Dataset, View, ViewKey, load_dataset
 from ..dataset.preview import write_png
-from ..pipeline import LoadedAvatar, load_avatar, mano_models
+from ..gaussians.loading import LoadedAvatar, load_avatar, mano_models
 from ..render.camera import Camera
 from ..render.rasterize import rasterize
 from ..render.types import RenderRequest
@@ -62,7 +62,7 @@ from .report import PROTOCOLS, EvalResult, side_by_side, write_result
 from .temporal import tje
 
 __all__ = ["EvalResult", "PROTOCOLS", "blank_excluded", "estimate_background", "evaluate",
-           "evaluation_mask", "protocol_split", "sequence_params", "split_trackers"]
+           "evaluation_mask", "protocol_split"]
 
 Progress = Callable[[int, int], None]
 IMAGE_KEYS = ("l1", "psnr", "ssim", "lpips")
@@ -174,52 +174,6 @@ def image_scores(render: np.ndarray, gt: np.ndarray, keep: np.ndarray,
 # -- parameters ----------------------------------------------------------------------------
 
 
-def split_trackers(params: Mapping[str, np.ndarray]
-                   ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray],
-                              dict[str, dict[str, np.ndarray]]]:
-    """params.npz arrays -> (SMPL-X keys, FLAME keys without ``flame_``, {side: MANO keys});
-    arrays are copied (the dataset's are read-only)."""
-    body = {k: np.array(v) for k, v in params.items() if not k.startswith(("flame_", "mano_"))}
-    flame = {k[6:]: np.array(v) for k, v in params.items() if k.startswith("flame_")}
-    hands = {}
-    for side in ("left", "right"):
-        prefix = f"mano_{side}_"
-        hand = {k[len(prefix):]: np.array(v) for k, v in params.items() if k.startswith(prefix)}
-        if hand:
-            hands[side] = hand
-    return body, flame, hands
-
-
-def _per_frame(params: Mapping[str, Any], num_frames: int) -> dict[str, np.ndarray]:
-    """float64 arrays with a leading frame axis; shared betas / offsets are broadcast."""
-    out = {}
-    for k, v in params.items():
-        a = np.asarray(v.detach().cpu() if isinstance(v, torch.Tensor) else v, dtype=np.float64)
-        if (k == "betas" and a.ndim == 1) or (k == "vertex_offsets" and a.ndim == 2):
-            a = np.repeat(a[None], num_frames, axis=0)
-        out[k] = a
-    return out
-
-
-def sequence_params(params: Mapping[str, np.ndarray], model: SMPLXModel, num_frames: int, *,
-                    fusion: bool, mano_models: Mapping[str, MANOModel] | None = None
-                    ) -> tuple[dict[str, np.ndarray], bool]:
-    """SMPL-X arrays ``[T, ...]`` of a sequence: fused with its FLAME / MANO keys when
-    ``fusion`` and they exist, else its SMPL-X keys. Returns (params, whether fused)."""
-    body, flame, hands = split_trackers(params)
-    if not fusion or not (flame or hands):
-        return _per_frame(body, num_frames), False
-    if "shape" in flame:
-        raise ValueError("fusing a FLAME shape needs the FLAME model: not supported here")
-    if set(hands) - set(mano_models or {}):
-        raise ValueError("fusing MANO hand poses needs the MANO models")
-    with torch.no_grad():
-        fused = fuse(body, model, flame=flame or None, left_hand=hands.get("left"),
-                     right_hand=hands.get("right"), mano_models=dict(mano_models or {}))
-    values = {k: v for k, v in fused.to_dict().items() if v is not None}
-    return _per_frame(values, num_frames), True
-
-
 def _rows(params: Mapping[str, np.ndarray], rows: Sequence[int]) -> dict[str, np.ndarray]:
     return {k: v[list(rows)] for k, v in params.items()}
 
@@ -291,7 +245,7 @@ class _Run:
     size: int | None
     request: RenderRequest
     lpips_fn: Callable[..., torch.Tensor] | None
-    mano_models: dict[str, MANOModel]
+    fusion_models: FusionModels       # the avatar's body model and its MANO models
     warnings: list[str]
 
     @property
@@ -317,10 +271,9 @@ def _sequence_data(run: _Run, seq: str, frames: list[int]) -> _SequenceData:
     _check_betas(run, seq, raw)
     model = run.loaded.animator.body_model
     n = run.src.sequences[seq]
-    truth_all, fused = sequence_params(raw, model, n, fusion=True, mano_models=run.mano_models)
+    truth_all, fused = fuse_sequence(raw, n, run.fusion_models, strict=True)
     truth = _rows(truth_all, frames)
-    driven = truth if run.fusion else _rows(sequence_params(raw, model, n, fusion=False)[0],
-                                            frames)
+    driven = truth if run.fusion else _rows(fuse_sequence(raw, n, None)[0], frames)
     if run.cross:  # this avatar's body, the driver's motion
         betas = np.repeat(run.avatar_betas[None], len(frames), axis=0)  # [F, B]
         driven = {**driven, "betas": betas}
@@ -409,7 +362,7 @@ def evaluate(avatar: str | Path | LoadedAvatar, dataset: str | Path | Dataset, p
     run = _Run(loaded, src, cross, fusion, frame_stride, size,
                RenderRequest(background=estimate_background(first), budget=budget),
                None if cross or lpips_reason else lpips_metric(),
-               mano_models(loaded), [])
+               FusionModels(loaded.animator.body_model, mano_models(loaded)), [])
     mismatch = _seed_mismatch(ds.meta["body_model"].get("source", ""), loaded.package.body.model)
     if mismatch:
         _warn(mismatch, run.warnings)

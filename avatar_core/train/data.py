@@ -22,9 +22,10 @@ LRU cache (decoding three PNGs costs as much as a training step at 512 x 512):
   covers them. A view with no weighted foreground is used whole.
 
 Per-frame parameters are the SMPL-X keys of ``params.npz``. With ``fusion`` and FLAME/MANO
-keys present, each sequence is fused once up front (:func:`avatar_core.body.fusion.fuse` on a
-float64 copy of the model: the body tracker's face and hands replaced by the face and hand
-trackers'), else the SMPL-X keys are used as they are.
+keys present, each sequence is fused once up front
+(:func:`avatar_core.body.fusion.fuse_sequence` on a float64 copy of the model: the body
+tracker's face and hands replaced by the face and hand trackers'), else the SMPL-X keys are
+used as they are.
 """
 
 from __future__ import annotations
@@ -39,21 +40,15 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..body.fusion import fuse
-from ..body.models import FLAMEModel, MANOModel, SMPLXModel
+from ..body.fusion import FusionModels, fuse_sequence
 from ..dataset.loader import Dataset, View, ViewKey
-from ..dataset.params import frame_slice
 from ..render.camera import Camera
 from .config import DataConfig
 
-__all__ = ["FusionModels", "TrainView", "TrainingViews", "composite", "loss_weights",
-           "per_frame", "prepare_view", "sequence_params", "split_tracker_keys", "subject_box",
-           "training_size"]
+__all__ = ["TrainView", "TrainingViews", "composite", "loss_weights", "prepare_view",
+           "sequence_params", "subject_box", "training_size"]
 
 log = logging.getLogger(__name__)
-
-SMPLX_KEYS = ("betas", "expression", "global_orient", "body_pose", "jaw_pose", "leye_pose",
-              "reye_pose", "left_hand_pose", "right_hand_pose", "transl", "vertex_offsets")
 
 
 # -- one view -----------------------------------------------------------------------------
@@ -181,58 +176,8 @@ class TrainingViews:
 # -- per-frame parameters -----------------------------------------------------------------
 
 
-@dataclass
-class FusionModels:
-    """What fusion needs: the SMPL-X model (full hand poses: ``hand_pca=None``; float64 for
-    accuracy), the MANO models per side and, for a FLAME shape, FLAME and its SMPL-X vertex
-    correspondence."""
-
-    smplx: SMPLXModel
-    mano: dict[str, MANOModel]
-    flame: FLAMEModel | None = None
-    correspondence: np.ndarray | None = None
-
-
-def split_tracker_keys(params: Mapping[str, np.ndarray]
-                       ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray],
-                                  dict[str, dict[str, np.ndarray]]]:
-    """(SMPL-X keys, FLAME keys without ``flame_``, {side: MANO keys without
-    ``mano_<side>_``}); other keys are dropped."""
-    body = {k: v for k, v in params.items() if k in SMPLX_KEYS}
-    flame = {k[len("flame_"):]: v for k, v in params.items() if k.startswith("flame_")}
-    hands = {s: {k[len(f"mano_{s}_"):]: v for k, v in params.items()
-                 if k.startswith(f"mano_{s}_")} for s in ("left", "right")}
-    return body, flame, hands
-
-
-# FLAME keys fusion uses; static/dynamic offsets (VHAP) have no SMPL-X counterpart here.
-_FLAME_FUSED = ("shape", "expr", "rotation", "neck_pose", "jaw_pose", "eyes_pose",
-                "translation")
-
-
-def per_frame(params: Mapping[str, np.ndarray], num_frames: int) -> dict[str, np.ndarray]:
-    """Every array [T, ...]: shared ones (betas [B], offsets [V, 3]) repeated per frame."""
-    frames = [frame_slice(params, f) for f in range(num_frames)]
-    return {k: np.stack([np.asarray(fr[k]) for fr in frames]) for k in params}
-
-
 def sequence_params(params: Mapping[str, np.ndarray], num_frames: int, *,
                     fusion: FusionModels | None = None) -> dict[str, np.ndarray]:
     """float64 SMPL-X arrays [T, ...] of one sequence, fused with its FLAME/MANO keys when
-    ``fusion`` is given and they exist; other keys are dropped."""
-    body, flame, hands = split_tracker_keys(per_frame(params, num_frames))
-    flame = {k: v for k, v in flame.items() if k in _FLAME_FUSED}
-    if fusion is not None and (flame or any(hands.values())):
-        if "shape" in flame and fusion.flame is None:
-            log.warning("fusion: no FLAME model given, the FLAME shape is ignored")
-            flame.pop("shape")
-        with torch.no_grad():
-            fused = fuse(body, fusion.smplx, flame=flame or None, flame_model=fusion.flame,
-                         correspondence=fusion.correspondence,
-                         left_hand=hands["left"] or None, right_hand=hands["right"] or None,
-                         mano_models=fusion.mano)
-        body = {k: v.detach().cpu().numpy() if isinstance(v, Tensor) else np.asarray(v)
-                for k, v in fused.to_dict().items()}
-    return {k: np.array(np.broadcast_to(np.asarray(v, dtype=np.float64),
-                                        (num_frames, *np.shape(v)[1:])))
-            for k, v in body.items()}
+    ``fusion`` is given and they exist (:func:`avatar_core.body.fusion.fuse_sequence`)."""
+    return fuse_sequence(params, num_frames, fusion)[0]

@@ -20,17 +20,16 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..body.fusion import FusionModels
 from ..body.model_data import ModelData, load_flame, load_mano, load_smplx
 from ..body.model_paths import BodyModelFiles, synthetic_body_models
 from ..body.models import FLAMEModel, MANOModel
 from ..body.upper_body import UpperBodyModel, load_segmentation
 from ..dataset.loader import View
-from ..gaussians.frames import triangle_frames
+from ..gaussians.binding import FaceFrames, bind_gaussians_torch
 from ..render.types import GaussianSet
-from ..rotations import matrix_to_quaternion, quaternion_multiply
-from .data import FusionModels
 
-__all__ = ["BodySetup", "FaceFrames", "face_part_ids", "fine_tune_deltas",
+__all__ = ["BodySetup", "face_part_ids", "fine_tune_deltas",
            "frame_inputs", "fusion_models", "project_face_colors", "resolve_body",
            "world_gaussians"]
 
@@ -172,45 +171,16 @@ def project_face_colors(vertices: np.ndarray, faces: np.ndarray, face_parts: np.
 # -- world Gaussians ----------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class FaceFrames:
-    """Per-triangle frames of a posed mesh (``triangle_frames``) and their quaternions."""
-
-    rot: Tensor    # [F, 3, 3]
-    quat: Tensor   # [F, 4] (w, x, y, z), w >= 0
-    trans: Tensor  # [F, 3]
-    scale: Tensor  # [F]
-
-    @classmethod
-    def of_mesh(cls, vertices: Tensor, faces: Tensor) -> FaceFrames:
-        """Frames of ``vertices`` [V, 3] on ``faces`` [F, 3]. The corners are gathered with
-        ``index_select`` into a triangle soup first: the backward of ``vertices[idx]`` with
-        repeated indices (inside ``triangle_frames``) accumulates in a thread-dependent
-        order on the CPU, index_select's does not, so fine-tuning stays bit-reproducible."""
-        soup = torch.index_select(vertices, 0, faces.reshape(-1))  # [3F, 3]
-        corners = torch.arange(soup.shape[0], device=faces.device).view(-1, 3)
-        rot, trans, scale = triangle_frames(soup, corners)
-        return cls(rot, matrix_to_quaternion(rot), trans, scale)
-
-
 def world_gaussians(state: Mapping[str, Tensor], frames: FaceFrames,
                     sh_degree: int | None = None) -> GaussianSet:
-    """World-space Gaussians of a training state (``avatar_state``'s leaves): the maths of
-    :func:`avatar_core.gaussians.avatar.to_world`, with the face quaternions computed once
-    per triangle (not per Gaussian), and only the SH bands up
-    to ``sh_degree`` (None: all) so the unused ones cost nothing."""
-    p = state["parents"]
-
-    def take(x: Tensor) -> Tensor:  # x[p], with a reproducible backward (see of_mesh)
-        return torch.index_select(x, 0, p)
-
-    r, t, k = take(frames.rot), take(frames.trans), take(frames.scale)  # [N, 3, 3], [N, 3], [N]
-    local = (r * state["local_means"][:, None, :]).sum(-1)  # [N, 3] = R mean
+    """World-space Gaussians of a training state (``avatar_state``'s leaves), bound by the
+    differentiable :func:`avatar_core.gaussians.binding.bind_gaussians_torch`, with only the SH
+    bands up to ``sh_degree`` (None: all) so the unused ones cost nothing."""
+    means, quats, scales = bind_gaussians_torch(frames, state["parents"], state["local_means"],
+                                                state["quats"], torch.exp(state["log_scales"]))
     rest = state["sh_rest"]
     if sh_degree is not None:
         rest = rest[:, :(sh_degree + 1) ** 2 - 1]
     sh = torch.cat([state["sh0"], rest], 1) if rest.shape[1] else state["sh0"]
-    return GaussianSet(means=k[:, None] * local + t,
-                       quats=quaternion_multiply(take(frames.quat), state["quats"]),
-                       scales=k[:, None] * torch.exp(state["log_scales"]),
+    return GaussianSet(means=means, quats=quats, scales=scales,
                        opacities=torch.sigmoid(state["opacity_logits"]), sh=sh)

@@ -1,35 +1,94 @@
-"""Forward-only numba twin of :func:`avatar.pose_gaussians` (triangle frames -> world Gaussians).
+"""Binding: the triangle frames of a posed mesh carry the Gaussians into world space.
 
-Used when no gradient is needed and everything is on the CPU (streaming): the torch version
-spends its time in per-op overhead on dozens of small elementwise ops and computes each face's
-quaternion once per Gaussian; this runs one parallel loop over the faces (frame R, T, k and the
-rotation's quaternion, once per face) and one over the Gaussians. The formulas are those of
-:func:`frames.triangle_frames`, :func:`rotations.matrix_to_quaternion` and
-:func:`rotations.quaternion_multiply`, with the same degenerate-triangle fallbacks, the same
-comparisons (a NaN fails every `>` test and so takes the fallback, as in `torch.where`), NaN
-propagated through the k floor as `clamp` does, and NaN winning `argmax`/`argmin` as in torch.
+Each Gaussian lives in its parent triangle's frame (R, T, k) (:func:`frames.triangle_frames`):
 
-Arithmetic is float64 inside, the output has the input dtype. In float64 the result equals the
-torch reference to rounding (~1e-15). In float32 it equals it to float32 rounding (~1e-7) except
-where float32 itself breaks down in the reference: squared edge or cross-product lengths that
-overflow float32 (triangles over ~1e9 in size) or nearly collinear corners whose normal float32
-rounding decides; there this kernel gives the float64 answer. The torch path remains the
-reference and carries the gradients.
+    mean'  = k R mean + T      # [N, 3]
+    quat'  = q(R) * quat       # [N, 4] (w, x, y, z)
+    scale' = k scale           # [N, 3]
+
+One entry point, :func:`bind_gaussians`, dispatches between two twins that compute the same
+thing: :func:`bind_gaussians_torch`, the reference (differentiable, any device: training and
+CUDA), and :func:`bind_gaussians_numba`, forward-only on the CPU (streaming). The torch version
+spends its time in per-op overhead on dozens of small elementwise ops; the numba twin runs one
+parallel loop over the faces (frame R, T, k and the rotation's quaternion, once per face) and
+one over the Gaussians. Its formulas are those of :func:`frames.triangle_frames`,
+:func:`rotations.matrix_to_quaternion` and :func:`rotations.quaternion_multiply`, with the same
+degenerate-triangle fallbacks, the same comparisons (a NaN fails every `>` test and so takes the
+fallback, as in `torch.where`), NaN propagated through the k floor as `clamp` does, and NaN
+winning `argmax`/`argmin` as in torch.
+
+The numba twin computes in float64 inside, the output has the input dtype. In float64 it equals
+the torch reference to rounding (~1e-15). In float32 it equals it to float32 rounding (~1e-7)
+except where float32 itself breaks down in the reference: squared edge or cross-product lengths
+that overflow float32 (triangles over ~1e9 in size) or nearly collinear corners whose normal
+float32 rounding decides; there the twin gives the float64 answer.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 from numba import njit, prange
 from torch import Tensor
 
-from ..render.types import GaussianSet
-from .frames import COLLINEAR_SIN, MIN_SCALE
+from ..rotations import matrix_to_quaternion, quaternion_multiply
+from .frames import COLLINEAR_SIN, MIN_SCALE, triangle_frames
 
-__all__ = ["pose_gaussians_np", "pose_gaussians_cpu", "can_use_kernel"]
+__all__ = ["BACKENDS", "FaceFrames", "bind_gaussians", "bind_gaussians_np",
+           "bind_gaussians_numba", "bind_gaussians_torch", "can_use_numba"]
+
+BACKENDS = ("auto", "torch", "numba")
+
+
+# -- the torch reference ------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class FaceFrames:
+    """Per-triangle frames of a posed mesh (``triangle_frames``) and their quaternions."""
+
+    rot: Tensor    # [F, 3, 3]
+    quat: Tensor   # [F, 4] (w, x, y, z), w >= 0
+    trans: Tensor  # [F, 3]
+    scale: Tensor  # [F]
+
+    @classmethod
+    def of_mesh(cls, vertices: Tensor, faces: Tensor) -> FaceFrames:
+        """Frames of ``vertices`` [V, 3] on ``faces`` [F, 3]. The corners are gathered with
+        ``index_select`` into a triangle soup first: the backward of ``vertices[idx]`` with
+        repeated indices (inside ``triangle_frames``) accumulates in a thread-dependent
+        order on the CPU, index_select's does not, so fine-tuning stays bit-reproducible."""
+        soup = torch.index_select(vertices, 0, faces.reshape(-1))  # [3F, 3]
+        corners = torch.arange(soup.shape[0], device=faces.device).view(-1, 3)
+        return cls.of_frames(*triangle_frames(soup, corners))
+
+    @classmethod
+    def of_frames(cls, rot: Tensor, trans: Tensor, scale: Tensor) -> FaceFrames:
+        """Frames given as rot [F, 3, 3], trans [F, 3], scale [F]."""
+        return cls(rot, matrix_to_quaternion(rot), trans, scale)
+
+
+def bind_gaussians_torch(frames: FaceFrames, parents: Tensor, local_means: Tensor,
+                         quats: Tensor, scales: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The reference: world means [N, 3], quaternions [N, 4] and scales [N, 3] of Gaussians
+    with ``parents`` [N], ``local_means`` [N, 3], ``quats`` [N, 4] and linear ``scales`` [N, 3]
+    (exp of the log-scales). Face quaternions are computed once per triangle, not per
+    Gaussian; gathers use ``index_select``, whose backward is reproducible (see ``of_mesh``)."""
+
+    def take(x: Tensor) -> Tensor:  # x[parents]
+        return torch.index_select(x, 0, parents)
+
+    r, t, k = take(frames.rot), take(frames.trans), take(frames.scale)  # [N, 3, 3], [N, 3], [N]
+    local = (r * local_means[:, None, :]).sum(-1)  # [N, 3] = R mean
+    return (k[:, None] * local + t, quaternion_multiply(take(frames.quat), quats),
+            k[:, None] * scales)
+
+
+# -- the numba twin -----------------------------------------------------------------------
+
 
 _EPS = 1e-12   # triangle_frames' default eps
 _TINY = 1e-30  # frames._TINY
@@ -225,7 +284,7 @@ def _gaussian_kernel(fr, parents, local_means, scales, quats, means_out, quats_o
     return bad
 
 
-def pose_gaussians_np(vertices: np.ndarray, faces: np.ndarray, parents: np.ndarray,
+def bind_gaussians_np(vertices: np.ndarray, faces: np.ndarray, parents: np.ndarray,
                       local_means: np.ndarray, scales: np.ndarray, quats: np.ndarray
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """World means [N, 3], quaternions [N, 4] and scales [N, 3] (the dtype of `local_means`).
@@ -248,31 +307,55 @@ def pose_gaussians_np(vertices: np.ndarray, faces: np.ndarray, parents: np.ndarr
     return means, quats_out, scales_out
 
 
-def can_use_kernel(avatar_tensors: tuple[Tensor, ...], vertices: Tensor, faces: Tensor) -> bool:
-    """The kernel computes exactly what the torch path does for these inputs, and no gradient
-    is asked for: CPU tensors, vertices [V, 3] of the avatar's (float) dtype."""
+def can_use_numba(tensors: tuple[Tensor, ...], vertices: Tensor, faces: Tensor) -> bool:
+    """The numba twin computes exactly what the torch reference does for these inputs, and no
+    gradient is asked for: CPU tensors, vertices [V, 3] of the Gaussians' (float) dtype."""
     if vertices.device.type != "cpu" or faces.device.type != "cpu" or vertices.dim() != 2 \
             or vertices.shape[-1] != 3 or faces.dim() != 2 or faces.shape[-1] != 3 \
             or faces.dtype not in (torch.int64, torch.int32) \
             or vertices.dtype not in (torch.float32, torch.float64):
         return False
     if torch.is_grad_enabled() and (vertices.requires_grad
-                                    or any(t.requires_grad for t in avatar_tensors)):
+                                    or any(t.requires_grad for t in tensors)):
         return False
     return all(t.device.type == "cpu" and (t.dtype == vertices.dtype or not t.is_floating_point())
-               for t in avatar_tensors)
+               for t in tensors)
 
 
 def _np(t: Tensor) -> np.ndarray:
     return t.detach().contiguous().numpy()
 
 
-def pose_gaussians_cpu(parents: Tensor, local_means: Tensor, scales: Tensor, quats: Tensor,
-                       opacities: Tensor, sh: Tensor, vertices: Tensor, faces: Tensor
-                       ) -> GaussianSet:
-    """The kernel on torch tensors (see :func:`can_use_kernel`); `scales` linear, `opacities`
-    already through the sigmoid."""
-    means, q, s = pose_gaussians_np(_np(vertices), _np(faces), _np(parents), _np(local_means),
+def bind_gaussians_numba(vertices: Tensor, faces: Tensor, parents: Tensor, local_means: Tensor,
+                         quats: Tensor, scales: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The twin on torch tensors (see :func:`can_use_numba`): vertices [V, 3], faces [F, 3],
+    the rest as :func:`bind_gaussians_torch`."""
+    means, q, s = bind_gaussians_np(_np(vertices), _np(faces), _np(parents), _np(local_means),
                                     _np(scales), _np(quats))
-    return GaussianSet(means=torch.from_numpy(means), quats=torch.from_numpy(q),
-                       scales=torch.from_numpy(s), opacities=opacities, sh=sh)
+    return torch.from_numpy(means), torch.from_numpy(q), torch.from_numpy(s)
+
+
+# -- dispatch -----------------------------------------------------------------------------
+
+
+def bind_gaussians(vertices: Tensor, faces: Tensor, parents: Tensor, local_means: Tensor,
+                   quats: Tensor, scales: Tensor, *, backend: str = "auto"
+                   ) -> tuple[Tensor, Tensor, Tensor]:
+    """World means [N, 3], quaternions [N, 4] and scales [N, 3] of Gaussians bound to the
+    mesh ``vertices`` [V, 3], ``faces`` [F, 3]. ``backend`` "auto": the numba twin on the CPU
+    when no gradient is asked for (:func:`can_use_numba`), else the torch reference."""
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    tensors = (parents, local_means, quats, scales)
+    if backend == "numba" or (backend == "auto" and can_use_numba(tensors, vertices, faces)):
+        return bind_gaussians_numba(vertices, faces, parents, local_means, quats, scales)
+    # torch indexing semantics, as the twin's: negative indices count from the end
+    faces, parents = _wrap(faces, vertices.shape[0]), _wrap(parents, faces.shape[0])
+    return bind_gaussians_torch(FaceFrames.of_mesh(vertices, faces), parents, local_means,
+                                quats, scales)
+
+
+def _wrap(index: Tensor, n: int) -> Tensor:
+    """Negative indices from the end (index_select takes none); out-of-range ones stay so and
+    raise IndexError there."""
+    return torch.where(index < 0, index + n, index)

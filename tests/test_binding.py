@@ -1,4 +1,4 @@
-"""The numba pose kernel (pose_cpu) against the torch reference (pose_gaussians_torch)."""
+"""Binding's twins: the numba kernel against the torch reference, and the dispatch between them."""
 
 import numpy as np
 import pytest
@@ -6,11 +6,11 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from avatar_core.gaussians import avatar as avatar_mod
+from avatar_core.gaussians import binding
 from avatar_core.gaussians.animate import AvatarAnimator, synthetic_package
-from avatar_core.gaussians.avatar import GaussianAvatar, pose_gaussians, pose_gaussians_torch
+from avatar_core.gaussians.avatar import GaussianAvatar, pose_gaussians
+from avatar_core.gaussians.binding import _face_kernel, can_use_numba
 from avatar_core.gaussians.frames import COLLINEAR_SIN, triangle_frames
-from avatar_core.gaussians.pose_cpu import _face_kernel, can_use_kernel, pose_gaussians_cpu
 from avatar_core.rotations import matrix_to_quaternion
 
 RTOL = {torch.float32: 1e-6, torch.float64: 1e-12}
@@ -32,9 +32,11 @@ def _avatar(n, faces, dtype=torch.float64, seed=0, parents=None, mean_scale=1.0,
 
 def _kernel(avatar, vertices, faces):
     with torch.no_grad():
-        return pose_gaussians_cpu(avatar.parents, avatar.local_means,
-                                  torch.exp(avatar.log_scales), avatar.quats,
-                                  torch.sigmoid(avatar.opacity_logits), avatar.sh, vertices, faces)
+        return pose_gaussians(avatar, vertices, faces, backend="numba")
+
+
+def pose_gaussians_torch(avatar, vertices, faces):
+    return pose_gaussians(avatar, vertices, faces, backend="torch")
 
 
 def _close(a, b, rtol):
@@ -153,7 +155,7 @@ def test_degenerate_triangles_take_the_same_fallbacks(dtype):
 def test_huge_tiny_and_extreme(dtype, size):
     vertices, faces = _random_mesh(100, 200, dtype, 7)
     kwargs = {}
-    if size == "huge":  # float32's reference overflows past ~1e9 (see pose_cpu's docstring)
+    if size == "huge":  # float32's reference overflows past ~1e9 (see binding's docstring)
         vertices = vertices * (1e6 if dtype == torch.float32 else 1e60)
     elif size == "tiny":
         vertices = vertices * (1e-7 if dtype == torch.float32 else 1e-100)
@@ -234,8 +236,8 @@ def test_property_matches_the_reference(corners, seed, jitter, dtype):
 
 def test_dispatch_kernel_without_grad_torch_with_grad(monkeypatch):
     calls = []
-    real = avatar_mod.pose_gaussians_cpu
-    monkeypatch.setattr(avatar_mod, "pose_gaussians_cpu",
+    real = binding.bind_gaussians_numba
+    monkeypatch.setattr(binding, "bind_gaussians_numba",
                         lambda *a: calls.append(1) or real(*a))
     vertices, faces = _random_mesh(40, 30, torch.float32, 0)
     avatar = _avatar(60, 30, torch.float32)
@@ -254,7 +256,7 @@ def test_dispatch_kernel_without_grad_torch_with_grad(monkeypatch):
     assert len(calls) == 2
     out.means.sum().backward()
     assert avatar.local_means.grad.abs().sum() > 0
-    assert not can_use_kernel((avatar.local_means.detach().double(),), vertices, faces)
+    assert not can_use_numba((avatar.local_means.detach().double(),), vertices, faces)
 
 
 def test_animator_uses_the_kernel_and_caches_the_constants(synthetic_files):
@@ -274,3 +276,9 @@ def test_animator_uses_the_kernel_and_caches_the_constants(synthetic_files):
         c = animator.pose({**params, "jaw_pose": [0.4, 0.0, 0.0]})
         ref = pose_gaussians_torch(animator.avatar, c.vertices, model.faces)
         _close(ref.scales, c.gaussians.scales, 1e-6)
+
+
+def test_unknown_backend_is_refused():
+    vertices, faces = _random_mesh(10, 5, torch.float32, 0)
+    with pytest.raises(ValueError, match="backend"):
+        pose_gaussians(_avatar(4, 5, torch.float32), vertices, faces, backend="cuda")
