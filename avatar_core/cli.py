@@ -200,7 +200,7 @@ def _track_landmarks(args: argparse.Namespace) -> int:
 
 
 def _track_fit(args: argparse.Namespace) -> int:
-    from .track.fit.video import default_session, frames_from, track_params, write_params
+    from .track.fit.video import default_sequence_fit, frames_from, track_params, write_params
     from .track.models import ModelFetchError
     from .track.tracker import Tracker
     from .track.types import TrackingInputError
@@ -208,9 +208,9 @@ def _track_fit(args: argparse.Namespace) -> int:
     source = args.webcam if args.webcam is not None else str(args.image or args.video)
     try:
         tracker = Tracker(models=args.cache, iris=True)
-        session = default_session(args.fov, smoothing=not args.no_smoothing)
+        sequence_fit = default_sequence_fit(args.fov, smoothing=not args.no_smoothing)
         with tqdm(total=args.frames, unit="frame", desc="tracking") as bar:
-            params = track_params(frames_from(source, args.frames), session, tracker,
+            params = track_params(frames_from(source, args.frames), sequence_fit, tracker,
                                   with_transl=args.with_transl, progress=lambda: bar.update())
         out = write_params(params, args.out)
     except (OSError, ValueError, TrackingInputError, ModelFetchError) as exc:

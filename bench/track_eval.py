@@ -1,4 +1,4 @@
-"""Tracking on renders with known parameters: the real Tracker + FitSession on the textured
+"""Tracking on renders with known parameters: the real Tracker + SequenceFit on the textured
 synthetic actor, against the SMPL-X parameters that posed it.
 
     OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python bench/track_eval.py \
@@ -31,7 +31,7 @@ from avatar_core.synth.tracking_eval import (  # noqa: E402
     IGNORABLE,
     contact_sheet,
     make_scene,
-    make_tracker_and_session,
+    make_tracker_and_fit,
     offset_table,
     run_clip,
     tables,
@@ -54,10 +54,10 @@ def main() -> None:
     log = lambda msg: print(msg, file=sys.stderr, flush=True)  # noqa: E731
     t0 = time.perf_counter()
     scene = make_scene(args.background)
-    tracker, session = make_tracker_and_session(scene)
+    tracker, sequence_fit = make_tracker_and_fit(scene)
     log(f"setup {time.perf_counter() - t0:.1f} s; subject transl {np.round(scene.transl, 3)}; "
         f"load {os.getloadavg()[0]:.2f}")
-    results = [run_clip(scene, name.strip(), tracker, session, args.fps, args.max_frames,
+    results = [run_clip(scene, name.strip(), tracker, sequence_fit, args.fps, args.max_frames,
                         keep_frames=args.contact is not None,
                         ignore=tuple(c for c in args.ignore.split(",") if c), log=log)
                for name in args.clips.split(",") if name.strip()]

@@ -6,7 +6,7 @@ directions; `Tracker(iris=True)`, the body fit and `fit_gaze` recover them.
 The scene is `synth.tracking_eval`'s (identity 0, 640x480 webcam with a 60 deg field of view, the
 subject 1.09 m away, noisy background, 2/255 sensor noise); the body holds the first pose of
 the "smile" clip while the eyes turn through `LOOKS`, one frame each, in order through one
-`Tracker` and one `FitSession`. Reported, in degrees (geodesic): the eye rotations fitted on
+`Tracker` and one `SequenceFit`. Reported, in degrees (geodesic): the eye rotations fitted on
 the true body (the gaze solver and the iris model alone) for a shared gaze and per eye, with
 the iris centre at `IRIS_DEPTH` and, for comparison, on the eyeball's front pole; and, on the
 fitted body (the whole path), the eye rotations and the gaze direction in the world (the
@@ -67,7 +67,7 @@ def main() -> None:
     from avatar_core.track.fit import gaze
     from avatar_core.track.fit.camera import WebcamCamera
     from avatar_core.track.fit.observations import from_track_result
-    from avatar_core.track.fit.session import FitSession, SessionConfig
+    from avatar_core.track.fit.sequence import SequenceFit, SequenceFitConfig
     from avatar_core.track.tracker import Tracker
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -82,7 +82,8 @@ def main() -> None:
     package, model = synthetic_package(scene.model_dir, 0)
     betas = np.asarray(package.body.betas)
     tracker = Tracker(threads=1, hands=False, iris=True)
-    session = FitSession(model, betas, SessionConfig(fov_x_deg=FOV_X_DEG, smoothing=False))
+    sequence_fit = SequenceFit(model, betas,
+                               SequenceFitConfig(fov_x_deg=FOV_X_DEG, smoothing=False))
     camera = WebcamCamera(scene.camera.width, scene.camera.height, FOV_X_DEG)
     model64 = synthetic_package(scene.model_dir, 0)[1].double()
     solvers = {"iris plane": gaze.GazeSolver(model), "front pole": gaze.GazeSolver(model, 1.0)}
@@ -94,7 +95,7 @@ def main() -> None:
         truth = dict(base, leye_pose=look, reye_pose=look)
         frame = render_frame(scene.actor, truth, scene.camera, scene.bg, 2 / 255, rng)
         result = tracker.track(frame)
-        fitted = session.step(from_track_result(result), i / 30.0).params
+        fitted = sequence_fit.step(from_track_result(result), i / 30.0).params
         face = result.face
         if face is None or face.iris is None:
             print(f"({pitch}, {yaw}): no iris", file=sys.stderr)

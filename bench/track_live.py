@@ -6,10 +6,10 @@
 The frames are renders of the synthetic actor (`synth.tracking_eval`'s scene: 640x480, the
 subject head to waist, both hands in view during talk_animated's gestures), rendered once
 before timing. Each round runs the live configuration (`Tracker(threads=1,
-palm_interval=LIVE_PALM_INTERVAL, iris=True)`, a fresh `FitSession` with smoothing and gaze)
+palm_interval=LIVE_PALM_INTERVAL, iris=True)`, a fresh `SequenceFit` with smoothing and gaze)
 over the same frames twice, interleaved:
 
-* serial: `tracker.track` then `session.step`, frame after frame (the server's per-session
+* serial: `tracker.track` then `sequence_fit.step`, frame after frame (the server's per-session
   loop);
 * pipelined: `tracked_frames` (telesplat track, telesplat-client drive): frame i + 1's
   landmarks while frame i is fitted, on a second thread.
@@ -38,34 +38,34 @@ from avatar_core.track.fit.observations import from_track_result  # noqa: E402
 from avatar_core.track.fit.video import tracked_frames  # noqa: E402
 
 
-def live_tracker_and_session(scene: te.Scene):
+def live_tracker_and_fit(scene: te.Scene):
     from avatar_core.gaussians.animate import synthetic_package
-    from avatar_core.track.fit.session import FitSession, SessionConfig
+    from avatar_core.track.fit.sequence import SequenceFit, SequenceFitConfig
     from avatar_core.track.tracker import LIVE_PALM_INTERVAL, Tracker
 
     tracker = Tracker(threads=1, palm_interval=LIVE_PALM_INTERVAL, iris=True)
     package, model = synthetic_package(scene.model_dir, 0)
-    session = FitSession(model, np.asarray(package.body.betas),
-                         SessionConfig(fov_x_deg=te.FOV_X_DEG))
-    return tracker, session
+    sequence_fit = SequenceFit(model, np.asarray(package.body.betas),
+                               SequenceFitConfig(fov_x_deg=te.FOV_X_DEG))
+    return tracker, sequence_fit
 
 
-def run_serial(frames, tracker, session) -> tuple[float, list[float], list[float]]:
+def run_serial(frames, tracker, sequence_fit) -> tuple[float, list[float], list[float]]:
     track_ms, fit_ms = [], []
     t0 = time.perf_counter()
     for frame, t in frames:
         a = time.perf_counter()
         result = tracker.track(frame)
         b = time.perf_counter()
-        session.step(from_track_result(result), t)
+        sequence_fit.step(from_track_result(result), t)
         track_ms.append((b - a) * 1e3)
         fit_ms.append((time.perf_counter() - b) * 1e3)
     return time.perf_counter() - t0, track_ms, fit_ms
 
 
-def run_pipelined(frames, tracker, session) -> tuple[float, list[float], list[float]]:
+def run_pipelined(frames, tracker, sequence_fit) -> tuple[float, list[float], list[float]]:
     t0 = time.perf_counter()
-    out = list(tracked_frames(frames, session, tracker))
+    out = list(tracked_frames(frames, sequence_fit, tracker))
     return (time.perf_counter() - t0, [f.track_ms for f in out], [f.fit_ms for f in out])
 
 
@@ -85,8 +85,8 @@ def main() -> None:
     rows: dict[str, list] = {"serial": [], "pipelined": []}
     for _ in range(args.rounds):
         for name, run in (("serial", run_serial), ("pipelined", run_pipelined)):
-            tracker, session = live_tracker_and_session(scene)
-            rows[name].append(run(frames, tracker, session))
+            tracker, sequence_fit = live_tracker_and_fit(scene)
+            rows[name].append(run(frames, tracker, sequence_fit))
             tracker.close()
     print(f"{'':10s} {'ms/frame':>9s} {'FPS':>6s} {'landmarks ms':>13s} {'fit ms':>7s}")
     per_frame = {}

@@ -19,16 +19,16 @@ async def drive_from_camera(server: str, token: str | None, avatar: str, source:
     Returns counts and the mean tracking time."""
     from tqdm import tqdm
 
-    from avatar_core.track.fit.video import default_session, frames_from, tracked_frames
+    from avatar_core.track.fit.video import default_sequence_fit, frames_from, tracked_frames
     from avatar_core.track.tracker import LIVE_PALM_INTERVAL, Tracker
 
     from .images import save_frame
     from .stream import StreamClient
 
     tracker = Tracker(palm_interval=LIVE_PALM_INTERVAL, iris=True)
-    session = default_session(fov_x_deg)
+    sequence_fit = default_sequence_fit(fov_x_deg)
     # Landmarks of the next frame are found while this one is fitted (two threads).
-    tracked = tracked_frames(frames_from(source, max_frames), session, tracker)
+    tracked = tracked_frames(frames_from(source, max_frames), sequence_fit, tracker)
 
     sent, received, track_ms = 0, 0, 0.0
     if out is not None:

@@ -51,7 +51,7 @@ class SessionTracker:
         if self._tracker is not None:
             return
         try:
-            from avatar_core.track.fit.session import FitSession
+            from avatar_core.track.fit.sequence import SequenceFit
             from avatar_core.track.tracker import LIVE_PALM_INTERVAL, Tracker
 
             tracker = Tracker(threads=1, palm_interval=LIVE_PALM_INTERVAL, iris=True)
@@ -59,12 +59,12 @@ class SessionTracker:
             self.unavailable = f"server-side tracking is not available: {exc}"
             raise TrackingUnavailable(self.unavailable) from exc
         self._tracker = tracker
-        self._fit = FitSession(self.body_model, self.betas)
+        self._fit = SequenceFit(self.body_model, self.betas)
 
     def process(self, image: Image, received_at: float) -> TrackedImage:
         """Raises TrackingUnavailable or TrackingInputInvalid; anything else is a bug."""
         from avatar_core.track.fit.observations import from_track_result
-        from avatar_core.track.fit.session import drive_params
+        from avatar_core.track.fit.sequence import drive_params
         from avatar_core.track.image import decode_image
         from avatar_core.track.types import TrackingInputError
 

@@ -22,7 +22,7 @@ from avatar_core.track.fit.camera import WebcamCamera
 from avatar_core.track.fit.fitter import FrameFitter, neutral_params
 from avatar_core.track.fit.observations import empty_observations, from_landmarks
 from avatar_core.track.fit.one_euro import OneEuroFilter
-from avatar_core.track.fit.session import FitSession, SessionConfig, drive_params
+from avatar_core.track.fit.sequence import SequenceFit, SequenceFitConfig, drive_params
 from avatar_core.track.fit.synthetic import project_params, synthetic_observations
 
 CAMERA = WebcamCamera(640, 480, 60.0)
@@ -139,13 +139,13 @@ def test_smoothing_lowers_jitter_on_a_noisy_sequence(setup):
     gts = [known_params(model, rig, phase=i / n) for i in range(n)]
     tracks, clean = {}, None
     for smoothing in (False, True):
-        session = FitSession(model, betas, SessionConfig(smoothing=smoothing))
+        sequence_fit = SequenceFit(model, betas, SequenceFitConfig(smoothing=smoothing))
         rng = np.random.default_rng(5)
         keypoints, truth = [], []
         for i, gt in enumerate(gts):
-            obs, kp = synthetic_observations(session.fitter, gt, CAMERA, 2.0, rng)
-            out = session.step(obs, i / fps)
-            keypoints.append(project_params(session.fitter, out.params, CAMERA))
+            obs, kp = synthetic_observations(sequence_fit.fitter, gt, CAMERA, 2.0, rng)
+            out = sequence_fit.step(obs, i / fps)
+            keypoints.append(project_params(sequence_fit.fitter, out.params, CAMERA))
             truth.append(kp)
         tracks[smoothing], clean = np.stack(keypoints), np.stack(truth)
     sl = slice(cor.FACE_SLICE.start, cor.POSE_SLICE.stop)
@@ -157,40 +157,41 @@ def test_smoothing_lowers_jitter_on_a_noisy_sequence(setup):
 
 def test_lost_track_holds_then_relaxes(setup):
     model, betas, rig = setup
-    session = FitSession(model, betas, SessionConfig(hold_s=0.5, relax_s=1.0, smoothing=False))
+    sequence_fit = SequenceFit(model, betas,
+                               SequenceFitConfig(hold_s=0.5, relax_s=1.0, smoothing=False))
     gt = known_params(model, rig)
-    obs, _ = synthetic_observations(session.fitter, gt, CAMERA, 0.0)
-    fitted = session.step(obs, 0.0).params
+    obs, _ = synthetic_observations(sequence_fit.fitter, gt, CAMERA, 0.0)
+    fitted = sequence_fit.step(obs, 0.0).params
     nothing = empty_observations((640, 480))
-    held = session.step(nothing, 0.3)
+    held = sequence_fit.step(nothing, 0.3)
     assert held.fit is None and not any(held.seen.values())
     np.testing.assert_allclose(held.params["jaw_pose"], fitted["jaw_pose"])
-    half = session.step(nothing, 1.0).params  # 0.5 s into the relaxation: half way
+    half = sequence_fit.step(nothing, 1.0).params  # 0.5 s into the relaxation: half way
     np.testing.assert_allclose(half["jaw_pose"], 0.5 * fitted["jaw_pose"], atol=1e-9)
-    relaxed = session.step(nothing, 2.0).params
-    for name, value in session.neutral.items():
+    relaxed = sequence_fit.step(nothing, 2.0).params
+    for name, value in sequence_fit.neutral.items():
         if name != "transl":
             np.testing.assert_allclose(relaxed[name], value, atol=1e-12, err_msg=name)
 
 
 def test_degenerate_inputs_give_finite_params_or_no_detection(setup):
     model, betas, rig = setup
-    session = FitSession(model, betas)
+    sequence_fit = SequenceFit(model, betas)
     nan_face = np.full((468, 3), np.nan)
     obs = from_landmarks((640, 480), face=nan_face, left_hand=np.full((21, 3), np.nan))
     assert not obs.any_seen
-    out = session.step(obs, 0.0)
+    out = sequence_fit.step(obs, 0.0)
     assert out.fit is None and all(np.isfinite(v).all() for v in out.params.values())
     # One hand only (cold start on a hand), then the face without hands.
     gt = known_params(model, rig)
-    only_hand, _ = synthetic_observations(session.fitter, gt, CAMERA, 1.0,
+    only_hand, _ = synthetic_observations(sequence_fit.fitter, gt, CAMERA, 1.0,
                                           drop=("face", "pose", "left_hand"))
-    out = session.step(only_hand, 0.1)
+    out = sequence_fit.step(only_hand, 0.1)
     assert out.seen == {"face": False, "left_hand": False, "right_hand": True, "pose": False}
     assert all(np.isfinite(v).all() for v in out.params.values())
-    face_only, _ = synthetic_observations(session.fitter, gt, CAMERA, 1.0,
+    face_only, _ = synthetic_observations(sequence_fit.fitter, gt, CAMERA, 1.0,
                                           drop=("left_hand", "right_hand", "pose"))
-    out = session.step(face_only, 0.2)
+    out = sequence_fit.step(face_only, 0.2)
     assert out.fit is not None and out.fit.reprojection_px["face"] < 3.0
     sent = drive_params(out.params)
     assert "transl" not in sent and sent["body_pose"].shape == (21, 3)
@@ -261,16 +262,16 @@ def test_pipelined_tracking_keeps_every_frame_in_order_and_fits_like_serial(setu
         def track(self, frame):
             return next(replay)
 
-    piped = list(tracked_frames(frames, FitSession(model, betas), ReplayTracker()))
-    serial_session = FitSession(model, betas)
-    serial = [drive_params(serial_session.step(from_track_result(r), t).params)
+    piped = list(tracked_frames(frames, SequenceFit(model, betas), ReplayTracker()))
+    serial_fit = SequenceFit(model, betas)
+    serial = [drive_params(serial_fit.step(from_track_result(r), t).params)
               for r, (_, t) in zip(results, frames, strict=True)]
     assert [f.t for f in piped] == [t for _, t in frames]
     for got, want in zip(piped, serial, strict=True):
         for name in want:
             np.testing.assert_allclose(got.params[name], want[name], atol=1e-12, err_msg=name)
     assert all(f.seen["face"] and f.fit_ms > 0 for f in piped)
-    assert list(tracked_frames([], FitSession(model, betas), ReplayTracker())) == []
+    assert list(tracked_frames([], SequenceFit(model, betas), ReplayTracker())) == []
 
 
 @pytest.mark.parametrize("case", ["far_off_frame", "collapsed", "half_inf", "tiny_face"])
@@ -283,8 +284,8 @@ def test_extreme_landmarks_give_finite_params(setup, case):
             "collapsed": np.full((468, 3), 320.0),
             "half_inf": np.where(np.arange(468)[:, None] % 2, np.inf, 300.0) * np.ones((468, 3)),
             "tiny_face": 320.0 + rng.normal(0, 0.01, (468, 3))}[case]
-    session = FitSession(model, betas)
+    sequence_fit = SequenceFit(model, betas)
     for i in range(2):  # a cold fit, then a warm one from it
-        out = session.step(from_landmarks((640, 480), face=face,
-                                          left_hand=np.full((21, 3), -1e8)), i / 30)
+        out = sequence_fit.step(from_landmarks((640, 480), face=face,
+                                               left_hand=np.full((21, 3), -1e8)), i / 30)
         assert all(np.isfinite(v).all() for v in out.params.values()), case

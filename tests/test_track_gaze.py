@@ -203,21 +203,21 @@ def test_a_model_without_eyeballs_gets_no_gaze(setup, body):
     assert gaze.fit_gaze(eyeless, body, px, CAMERA, betas)["leye_pose"] == pytest.approx(0.0)
 
 
-def test_fit_session_turns_the_eyes_onto_the_tracked_irises(setup, body):
+def test_sequence_fit_turns_the_eyes_onto_the_tracked_irises(setup, body):
     """The stream wiring: `Observations.iris` (from `Tracker(iris=True)`) drives leye / reye
     after the body fit; without irises the eyes stay at rest."""
-    from avatar_core.track.fit.session import FitSession, SessionConfig
+    from avatar_core.track.fit.sequence import SequenceFit, SequenceFitConfig
     from avatar_core.track.fit.synthetic import synthetic_observations
 
     model, betas = setup
-    session = FitSession(model, betas, SessionConfig(smoothing=False))
+    sequence_fit = SequenceFit(model, betas, SequenceFitConfig(smoothing=False))
     eyes = look(8.0, 15.0)
-    obs, _ = synthetic_observations(session.fitter, body, CAMERA, 0.3,
+    obs, _ = synthetic_observations(sequence_fit.fitter, body, CAMERA, 0.3,
                                     np.random.default_rng(2), drop=("left_hand", "right_hand"))
-    plain = session.step(obs, 0.0)
+    plain = sequence_fit.step(obs, 0.0)
     np.testing.assert_array_equal(plain.params["leye_pose"], 0.0)
     obs.iris = true_iris_px(setup, body, eyes, eyes)
-    out = session.step(obs, 1 / 30)
+    out = sequence_fit.step(obs, 1 / 30)
     for name in ("leye_pose", "reye_pose"):
         err = math.degrees(np.linalg.norm(out.params[name] - eyes))
         assert err < 4.0, (name, out.params[name], eyes)

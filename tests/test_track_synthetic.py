@@ -2,7 +2,7 @@
 
 The capture studio's textured actor (identity 0) is posed by library motions with known SMPL-X
 parameters and rendered by a 640x480 webcam (60 deg horizontal field of view, the fitter's
-camera) over a noisy background; the real `Tracker` (ONNX landmark models) and a `FitSession`
+camera) over a noisy background; the real `Tracker` (ONNX landmark models) and a `SequenceFit`
 run over a few consecutive frames (tracking mode). `bench/track_eval.py` is the full version
 and docs/tracking.md ("Synthetic renders with known parameters") has its numbers; the bounds
 here are those measurements with margin. Renders, landmarks and fits are deterministic (one
@@ -46,16 +46,16 @@ def scene():
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # deterministic reductions, and fair on a shared machine
     scene = te.make_scene("noise")
-    tracker, session = te.make_tracker_and_session(scene)
-    yield scene, tracker, session
+    tracker, sequence_fit = te.make_tracker_and_fit(scene)
+    yield scene, tracker, sequence_fit
     tracker.close()
     torch.set_num_threads(threads)
 
 
 def test_face_parameters_from_renders_of_an_open_mouth(scene):
-    sc, tracker, session = scene
+    sc, tracker, sequence_fit = scene
     # mouth_open holds its pose (jaw 20 deg, lips parted) from 0.5 s to 1.5 s.
-    r = te.run_clip(sc, "mouth_open", tracker, session, FPS, FRAMES, start=0.6)
+    r = te.run_clip(sc, "mouth_open", tracker, sequence_fit, FPS, FRAMES, start=0.6)
     m = r.metrics
     assert r.seen["face"].all() and r.seen["pose"].all(), r.seen
     assert m["akd_face"] < AKD_FACE_PX, m
@@ -65,9 +65,9 @@ def test_face_parameters_from_renders_of_an_open_mouth(scene):
 
 
 def test_hand_parameters_from_renders_of_a_peace_sign(scene):
-    sc, tracker, session = scene
+    sc, tracker, sequence_fit = scene
     # peace holds the raised right hand beside the chin from 0.7 s to 2.0 s.
-    r = te.run_clip(sc, "peace", tracker, session, FPS, FRAMES, start=1.0)
+    r = te.run_clip(sc, "peace", tracker, sequence_fit, FPS, FRAMES, start=1.0)
     m = r.metrics
     assert r.seen["face"].all(), r.seen
     assert m["akd_face"] < AKD_FACE_PX and m["head_deg"] < HEAD_DEG, m

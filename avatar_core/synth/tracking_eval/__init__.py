@@ -1,4 +1,4 @@
-"""Tracking on renders with known parameters: the real Tracker + FitSession on the textured
+"""Tracking on renders with known parameters: the real Tracker + SequenceFit on the textured
 synthetic actor, against the SMPL-X parameters that posed it.
 
 Each clip of the motion library is played on identity 0 of the synthetic family (the
@@ -6,7 +6,7 @@ capture studio's `Actor`: textured, hair, collar), placed in front of a 640x480 
 (60 deg horizontal field of view, at the model-space origin looking down -z: the fitter's own
 camera model) framing head to waist, over a static noisy background with per-frame sensor
 noise. The frames go, in order, through `Tracker` (tracking mode, one ONNX thread) and one
-`FitSession` per clip (warm starts; the session's own One Euro smoothing gives the smoothed
+`SequenceFit` per clip (warm starts; the fit's own One Euro smoothing gives the smoothed
 output, its unsmoothed composition the raw one). The fitter is given the true betas.
 
 Reported per clip and overall:
@@ -23,7 +23,7 @@ Reported per clip and overall:
   (12 upper-body joints, `avatar_core.metrics.keypoints`), fitted vs true parameters, same
   camera, over the frames where that group was detected;
 * keypoint TJE (px, `keypoint_tje`) of all those keypoints over the clip, without and with the
-  session's One Euro smoothing;
+  fit's One Euro smoothing;
 * tracking + fitting time per frame (render time excluded).
 
 The command line is `bench/track_eval.py`; the tracking benches and tests/test_track_synthetic.py
@@ -44,7 +44,7 @@ from .metrics import (
     geodesic_deg,
 )
 from .report import contact_sheet, draw_fit, offset_table, overall, tables
-from .run import IGNORABLE, ClipResult, make_tracker_and_session, run_clip
+from .run import IGNORABLE, ClipResult, make_tracker_and_fit, run_clip
 from .scene import (
     CLIPS,
     FOV_X_DEG,
@@ -63,5 +63,5 @@ __all__ = ["CLIPS", "FOV_X_DEG", "GROUPS", "HAND_SIDES", "HEIGHT", "IGNORABLE", 
            "NUM_FACE_HANDS", "RH", "TJE_SKIP_S", "WIDTH", "ClipResult", "Posed", "Scene",
            "aa_to_matrix", "background", "clip_metrics", "clip_params", "contact_sheet",
            "draw_fit", "evaluate_params", "geodesic_deg", "make_scene",
-           "make_tracker_and_session", "offset_table", "overall", "render_frame", "run_clip",
+           "make_tracker_and_fit", "offset_table", "overall", "render_frame", "run_clip",
            "subject_transl", "tables", "webcam_camera"]

@@ -33,7 +33,7 @@ IGNORABLE = {"contour": list(range(17)),
              "hips": [NUM_FACE_HANDS + 23, NUM_FACE_HANDS + 24]}
 
 
-def run_clip(scene: Scene, name: str, tracker, session, fps: float,
+def run_clip(scene: Scene, name: str, tracker, sequence_fit, fps: float,
              max_frames: int | None = None, start: float = 0.0, sensor_noise: float = 2 / 255,
              keep_frames: bool = False, ignore: tuple[str, ...] = (), log=None) -> ClipResult:
     """Render, track and fit one clip in order; `ignore`: landmark classes (`IGNORABLE`)
@@ -44,7 +44,7 @@ def run_clip(scene: Scene, name: str, tracker, session, fps: float,
 
     gt = clip_params(scene, name, fps, start, max_frames)
     tracker.reset()
-    session.reset()
+    sequence_fit.reset()
     rng = np.random.default_rng([11, *name.encode()])
     wcam = WebcamCamera(scene.camera.width, scene.camera.height, FOV_X_DEG)
     seen = {g: np.zeros(len(gt), bool) for g in GROUPS}
@@ -62,14 +62,14 @@ def run_clip(scene: Scene, name: str, tracker, session, fps: float,
         obs = from_track_result(result)
         for cls in ignore:
             obs.weights[IGNORABLE[cls]] = 0.0
-        out = session.step(obs, i / fps)
+        out = sequence_fit.step(obs, i / fps)
         ms.append((time.perf_counter() - t0) * 1e3)
         track_ms.append((t1 - t0) * 1e3)
         for g in GROUPS:
             seen[g][i] = bool(out.seen.get(g))
-        raw_params.append({k: np.array(v) for k, v in session.current.items()})
-        true_px = project_params(session.fitter, {k: v for k, v in params.items()
-                                                  if k != "betas"}, wcam)
+        raw_params.append({k: np.array(v) for k, v in sequence_fit.current.items()})
+        true_px = project_params(sequence_fit.fitter, {k: v for k, v in params.items()
+                                                       if k != "betas"}, wcam)
         offset = np.where((obs.weights > 0)[:, None], obs.pixels - true_px, np.nan)
         for side, own, other in (("left_hand", LH, RH), ("right_hand", RH, LH)):
             if seen[side][i]:  # labelled on the wrong side: its wrist is nearer the other's
@@ -82,7 +82,7 @@ def run_clip(scene: Scene, name: str, tracker, session, fps: float,
         smooth_params.append({k: np.array(v) for k, v in out.params.items()})
         if keep_frames:
             res.frames_bgr.append(frame)
-            res.fitted_px.append(project_params(session.fitter, raw_params[-1], wcam))
+            res.fitted_px.append(project_params(sequence_fit.fitter, raw_params[-1], wcam))
     cam = scene.camera
     truth = evaluate_params(scene.actor, gt, cam)
     raw = evaluate_params(scene.actor, raw_params, cam)
@@ -103,15 +103,15 @@ def run_clip(scene: Scene, name: str, tracker, session, fps: float,
     return res
 
 
-def make_tracker_and_session(scene: Scene, smoothing: bool = True):
+def make_tracker_and_fit(scene: Scene, smoothing: bool = True):
     import numpy as _np
 
     from avatar_core.gaussians.animate import synthetic_package
-    from avatar_core.track.fit.session import FitSession, SessionConfig
+    from avatar_core.track.fit.sequence import SequenceFit, SequenceFitConfig
     from avatar_core.track.tracker import Tracker
 
     tracker = Tracker(threads=1, iris=True)
     package, model = synthetic_package(scene.model_dir, 0)
-    session = FitSession(model, _np.asarray(package.body.betas),
-                         SessionConfig(fov_x_deg=FOV_X_DEG, smoothing=smoothing))
-    return tracker, session
+    sequence_fit = SequenceFit(model, _np.asarray(package.body.betas),
+                               SequenceFitConfig(fov_x_deg=FOV_X_DEG, smoothing=smoothing))
+    return tracker, sequence_fit

@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 from .observations import from_track_result
-from .session import FitSession, SessionConfig, drive_params
+from .sequence import SequenceFit, SequenceFitConfig, drive_params
 
 
 def frames_from(source: str | int, max_frames: int | None = None
@@ -52,10 +52,10 @@ class TrackedFrame:
     seen: dict[str, bool]          # group -> seen in this frame
     t: float
     track_ms: float                # landmarks
-    fit_ms: float                  # FitSession.step
+    fit_ms: float                  # SequenceFit.step
 
 
-def tracked_frames(frames: Iterable[tuple[np.ndarray, float]], session: FitSession, tracker,
+def tracked_frames(frames: Iterable[tuple[np.ndarray, float]], sequence_fit: SequenceFit, tracker,
                    with_transl: bool = False) -> Iterator[TrackedFrame]:
     """Track and fit frames in order, two stages overlapped: while frame i is fitted (a
     second thread) frame i + 1's landmarks are found, so on two cores a frame costs the
@@ -63,7 +63,7 @@ def tracked_frames(frames: Iterable[tuple[np.ndarray, float]], session: FitSessi
 
     def fit(result, t: float, track_ms: float) -> TrackedFrame:
         t0 = time.perf_counter()
-        out = session.step(from_track_result(result), t)
+        out = sequence_fit.step(from_track_result(result), t)
         return TrackedFrame(drive_params(out.params, with_transl), out.seen, t, track_ms,
                             (time.perf_counter() - t0) * 1e3)
 
@@ -80,11 +80,11 @@ def tracked_frames(frames: Iterable[tuple[np.ndarray, float]], session: FitSessi
             yield pending.result()
 
 
-def track_params(frames: Iterable[tuple[np.ndarray, float]], session: FitSession, tracker,
+def track_params(frames: Iterable[tuple[np.ndarray, float]], sequence_fit: SequenceFit, tracker,
                  with_transl: bool = False,
                  progress: Callable[[], None] | None = None) -> list[dict[str, np.ndarray]]:
     out = []
-    for tracked in tracked_frames(frames, session, tracker, with_transl):
+    for tracked in tracked_frames(frames, sequence_fit, tracker, with_transl):
         out.append(tracked.params)
         if progress:
             progress()
@@ -105,13 +105,13 @@ def write_params(frames: list[dict[str, np.ndarray]], path: Path) -> Path:
     return path
 
 
-def default_session(fov_x_deg: float = 60.0, smoothing: bool = True,
-                    model_dir: Path | None = None) -> FitSession:
-    """A fit session on the synthetic avatar's body model (identity 0's shape)."""
+def default_sequence_fit(fov_x_deg: float = 60.0, smoothing: bool = True,
+                         model_dir: Path | None = None) -> SequenceFit:
+    """A sequence fit on the synthetic avatar's body model (identity 0's shape)."""
     from ...body.model_paths import synthetic_body_models
     from ...gaussians.animate import synthetic_package
 
     files = synthetic_body_models(model_dir)
     package, model = synthetic_package(files.root, 0)
-    return FitSession(model, np.asarray(package.body.betas),
-                      SessionConfig(fov_x_deg=fov_x_deg, smoothing=smoothing))
+    return SequenceFit(model, np.asarray(package.body.betas),
+                       SequenceFitConfig(fov_x_deg=fov_x_deg, smoothing=smoothing))

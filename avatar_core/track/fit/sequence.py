@@ -32,7 +32,7 @@ GROUPS = ("face", "left_hand", "right_hand", "pose")
 
 
 @dataclass
-class SessionConfig:
+class SequenceFitConfig:
     fov_x_deg: float = 60.0
     hold_s: float = 0.5      # lost: keep the last fitted value this long
     relax_s: float = 1.0     # ... then ease to neutral over this long
@@ -61,12 +61,12 @@ def _body_rows(group: str) -> list[int]:
     return [r for r in range(21) if named.get(r, "pose") == group]
 
 
-class FitSession:
+class SequenceFit:
     """Feed observations in time order: `step(obs, t) -> FrameParams`."""
 
     def __init__(self, model: SMPLXModel, betas: np.ndarray | None = None,
-                 config: SessionConfig | None = None) -> None:
-        self.config = config or SessionConfig()
+                 config: SequenceFitConfig | None = None) -> None:
+        self.config = config or SequenceFitConfig()
         self.fitter = FrameFitter(model, betas, self.config.fit)
         self.gaze = gaze_solver(model) if self.config.gaze else None
         self.neutral = self.fitter.neutral
