@@ -46,9 +46,9 @@ def main() -> None:
     names = args.models.split(",") if args.models else list(MODELS)
     paths = fetch_models(convert=False, names=names)
     photo = astronaut().astype(np.float32) / 255.0
-    so = ort.SessionOptions()
-    so.intra_op_num_threads = 1
-    so.inter_op_num_threads = 1
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = 1
+    options.inter_op_num_threads = 1
     print(f"onnxruntime {ort.__version__}, 1 thread; median of {args.repeat} runs")
     print("| model | PReLUs | max abs diff / scale | PRelu op ms | rewrite ms | speed-up "
           "| TFLite ms |")
@@ -69,13 +69,13 @@ def main() -> None:
         n_prelu = 0
         for mode in ("op", "rewrite"):
             model = convert(paths[name], prelu=mode)
-            sess = ort.InferenceSession(model.SerializeToString(), so,
-                                        providers=["CPUExecutionProvider"])
-            outs = sess.run(None, {inp["name"]: x})
+            inference = ort.InferenceSession(model.SerializeToString(), options,
+                                             providers=["CPUExecutionProvider"])
+            outs = inference.run(None, {inp["name"]: x})
             for y, ref in zip(outs, refs, strict=True):
                 rel = max(rel, float(np.abs(y - ref).max()) / max(1.0, float(np.abs(ref).max())))
             feeds = {inp["name"]: x}
-            ms[mode] = _timed(lambda s=sess, f=feeds: s.run(None, f), args.repeat)
+            ms[mode] = _timed(lambda s=inference, f=feeds: s.run(None, f), args.repeat)
             if mode == "op":
                 n_prelu = sum(n.op_type == "PRelu" for n in model.graph.node)
         print(f"| {name} | {n_prelu} | {rel:.1e} | {ms['op']:.2f} | {ms['rewrite']:.2f} "
