@@ -114,7 +114,7 @@ def render_times(work: Path, data, out: Path, rounds: int = 7) -> None:
     import numpy as np
     import torch
 
-    from avatar_core.pipeline import load_avatar
+    from avatar_core.gaussians.loading import load_avatar
     from avatar_core.render.rasterize import rasterize
     from avatar_core.render.types import RenderRequest
 

@@ -8,7 +8,7 @@ from typing import Any
 
 from avatar_core.body.models import MANOModel
 from avatar_core.gaussians.animate import AvatarAnimator
-from avatar_core.pipeline import LoadedAvatar, mano_models
+from avatar_core.gaussians.loading import LoadedAvatar, mano_models
 
 from .admission import Admission
 from .auth import TokenStore

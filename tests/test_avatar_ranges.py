@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 import torch
 
+from avatar_core.gaussians.loading import load_avatar
 from avatar_core.gaussians.package import PackageError, load_package, save_package
 from avatar_core.gaussians.validate import GaussianRanges, RangeError, check_gaussian_ranges
-from avatar_core.pipeline import load_avatar
 from tests.server_fixtures import (
     is_type,
     recv_until,

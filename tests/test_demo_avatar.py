@@ -6,7 +6,8 @@ import json
 import numpy as np
 
 from avatar_core.demo import DEMO_VERSION, DemoRecipe, ensure_demo_avatar
-from avatar_core.pipeline import load_avatar, render_frames
+from avatar_core.gaussians.loading import load_avatar
+from avatar_core.pipeline import render_frames
 from avatar_core.render.camera import orbit
 from avatar_core.render.types import RenderRequest
 from avatar_core.train.config import preset

@@ -12,6 +12,7 @@ from avatar_core.body.model_paths import BodyModelFiles
 from avatar_core.cli import main
 from avatar_core.dataset import load_dataset
 from avatar_core.gaussians.animate import AvatarAnimator, synthetic_package
+from avatar_core.gaussians.loading import LoadedAvatar
 from avatar_core.gaussians.package import save_package
 from avatar_core.metrics.evaluate import (
     blank_excluded,
@@ -27,7 +28,6 @@ from avatar_core.metrics.report import (
     load_result,
     side_by_side,
 )
-from avatar_core.pipeline import LoadedAvatar
 from avatar_core.synth.capture import CaptureSpec, capture
 
 FRAMES, CAMERAS = 3, 5

@@ -12,8 +12,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from avatar_core.bounded_npz import NpzLimits
+from avatar_core.gaussians.loading import load_avatar
 from avatar_core.gaussians.package import PackageError, load_package, save_package
-from avatar_core.pipeline import load_avatar
 
 from .test_bounded_npz import MiB, peak_memory
 

@@ -324,7 +324,7 @@ def test_synthetic_avatar_front_on(onnx_models):
     """Our procedural humanoid at 640x480: whatever is found must be well-formed (the
     report, not this test, says what is found: face and body are, hands are not)."""
     torch = pytest.importorskip("torch")
-    from avatar_core.pipeline import load_avatar
+    from avatar_core.gaussians.loading import load_avatar
     from avatar_core.render.camera import look_at
     from avatar_core.render.rasterize import rasterize
     from avatar_core.render.types import RenderRequest

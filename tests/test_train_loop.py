@@ -18,8 +18,9 @@ from avatar_core.dataset import load_dataset
 from avatar_core.gaussians.avatar import GaussianAvatar, to_world
 from avatar_core.gaussians.binding import FaceFrames
 from avatar_core.gaussians.frames import triangle_frames
+from avatar_core.gaussians.loading import load_avatar
 from avatar_core.metrics.image import photometric_loss, psnr
-from avatar_core.pipeline import load_avatar, render_frames
+from avatar_core.pipeline import render_frames
 from avatar_core.render.camera import look_at
 from avatar_core.render.types import RenderRequest
 from avatar_core.rotations import matrix_to_quaternion, quaternion_to_matrix

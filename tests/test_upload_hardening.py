@@ -298,8 +298,8 @@ def test_stored_bytes_count_avatars_and_job_folders(tmp_path):
 
 
 def test_records_and_manifests_stored_before_scrubbing_are_scrubbed_on_open(tmp_path):
+    from avatar_core.gaussians.loading import load_avatar
     from avatar_core.gaussians.package import save_package
-    from avatar_core.pipeline import load_avatar
     from server.registry import AvatarRegistry
 
     package = save_package(load_avatar("synthetic").package, tmp_path / "pkg")

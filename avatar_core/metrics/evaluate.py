@@ -51,7 +51,7 @@ from ..body.fusion import FusionModels, fuse_sequence
 from ..body.models import BodyOutput
 from ..dataset import Dataset, View, ViewKey, load_dataset
 from ..dataset.preview import write_png
-from ..pipeline import LoadedAvatar, load_avatar, mano_models
+from ..gaussians.loading import LoadedAvatar, load_avatar, mano_models
 from ..render.camera import Camera
 from ..render.rasterize import rasterize
 from ..render.types import RenderRequest

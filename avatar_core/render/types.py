@@ -5,6 +5,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -68,3 +69,9 @@ def background_output(request: RenderRequest, width: int, height: int, dtype: to
     return RenderOutput(rgb=bg.expand(height, width, 3).clone() if "rgb" in outputs else None,
                         alpha=zeros if "alpha" in outputs else None,
                         depth=zeros.clone() if "depth" in outputs else None, stats=stats)
+
+
+def to_uint8(image: Tensor) -> np.ndarray:
+    """A float image in [0, 1] (rgb [H, W, 3] or alpha [H, W], clamped here) as uint8 numpy,
+    rounded to nearest, for display and encoding."""
+    return (image.clamp(0, 1) * 255).round().to(torch.uint8).cpu().numpy()
