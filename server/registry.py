@@ -14,6 +14,7 @@ path reaches a client: path-like strings are scrubbed from a package's manifest 
 from __future__ import annotations
 
 import contextlib
+import copy
 import json
 import re
 import secrets
@@ -271,12 +272,13 @@ class AvatarRegistry:
         return loaded
 
     def new_animator(self, avatar_id: str) -> tuple[LoadedAvatar, AvatarAnimator]:
-        """A fresh animator for one session: the body model is shared (read-only), the stage
-        cache and the animator's last-pose cache are the session's own."""
+        """A fresh animator for one session: the model's tensors are shared (read-only), its
+        stage cache and the animator's last-pose cache are the session's own."""
         loaded = self.open(avatar_id)
         base = loaded.animator
-        cache = StageCache(enabled=base.body_model.cache.enabled)
-        animator = AvatarAnimator(base.body_model, base.avatar, betas=base.betas, cache=cache)
+        model = copy.copy(base.body_model)  # shallow: same parameter tensors
+        object.__setattr__(model, "cache", StageCache(enabled=base.body_model.cache.enabled))
+        animator = AvatarAnimator(model, base.avatar, betas=base.betas)
         return loaded, animator
 
 
