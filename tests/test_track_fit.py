@@ -179,7 +179,7 @@ def test_degenerate_inputs_give_finite_params_or_no_detection(setup):
     sequence_fit = SequenceFit(model, betas)
     nan_face = np.full((468, 3), np.nan)
     obs = from_landmarks((640, 480), face=nan_face, left_hand=np.full((21, 3), np.nan))
-    assert not obs.any_seen
+    assert not any(obs.seen.values())
     out = sequence_fit.step(obs, 0.0)
     assert out.fit is None and all(np.isfinite(v).all() for v in out.params.values())
     # One hand only (cold start on a hand), then the face without hands.

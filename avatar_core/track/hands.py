@@ -106,7 +106,7 @@ class HandPipeline:
         # right hand in the unmirrored camera frame.
         p_right = float(handedness.reshape(-1)[0])
         side = "right" if p_right >= 0.5 else "left"
-        return HandLandmarks(points, side, score, max(p_right, 1 - p_right), roi)
+        return HandLandmarks(points, side, score, roi)
 
     def __call__(self, frame_bgr: np.ndarray) -> tuple[HandLandmarks, ...]:
         rois = list(self.rois)

@@ -102,6 +102,5 @@ class PosePipeline(SingleTargetPipeline):
         if self.refine:
             points = refine_from_heatmap(points, heatmap[0])
         px = project(points, roi)  # [39, 3]
-        pose = PoseLandmarks(px[:NUM_LANDMARKS], _sigmoid(values[:NUM_LANDMARKS, 3]), score,
-                             _sigmoid(values[:NUM_LANDMARKS, 4]), roi)
+        pose = PoseLandmarks(px[:NUM_LANDMARKS], _sigmoid(values[:NUM_LANDMARKS, 3]), score, roi)
         return pose, roi_from_alignment(px[33], px[34])

@@ -56,7 +56,6 @@ class HandLandmarks:
     # on an unmirrored camera frame its "Left" is the person's right hand: we swap it.
     handedness: Literal["left", "right"]
     score: float  # hand presence, 0..1
-    handedness_score: float = 1.0  # confidence of `handedness`, 0.5..1
     roi: RotatedRect | None = None
 
 
@@ -65,7 +64,6 @@ class PoseLandmarks:
     points: np.ndarray  # [33, 3] float32 px (BlazePose topology; 0 = nose)
     visibility: np.ndarray  # [33] float32, 0..1
     score: float  # pose presence, 0..1
-    presence: np.ndarray | None = None  # [33] float32, 0..1: inside the frame
     roi: RotatedRect | None = None
 
 

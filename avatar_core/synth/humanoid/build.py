@@ -54,7 +54,7 @@ def make_humanoid(seed: int = 0, resolution: float = 1.0) -> Humanoid:
     res = float(resolution)
     b = _body(seed)
     hg = _head_grid(res)
-    head = _head(b, res, hg)
+    head = _head(b, hg)
     loc = head.attrs["local"]
     lips_z = float(loc[(head.attrs["design_y"] == _MOUTH_Y) & (loc[:, 0] == 0.0), 2].max())
     pieces = [_torso(b, res), _neck(b, res), head, _eye(b, res), _ear(b, res, hg),

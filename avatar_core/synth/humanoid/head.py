@@ -188,7 +188,7 @@ def _head_materials(g: _Grid, info: dict) -> np.ndarray:
     return mat
 
 
-def _jaw_weight(g: _Grid, info: dict, hg: _HeadGrid) -> np.ndarray:
+def _jaw_weight(g: _Grid, info: dict) -> np.ndarray:
     """How much each head-surface vertex follows the jaw: the lower face below the lip slit,
     fading toward the cheeks above the mouth corners and toward the ears and neck."""
     x, z, y = g.verts[:, 0], g.verts[:, 2], info["design_y"]
@@ -200,11 +200,11 @@ def _jaw_weight(g: _Grid, info: dict, hg: _HeadGrid) -> np.ndarray:
     return vert * _smoothstep(zj - 0.012, zj + 0.035, z)
 
 
-def _head(b: _Body, res: float, hg: _HeadGrid) -> _Piece:
+def _head(b: _Body, hg: _HeadGrid) -> _Piece:
     g, info = _head_surface(hg)
     closed, _ = _head_surface(hg, closure=1.0)
     mat = _head_materials(g, info)
-    wj = _jaw_weight(g, info, hg)
+    wj = _jaw_weight(g, info)
     w = _blend(_one_hot(len(wj), JOINT["head"]), wj, JOINT["jaw"])
     local = g.verts.copy()
     g.verts = _to_world(b, local)

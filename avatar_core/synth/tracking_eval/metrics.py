@@ -85,7 +85,7 @@ def _mean(values) -> float:
     return float(v.mean()) if len(v) else float("nan")
 
 
-def clip_metrics(truth: Posed, raw: Posed, smooth: Posed, gt_params, fit_params,
+def clip_metrics(truth: Posed, raw: Posed, smooth: Posed, gt_params,
                  seen: dict[str, np.ndarray], in_view: dict[str, np.ndarray],
                  neutral_face: Posed, swapped: dict[str, np.ndarray],
                  skip: int = 0) -> dict[str, float]:

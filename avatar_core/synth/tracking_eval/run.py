@@ -91,8 +91,8 @@ def run_clip(scene: Scene, name: str, tracker, sequence_fit, fps: float,
         {**p, "expression": np.zeros_like(p["expression"]), "jaw_pose": np.zeros(3)}
         for p in gt], cam)
     res.in_view = {g: truth.visible[g].all(-1) for g in ("left_hand", "right_hand")}
-    res.metrics = clip_metrics(truth, raw, smooth, gt, raw_params, seen, res.in_view, neutral,
-                               res.swapped, skip=int(round(TJE_SKIP_S * fps)))
+    res.metrics = clip_metrics(truth, raw, smooth, gt, seen, res.in_view, neutral, res.swapped,
+                               skip=int(round(TJE_SKIP_S * fps)))
     res.metrics["ms"] = float(np.mean(ms))
     res.metrics["ms_median"] = float(np.median(ms))
     res.metrics["track_ms"] = float(np.mean(track_ms))

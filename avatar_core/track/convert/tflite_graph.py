@@ -58,12 +58,6 @@ class Graph:
     outputs: list[int]
     folded: dict[str, int] = field(default_factory=dict)  # op kind -> how many were folded
 
-    def op_counts(self) -> dict[str, int]:
-        counts: dict[str, int] = dict(self.folded)
-        for op in self.ops:
-            counts[op.kind] = counts.get(op.kind, 0) + 1
-        return counts
-
 
 def _enum_names(enum_cls: type) -> dict[int, str]:
     return {v: k for k, v in vars(enum_cls).items() if not k.startswith("_") and isinstance(v, int)}

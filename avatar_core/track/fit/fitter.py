@@ -109,7 +109,6 @@ class FitConfig:
 @dataclass
 class FitResult:
     params: dict[str, np.ndarray]           # smplx names, per frame (no batch axis)
-    keypoints_px: np.ndarray                # [K, 2] the fitted model's reprojection
     reprojection_px: dict[str, float]       # group -> mean px error over used landmarks
     loss: float
     ms: float
@@ -398,7 +397,7 @@ class FrameFitter:
             self.config.warm_iterations if warm else self.config.cold_iterations,
             problem, weight, stats)
         terms, proj = self._terms(x, problem, np.sqrt(weight), False)
-        return FitResult(self.to_params(x), proj, reprojection_errors(proj, obs),
+        return FitResult(self.to_params(x), reprojection_errors(proj, obs),
                          sum(float(t.residuals @ t.residuals) for t in terms),
                          (time.perf_counter() - t0) * 1e3, stats)
 

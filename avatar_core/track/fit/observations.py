@@ -31,10 +31,6 @@ class Observations:
     # [2, 2] iris centres px (the person's right eye, then left; NaN: not read), or None.
     iris: np.ndarray | None = None
 
-    @property
-    def any_seen(self) -> bool:
-        return any(self.seen.values())
-
 
 def empty_observations(image_size: tuple[int, int]) -> Observations:
     return Observations(np.zeros((cor.NUM_KEYPOINTS, 2)), np.zeros(cor.NUM_KEYPOINTS),
