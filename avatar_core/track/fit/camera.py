@@ -31,10 +31,6 @@ class WebcamCamera:
     def center(self) -> tuple[float, float]:
         return 0.5 * self.width, 0.5 * self.height
 
-    def K(self) -> np.ndarray:
-        cx, cy = self.center
-        return np.array([[self.focal, 0, cx], [0, self.focal, cy], [0, 0, 1.0]])
-
     def project(self, points: Tensor) -> Tensor:
         """Model-space points [..., 3] -> pixels [..., 2] (x right, y down)."""
         depth = (-points[..., 2]).clamp(min=MIN_DEPTH_M)

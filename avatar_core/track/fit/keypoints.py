@@ -79,7 +79,3 @@ class BodyKeypoints(torch.nn.Module):
             parts.append(out.landmarks)
         points = torch.cat(parts, dim=1)[:, self.table]  # [B, K, 3]
         return torch.where(self.available[None, :, None], points, torch.nan)
-
-    def joints(self, params: dict[str, Tensor]) -> Tensor:
-        """Posed joints [B, 55, 3] (same forward pass, for evaluation)."""
-        return self.model(params).joints
