@@ -1,7 +1,7 @@
 """Write a synthetic body-model family in the official file formats.
 
 No licensed SMPL-X, FLAME or MANO file can be fetched here, so this writes stand-ins for them
-from the procedural humanoid (`humanoid.py`), in the very formats the official releases use:
+from the procedural humanoid (`synth.humanoid`), in the very formats the official releases use:
 
 - `SMPLX_NEUTRAL.npz` and `SMPLX_NEUTRAL.pkl` (v1.1 layout: 10 shape + 10 expression columns;
   the .pkl stores `shapedirs` as a chumpy object and `J_regressor` as a sparse matrix, as
