@@ -104,14 +104,12 @@ def run_clip(scene: Scene, name: str, tracker, sequence_fit, fps: float,
 
 
 def make_tracker_and_fit(scene: Scene, smoothing: bool = True):
-    import numpy as _np
-
     from avatar_core.gaussians.animate import synthetic_package
     from avatar_core.track.fit.sequence import SequenceFit, SequenceFitConfig
     from avatar_core.track.tracker import Tracker
 
     tracker = Tracker(threads=1, iris=True)
     package, model = synthetic_package(scene.model_dir, 0)
-    sequence_fit = SequenceFit(model, _np.asarray(package.body.betas),
+    sequence_fit = SequenceFit(model, np.asarray(package.body.betas),
                                SequenceFitConfig(fov_x_deg=FOV_X_DEG, smoothing=smoothing))
     return tracker, sequence_fit
