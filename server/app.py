@@ -1,9 +1,10 @@
 """The FastAPI application: ``create_app(settings)``.
 
-``app.state`` carries ``settings``, ``tokens`` (TokenStore), ``registry`` (AvatarRegistry),
-``metrics`` and ``ctx`` (the ServerContext every route uses); in local auth mode
-``local_token`` is the admin token printed at start-up. The demo avatar is registered and a
-warm-up frame rendered in the lifespan's start-up (numba compiles its kernels once).
+``app.state`` carries one thing, ``ctx`` (the ServerContext: settings, tokens, avatars,
+schedulers, metrics, sessions, the job service; in local auth mode ``ctx.local_token`` is the
+admin token printed at start-up). Routes reach it through server/dependencies.py. The demo
+avatar is registered and a warm-up frame rendered in the lifespan's start-up (numba compiles
+its kernels once).
 """
 
 from __future__ import annotations
@@ -20,17 +21,16 @@ from fastapi.staticfiles import StaticFiles
 from protocol import PROTOCOL_VERSION, View
 from protocol.messages import Orbit
 
-from . import routes_avatars, routes_motions, routes_stream, routes_system
 from .auth import LOCAL_SUBJECT, SCOPES, TokenStore
 from .config import Settings
 from .context import ServerContext, SessionSlots
 from .drive import DriveState
-from .jobs import routes as jobs_routes
 from .logsafe import install_log_redaction
 from .metrics import ServerMetrics
 from .private import private_dir
 from .registry import DEMO_ID, AvatarRegistry
 from .renderer import FrameJob, SessionRenderer
+from .routers import avatars, jobs, motions, stream, system
 from .scheduler import RenderScheduler
 
 log = logging.getLogger("telesplat.server")
@@ -48,9 +48,9 @@ def warm_up(ctx: ServerContext) -> float | None:
     except KeyError:
         return None
     start = time.perf_counter()
-    loaded, animator, manos = ctx.session_models(record.id)
-    renderer = SessionRenderer(loaded, animator, manos, backend=ctx.settings.backend)
-    req = routes_stream.default_request(ctx, record).model_copy(
+    animator, manos = ctx.session_models(record.id)
+    renderer = SessionRenderer(animator, manos, backend=ctx.settings.backend)
+    req = stream.default_request(ctx, record).model_copy(
         update={"width": WARMUP_SIZE, "height": WARMUP_SIZE})
     job = FrameJob(DriveState(), View(orbit=Orbit()), req, ctx.settings.jpeg_quality)
     ctx.scheduler.submit(renderer.render, job).result()
@@ -90,7 +90,7 @@ def create_app(settings: Settings) -> FastAPI:
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         await asyncio.to_thread(_start, ctx)
-        async with jobs_routes.lifespan(app):  # the training worker
+        async with jobs.lifespan(ctx):  # the training worker
             yield
         await asyncio.to_thread(ctx.scheduler.shutdown)
         await asyncio.to_thread(ctx.track_scheduler.shutdown)
@@ -99,16 +99,8 @@ def create_app(settings: Settings) -> FastAPI:
                   description="Hosts 3D-Gaussian upper-body avatars and drives them live over "
                               f"a WebSocket (protocol version {PROTOCOL_VERSION}).")
     app.state.ctx = ctx
-    app.state.settings = settings
-    app.state.tokens = tokens
-    app.state.registry = ctx.registry
-    app.state.metrics = ctx.metrics
-    app.state.local_token = local_token
-    app.include_router(routes_system.router)
-    app.include_router(routes_avatars.router)
-    app.include_router(routes_stream.router)
-    app.include_router(routes_motions.router)
-    app.include_router(jobs_routes.router)
+    for routes in (system, avatars, stream, motions, jobs):
+        app.include_router(routes.router)
     # Last: the browser page at "/" would shadow any route added after it.
     if (WEB_DIR / "index.html").is_file():
         app.mount("/", StaticFiles(directory=WEB_DIR, html=True), name="web")

@@ -1,8 +1,9 @@
-"""Bearer tokens with scopes: a JSON token store (sha256 hashes only) and FastAPI dependencies.
+"""Bearer tokens with scopes: a JSON token store (sha256 hashes only), principals, parsing.
 
 Scopes: ``stream`` (open sessions), ``train`` (submit jobs), ``admin`` (implies all, sees every
-avatar). HTTP routes use ``require_scope(scope)``; WebSockets use ``token_from_websocket`` and
-``TokenStore.principal``, since a token may also come in the first ``hello`` message.
+avatar). HTTP routes depend on ``require_scope(scope)`` (server/dependencies.py); WebSockets
+use ``token_from_websocket`` and ``TokenStore.principal``, since a token may also come in the
+first ``hello`` message.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from fastapi import HTTPException, Request, WebSocket, params
+from fastapi import WebSocket
 
 log = logging.getLogger(__name__)
 
@@ -183,48 +184,3 @@ def bearer_token(authorization: str | None) -> str | None:
 def token_from_websocket(ws: WebSocket) -> str | None:
     """A WebSocket's token from ``?token=`` or ``Authorization: Bearer`` (None: wait for hello)."""
     return ws.query_params.get("token") or bearer_token(ws.headers.get("authorization"))
-
-
-def _store(request: Request) -> TokenStore:
-    return request.app.state.tokens
-
-
-def authenticate(request: Request, scope: str | None = None) -> Principal:
-    """The request's principal; HTTP 401 without a valid token, 403 without ``scope``."""
-    principal = _store(request).principal(bearer_token(request.headers.get("authorization")))
-    if principal is None:
-        raise HTTPException(401, "missing or invalid bearer token",
-                            headers={"WWW-Authenticate": "Bearer"})
-    if scope is not None and not principal.has(scope):
-        raise HTTPException(403, f"this token lacks the {scope!r} scope")
-    return principal
-
-
-@dataclass(frozen=True)
-class _ScopeDependency(params.Depends):
-    """``Depends`` on a scope check that also works wrapped in another ``Depends(...)``."""
-
-    required: str = "stream"
-
-    def __call__(self, request: Request) -> Principal:
-        return authenticate(request, self.required)
-
-
-def require_scope(scope: str) -> params.Depends:
-    """A FastAPI dependency giving the caller's :class:`Principal` (401 / 403 otherwise).
-
-    Use ``principal: Principal = require_scope("train")`` (or wrapped in ``Depends(...)``,
-    which also works).
-    """
-    if scope not in SCOPES:
-        raise ValueError(f"unknown scope {scope!r}; expected one of {SCOPES}")
-
-    def check(request: Request) -> Principal:
-        return authenticate(request, scope)
-
-    return _ScopeDependency(dependency=check, required=scope)
-
-
-def optional_principal(request: Request) -> Principal | None:
-    """The caller's principal if a valid token came, else None (never raises)."""
-    return _store(request).principal(bearer_token(request.headers.get("authorization")))

@@ -43,13 +43,13 @@ def _announce(app: FastAPI, url: str) -> None:
     @contextlib.asynccontextmanager
     async def announced(app: FastAPI) -> AsyncIterator[None]:
         async with inner(app):
-            token = app.state.local_token
+            token = app.state.ctx.local_token
             if token:
                 print(f"Telesplat is serving at {url}/#token={token}", flush=True)
                 print(f"  admin token (subject 'local'): {token}", flush=True)
             else:
                 print(f"Telesplat is serving at {url}/ (tokens from "
-                      f"{app.state.settings.tokens_path})", flush=True)
+                      f"{app.state.ctx.settings.tokens_path})", flush=True)
             yield
 
     app.router.lifespan_context = announced

@@ -1,14 +1,15 @@
-"""What the routes share: settings, tokens, avatars, the render scheduler, metrics, sessions."""
+"""What the routes share: settings, tokens, avatars, the render scheduler, metrics, sessions,
+the job service. The app carries this one object (``app.state.ctx``; server/dependencies.py)."""
 
 from __future__ import annotations
 
 import threading
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from avatar_core.body.models import MANOModel
 from avatar_core.gaussians.animate import AvatarAnimator
-from avatar_core.gaussians.loading import LoadedAvatar, mano_models
+from avatar_core.gaussians.loading import mano_models
 
 from .admission import Admission
 from .auth import TokenStore
@@ -16,6 +17,12 @@ from .config import Settings
 from .metrics import ServerMetrics
 from .registry import AvatarRegistry
 from .scheduler import RenderScheduler
+from .tracking import SessionTracker
+
+if TYPE_CHECKING:
+    from avatar_core.motion.keyframes import Rig
+
+    from .jobs.service import JobService
 
 
 class SessionSlots:
@@ -48,7 +55,9 @@ class ServerContext:
     metrics: ServerMetrics
     slots: SessionSlots
     sessions: dict[str, Any] = field(default_factory=dict)  # id -> StreamSession
-    local_token: str | None = None
+    local_token: str | None = None  # local auth mode: the admin token printed at start-up
+    jobs: JobService | None = None  # set while the app's lifespan runs (server/routers/jobs.py)
+    motion_rigs: dict[str, Rig] = field(default_factory=dict)  # avatar id -> its motion rig
     admission: Admission = None  # type: ignore[assignment]  # made from settings below
     _manos: dict[str, dict[str, MANOModel]] = field(default_factory=dict)
     _manos_lock: threading.Lock = field(default_factory=threading.Lock)
@@ -57,12 +66,17 @@ class ServerContext:
         if self.admission is None:
             self.admission = Admission.from_settings(self.settings)
 
-    def session_models(self, avatar_id: str
-                       ) -> tuple[LoadedAvatar, AvatarAnimator, dict[str, MANOModel]]:
+    def session_models(self, avatar_id: str) -> tuple[AvatarAnimator, dict[str, MANOModel]]:
         """A session's own animator, plus the (shared, read-only) MANO models for fusion."""
         loaded, animator = self.registry.new_animator(avatar_id)
         with self._manos_lock:
             manos = self._manos.get(avatar_id)
             if manos is None:
                 manos = self._manos[avatar_id] = mano_models(loaded)
-        return loaded, animator, manos
+        return animator, manos
+
+    def session_tracker(self, avatar_id: str) -> SessionTracker:
+        """A session's own webcam tracker, fitting on the avatar's (shared, read-only) body
+        model with the avatar's identity; its models load on the first image."""
+        base = self.registry.open(avatar_id).animator
+        return SessionTracker(base.body_model, base.betas, self.settings.limits)

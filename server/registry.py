@@ -14,7 +14,6 @@ path reaches a client: path-like strings are scrubbed from a package's manifest 
 from __future__ import annotations
 
 import contextlib
-import copy
 import json
 import re
 import secrets
@@ -30,7 +29,6 @@ from typing import Any
 from avatar_core.body.cache import StageCache
 from avatar_core.bounded_npz import NpzLimits
 from avatar_core.gaussians.animate import AvatarAnimator
-from avatar_core.gaussians.loading import LoadedAvatar, load_avatar
 from avatar_core.gaussians.package import (
     GAUSSIANS,
     MANIFEST,
@@ -39,6 +37,7 @@ from avatar_core.gaussians.package import (
     load_package,
     save_package,
 )
+from avatar_core.pipeline import LoadedAvatar, load_avatar
 
 from .auth import PUBLIC_OWNER
 from .private import make_private, private_dir
@@ -272,13 +271,12 @@ class AvatarRegistry:
         return loaded
 
     def new_animator(self, avatar_id: str) -> tuple[LoadedAvatar, AvatarAnimator]:
-        """A fresh animator for one session: the model's tensors are shared (read-only), its
-        stage cache and the animator's last-pose cache are the session's own."""
+        """A fresh animator for one session: the body model is shared (read-only), the stage
+        cache and the animator's last-pose cache are the session's own."""
         loaded = self.open(avatar_id)
         base = loaded.animator
-        model = copy.copy(base.body_model)  # shallow: same parameter tensors
-        object.__setattr__(model, "cache", StageCache(enabled=base.body_model.cache.enabled))
-        animator = AvatarAnimator(model, base.avatar, betas=base.betas)
+        cache = StageCache(enabled=base.body_model.cache.enabled)
+        animator = AvatarAnimator(base.body_model, base.avatar, betas=base.betas, cache=cache)
         return loaded, animator
 
 

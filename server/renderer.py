@@ -8,22 +8,22 @@ from __future__ import annotations
 
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from avatar_core.body.models import MANOModel
 from avatar_core.gaussians.animate import AvatarAnimator, PosedAvatar
-from avatar_core.gaussians.loading import LoadedAvatar
 from avatar_core.render.camera import Camera, orbit
-from avatar_core.render.camera_path import framing_target
 from avatar_core.render.rasterize import rasterize
-from avatar_core.render.types import RenderRequest, to_uint8
+from avatar_core.render.types import RenderRequest
 from protocol import Request, Timings, View
 
 from .drive import DriveState, drive_shapes
 from .encoders import H264Encoder, encode_depth_png, encode_jpeg, encode_png
+
+CHEST_DROP_M = 0.2  # orbit target: this far below the neck joint (as the render CLI)
 
 
 @dataclass(frozen=True)
@@ -47,18 +47,17 @@ class RenderedFrame:
     depth: bytes | None
     keyframe: bool
     timings: Timings
-    stats: dict = field(default_factory=dict)
 
 
 class SessionRenderer:
-    def __init__(self, loaded: LoadedAvatar, animator: AvatarAnimator,
-                 manos: dict[str, MANOModel], backend: str = "auto") -> None:
+    def __init__(self, animator: AvatarAnimator, manos: dict[str, MANOModel],
+                 backend: str = "auto") -> None:
         self.animator = animator
         self.manos = manos
         self.backend = backend
         model = animator.body_model
         self.shapes = drive_shapes(model, manos)
-        self.chest = framing_target(model.joint_template)  # the default orbit target
+        self.chest = model.joint_template[12].cpu().numpy() - np.array([0.0, CHEST_DROP_M, 0.0])
         self._posed: PosedAvatar | None = None  # of the drive state version below
         self._posed_version = -1
         self._h264: H264Encoder | None = None
@@ -91,8 +90,9 @@ class SessionRenderer:
             out = rasterize(posed.gaussians, cam, RenderRequest(
                 outputs=outputs, background=tuple(req.background), sh_degree=req.sh_degree,
                 budget=budget, backend=self.backend))
-            rgb = to_uint8(out.rgb)  # [H, W, 3]
-            alpha = None if out.alpha is None else to_uint8(out.alpha)  # [H, W]
+            rgb = (out.rgb.clamp(0, 1) * 255).round().to(torch.uint8).cpu().numpy()  # [H,W,3]
+            alpha = None if out.alpha is None else \
+                (out.alpha.clamp(0, 1) * 255).round().to(torch.uint8).cpu().numpy()  # [H, W]
             depth = None if out.depth is None else out.depth.cpu().numpy()  # [H, W] metres
         t2 = time.perf_counter()
         codec, keyframe = req.codec, True
@@ -110,7 +110,7 @@ class SessionRenderer:
         timings = Timings(track=job.track_ms, pose=(t1 - t0) * 1e3, render=(t2 - t1) * 1e3,
                           encode=(t3 - t2) * 1e3)
         return RenderedFrame(job.drive.seq, codec, cam.width, cam.height, data, depth_png,
-                             keyframe, timings, {"n_rendered": out.stats.get("n_rendered")})
+                             keyframe, timings)
 
     def _encode_h264(self, rgb: np.ndarray, req: Request) -> tuple[bytes, bool]:
         h, w = rgb.shape[:2]
@@ -121,10 +121,6 @@ class SessionRenderer:
         elif self._last_codec != "h264":
             self._h264.force_keyframe()  # back from another codec: the client restarts here
         return self._h264.encode(rgb)
-
-    def force_keyframe(self) -> None:
-        if self._h264 is not None:
-            self._h264.force_keyframe()
 
     def close(self) -> None:
         if self._h264 is not None:

@@ -25,7 +25,6 @@ oversubscribe the cores (on 2 cores: 1 x 2 or 2 x 1, never 2 x 2).
 
 from __future__ import annotations
 
-import asyncio
 import concurrent.futures
 import itertools
 import math
@@ -132,7 +131,7 @@ class _Job:
 
 
 class RenderScheduler:
-    """``await scheduler.run(fn, *args, key=session_id)``: ``fn`` on a render thread, in the
+    """``scheduler.submit(fn, *args, key=session_id)``: ``fn`` on a render thread, in the
     order the policy gives. Jobs without a key (warm-up) are served but not accounted."""
 
     def __init__(self, render_threads: int = 1, threads_per_render: int = 1,
@@ -172,10 +171,6 @@ class RenderScheduler:
     def _done(self, _: concurrent.futures.Future) -> None:
         with self._cond:
             self.queued -= 1
-
-    async def run(self, fn: Callable[..., T], *args: Any, key: Hashable | None = None) -> T:
-        """Cancelling the awaiting task cancels a job that has not started yet."""
-        return await asyncio.wrap_future(self.submit(fn, *args, key=key))
 
     # -- fairness ------------------------------------------------------------------------------
 

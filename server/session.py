@@ -98,9 +98,9 @@ def error_message(code: str, message: str, answers: dict | None = None) -> Error
 
 
 class StreamSession:
-    def __init__(self, ws: WebSocket, renderer: SessionRenderer, scheduler: RenderScheduler,
-                 track_scheduler: RenderScheduler, metrics: ServerMetrics,
-                 config: SessionConfig, request: Request, view: View,
+    def __init__(self, ws: WebSocket, renderer: SessionRenderer, tracker: SessionTracker,
+                 scheduler: RenderScheduler, track_scheduler: RenderScheduler,
+                 metrics: ServerMetrics, config: SessionConfig, request: Request, view: View,
                  session_count: Any) -> None:
         self.id = uuid.uuid4().hex[:12]
         self.ws = ws
@@ -136,8 +136,7 @@ class StreamSession:
         self._render_ms: collections.deque[float] = collections.deque(maxlen=RENDER_MS_WINDOW)
         # webcam tracking: the newest image waiting (latest wins) and the tracking time of the
         # newest tracked one, reported with the next frame
-        animator = renderer.animator
-        self.tracking = SessionTracker(animator.body_model, animator.betas, self.limits)
+        self.tracking = tracker
         self._image: tuple[Image, float] | None = None
         self._image_ready = asyncio.Event()
         self._track_inflight = None

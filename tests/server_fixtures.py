@@ -55,7 +55,7 @@ class RunningServer:
         return {"Authorization": f"Bearer {token or self.token}"}
 
     def issue(self, subject: str, scopes: tuple[str, ...]) -> str:
-        return self.app.state.tokens.issue(subject, scopes)
+        return self.ctx.tokens.issue(subject, scopes)
 
 
 def wait_until(predicate, timeout: float, interval: float = 0.01, what: str = "condition"):
@@ -94,7 +94,7 @@ def run_server(data_dir: Path, *, ws: Any = None, **overrides: Any) -> Iterator[
                    what="the server to start")
         if not server.started:
             raise RuntimeError("the test server failed to start (see the log above)")
-        yield RunningServer(f"http://127.0.0.1:{port}", app.state.local_token, app, settings)
+        yield RunningServer(f"http://127.0.0.1:{port}", app.state.ctx.local_token, app, settings)
     finally:
         server.should_exit = True
         thread.join(STOP_TIMEOUT_S)

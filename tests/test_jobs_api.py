@@ -36,7 +36,7 @@ TIMEOUT = httpx.Timeout(30.0)
 @pytest.fixture(scope="module")
 def srv(tmp_path_factory, capture_dir):
     with run_server(tmp_path_factory.mktemp("jobs-api")) as server:
-        jobs = server.app.state.jobs
+        jobs = server.app.state.ctx.jobs
         # full speed in tests (the default lowers the training process's priority)
         jobs.worker.config = dataclasses.replace(jobs.worker.config, nice=0, poll_s=0.05)
         shutil.copytree(capture_dir, jobs.datasets_dir / "take")
@@ -77,7 +77,7 @@ def _sse(client, job_id, **kw) -> list[dict]:
 
 
 def _job_area(srv) -> set[str]:
-    return {p.name for p in srv.app.state.jobs.jobs_dir.iterdir()}
+    return {p.name for p in srv.app.state.ctx.jobs.jobs_dir.iterdir()}
 
 
 def test_an_uploaded_dataset_trains_and_its_avatar_streams(srv, capture_dir):
@@ -114,9 +114,9 @@ def test_an_uploaded_dataset_trains_and_its_avatar_streams(srv, capture_dir):
     result = alice.get(f"/v1/jobs/{job['id']}/result").json()
     avatar_id = result["avatar_id"]
     assert avatar_id == status["avatar_id"] == end["data"]["avatar_id"]
-    record = srv.app.state.registry.get(avatar_id)
+    record = srv.app.state.ctx.registry.get(avatar_id)
     assert (record.owner, record.name, record.source) == ("alice", "Alice", f"job:{job['id']}")
-    folder = srv.app.state.jobs.worker.job_dir(job["id"])  # the upload and checkpoints freed
+    folder = srv.app.state.ctx.jobs.worker.job_dir(job["id"])  # the upload and checkpoints freed
     assert not (folder / "dataset").exists() and not (folder / "out" / "checkpoints").exists()
 
     # replay: after a seq, or from Last-Event-ID
@@ -182,7 +182,7 @@ def _bad_schema(capture_dir) -> bytes:
 ])
 def test_bad_uploads_are_refused_and_write_nothing(srv, capture_dir, tmp_path, case, status,
                                                    words):
-    jobs = srv.app.state.jobs
+    jobs = srv.app.state.ctx.jobs
     alice = _client(srv, srv.alice)
     data = {
         "too_large": lambda: zip_dataset(capture_dir),

@@ -29,7 +29,7 @@ KILL_REASON = "killed by SIGKILL (likely out of memory)"
 @pytest.fixture(scope="module")
 def srv(tmp_path_factory, capture_dir):
     with run_server(tmp_path_factory.mktemp("jobs-retry")) as server:
-        jobs = server.app.state.jobs
+        jobs = server.app.state.ctx.jobs
         jobs.worker.config = dataclasses.replace(jobs.worker.config, nice=0, poll_s=0.05)
         shutil.copytree(capture_dir, jobs.datasets_dir / "take")
         server.alice = server.issue("alice", ("train",))
@@ -55,7 +55,7 @@ def _states(events) -> list[str]:
 
 
 def test_a_killed_trainer_resumes_from_its_checkpoint(srv):
-    jobs, alice = srv.app.state.jobs, _client(srv, srv.alice)
+    jobs, alice = srv.app.state.ctx.jobs, _client(srv, srv.alice)
     r = alice.post("/v1/jobs", json={"dataset": "take", "config": KILLABLE, "name": "Phoenix"})
     assert r.status_code == 201, r.text
     job = r.json()
@@ -86,7 +86,7 @@ def test_a_killed_trainer_resumes_from_its_checkpoint(srv):
     assert (status["state"], status["attempts"], status["iteration"]) == (
         "succeeded", 2, KILLABLE["iterations"])
     assert [a["reason"] for a in status["attempt_log"]] == [KILL_REASON]
-    record = srv.app.state.registry.get(status["avatar_id"])
+    record = srv.app.state.ctx.registry.get(status["avatar_id"])
     assert (record.owner, record.name, record.source) == ("alice", "Phoenix",
                                                           f"job:{job['id']}")
     log = alice.get(f"/v1/jobs/{job['id']}/logs").text
@@ -94,7 +94,7 @@ def test_a_killed_trainer_resumes_from_its_checkpoint(srv):
 
 
 def test_out_of_attempts_fails_with_the_reason_and_resume_finishes_it(srv):
-    jobs = srv.app.state.jobs
+    jobs = srv.app.state.ctx.jobs
     alice, bob, viewer = (_client(srv, t) for t in (srv.alice, srv.bob, srv.viewer))
     config = jobs.worker.config
     jobs.worker.config = dataclasses.replace(config, max_attempts=1)
@@ -129,13 +129,13 @@ def test_out_of_attempts_fails_with_the_reason_and_resume_finishes_it(srv):
     assert resumed["iteration"] == end["resume_iteration"]
     done = alice.get(f"/v1/jobs/{job['id']}").json()
     assert done["state"] == "succeeded" and done["attempts"] == 2 and done["avatar_id"]
-    assert srv.app.state.registry.get(done["avatar_id"]).owner == "alice"
+    assert srv.app.state.ctx.registry.get(done["avatar_id"]).owner == "alice"
     r = alice.post(url)  # succeeded: nothing to resume
     assert r.status_code == 409 and "only a failed job" in r.json()["detail"]
 
 
 def test_job_quotas_answer_429_and_deleting_frees_them(srv, capture_dir):
-    jobs = srv.app.state.jobs
+    jobs = srv.app.state.ctx.jobs
     alice, admin = _client(srv, srv.alice), _client(srv, srv.token)
     quota = jobs.quota
     running = []

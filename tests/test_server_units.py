@@ -5,6 +5,7 @@ import json
 import subprocess
 import sys
 import time
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -13,8 +14,9 @@ from fastapi import Depends, FastAPI
 from fastapi.testclient import TestClient
 
 from protocol import Drive, ProtocolError
-from server.auth import Principal, TokenStore, require_scope
+from server.auth import Principal, TokenStore
 from server.config import Settings, load_settings
+from server.dependencies import StreamPrincipal, require_scope
 from server.drive import DriveState, fit_drive
 from server.encoders import (
     H264Decoder,
@@ -66,8 +68,13 @@ def test_token_store_hashes_and_scopes(tmp_path):
 
 def test_require_scope_works_bare_and_wrapped(tmp_path):
     app = FastAPI()
-    app.state.tokens = TokenStore(tmp_path / "t.json")
-    token = app.state.tokens.issue("ann", ["stream"])
+    tokens = TokenStore(tmp_path / "t.json")
+    app.state.ctx = SimpleNamespace(tokens=tokens)  # all authenticate reads of the context
+    token = tokens.issue("ann", ["stream"])
+
+    @app.get("/annotated")
+    def annotated(p: StreamPrincipal) -> str:
+        return p.subject
 
     @app.get("/bare")
     def bare(p: Principal = require_scope("stream")) -> str:  # noqa: B008
@@ -80,6 +87,8 @@ def test_require_scope_works_bare_and_wrapped(tmp_path):
     c = TestClient(app)
     auth = {"Authorization": f"Bearer {token}"}
     assert c.get("/bare", headers=auth).json() == "ann"
+    assert c.get("/annotated", headers=auth).json() == "ann"
+    assert c.get("/annotated").status_code == 401
     assert c.get("/bare").status_code == 401
     assert c.get("/wrapped", headers=auth).status_code == 403
 
@@ -156,7 +165,13 @@ def test_registry_round_trip(tmp_path):
     loaded_a, anim_a = reopened.new_animator(rec.id)
     loaded_b, anim_b = reopened.new_animator(rec.id)
     assert loaded_a is loaded_b and anim_a is not anim_b
-    assert anim_a.body_model.cache is not anim_b.body_model.cache
+    # one shared, read-only body model; each session's stage cache is its own object
+    assert anim_a.body_model is anim_b.body_model is loaded_a.animator.body_model
+    assert anim_a.cache is not anim_b.cache
+    shared_misses = sum(anim_a.body_model.cache.misses.values())
+    anim_a.pose({})
+    assert sum(anim_a.cache.misses.values()) > 0 and not anim_b.cache.misses
+    assert sum(anim_a.body_model.cache.misses.values()) == shared_misses
     bad = tmp_path / "bad.zip"
     bad.write_bytes(b"nope")
     with pytest.raises(PackageError):

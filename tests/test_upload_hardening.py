@@ -103,7 +103,7 @@ def test_avatar_bombs_shapes_and_damage_are_4xx_within_bounded_memory(srv, demo_
 
 
 def _job_area(srv) -> tuple[set[str], int]:
-    jobs = srv.app.state.jobs.jobs_dir
+    jobs = srv.app.state.ctx.jobs.jobs_dir
     return {p.name for p in jobs.iterdir()}, dir_size(jobs)
 
 
@@ -163,7 +163,7 @@ def test_job_archive_bombs_and_damage_are_4xx_and_write_nothing(srv, tiny_zip, t
 
 
 def test_job_archive_member_and_total_limits_count_real_bytes(srv):
-    jobs = srv.app.state.jobs
+    jobs = srv.app.state.ctx.jobs
     before = _job_area(srv)
     limits = jobs.limits
     try:  # a ratio allowed, so the per-member limit is what refuses it
@@ -248,7 +248,7 @@ def test_no_server_path_reaches_a_client(srv, demo_zip, tmp_path):
                 "training": {"out": "/srv/telesplat/out", "iterations": 3}}
     package = tmp_path / "pkg.zip"
     package.write_bytes(_package(demo_zip, manifest=manifest))
-    registry = srv.app.state.registry
+    registry = srv.app.state.ctx.registry
     demo = registry.register_demo(str(package))
     try:
         assert demo.source == "demo:package"

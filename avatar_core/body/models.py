@@ -98,7 +98,8 @@ class LBSModel(nn.Module):
     def _normalize(self, params: Any, spec: dict, family: str) -> dict[str, Tensor]:
         return normalize_params(params, spec, dtype=self.dtype, device=self.device, family=family)
 
-    def _shape_stage(self, betas: Tensor, offsets: Tensor | None) -> tuple[Tensor, Tensor]:
+    def _shape_stage(self, betas: Tensor, offsets: Tensor | None,
+                     cache: StageCache) -> tuple[Tensor, Tensor]:
         def compute() -> tuple[Tensor, Tensor]:
             verts = self.v_template + lbs.blend_shapes(betas, self.shapedirs)  # [B, V, 3]
             joints = self.joint_template + lbs.blend_shapes(betas, self.joint_shapedirs)
@@ -107,13 +108,15 @@ class LBSModel(nn.Module):
                 joints = joints + lbs.vertices_to_joints(self.joint_regressor, offsets)
             return verts, joints
 
-        return self.cache.get("shape", (betas, offsets), compute)
+        return cache.get("shape", (betas, offsets), compute)
 
     def skin(self, betas: Tensor, expression: Tensor, full_pose: Tensor, transl: Tensor,
-             offsets: Tensor | None = None) -> BodyOutput:
+             offsets: Tensor | None = None, cache: StageCache | None = None) -> BodyOutput:
         """Skinning in cached stages. betas [B, S], expression [B, E], full_pose [B, J, 3],
-        transl [B, 3], offsets [B, V, 3] or None."""
-        v_shape, j_shape = self._shape_stage(betas, offsets)
+        transl [B, 3], offsets [B, V, 3] or None. ``cache``: the caller's own stage cache
+        (e.g. one per streaming session sharing this model); None: the model's."""
+        cache = self.cache if cache is None else cache
+        v_shape, j_shape = self._shape_stage(betas, offsets, cache)
 
         def expression_stage() -> tuple[Tensor, Tensor]:
             if expression.shape[-1] == 0:
@@ -121,21 +124,21 @@ class LBSModel(nn.Module):
             return (v_shape + lbs.blend_shapes(expression, self.exprdirs),
                     j_shape + lbs.blend_shapes(expression, self.joint_exprdirs))
 
-        v_shaped, joints = self.cache.get("expression", (betas, offsets, expression),
-                                          expression_stage)
+        v_shaped, joints = cache.get("expression", (betas, offsets, expression),
+                                     expression_stage)
 
         def pose_stage() -> tuple[Tensor, Tensor]:
             rot = lbs.rodrigues(full_pose)  # [B, J, 3, 3]
             return rot, lbs.pose_offsets(rot, self.posedirs, self.pose_feature_ids)
 
-        rot_mats, corrective = self.cache.get("pose", (full_pose,), pose_stage)
+        rot_mats, corrective = cache.get("pose", (full_pose,), pose_stage)
 
         def transform_stage() -> tuple[Tensor, Tensor]:
             posed_joints, transforms = lbs.rigid_transforms(rot_mats, joints, self.parents)
             return posed_joints, lbs.blend_transforms(self.weights, transforms)
 
-        posed_joints, vertex_transforms = self.cache.get("transforms", (full_pose, joints),
-                                                         transform_stage)
+        posed_joints, vertex_transforms = cache.get("transforms", (full_pose, joints),
+                                                    transform_stage)
         vertices = lbs.skin_vertices(v_shaped + corrective, vertex_transforms)
         vertices = vertices + transl[:, None]
         return BodyOutput(vertices=vertices, joints=posed_joints + transl[:, None],
@@ -222,7 +225,8 @@ class SMPLXModel(LBSModel):
                  self.hand_pose_full("right", p["right_hand_pose"])]
         return torch.cat(parts, dim=1)
 
-    def forward(self, params: SMPLXParams | dict[str, Any] | None = None) -> BodyOutput:
+    def forward(self, params: SMPLXParams | dict[str, Any] | None = None,
+                cache: StageCache | None = None) -> BodyOutput:
         raw = params.to_dict() if isinstance(params, SMPLXParams) else dict(params or {})
         has_offsets = raw.get("vertex_offsets") is not None
         spec = self.param_spec()
@@ -230,7 +234,7 @@ class SMPLXModel(LBSModel):
             spec.pop("vertex_offsets")
         p = self._normalize(raw, spec, self.family)
         return self.skin(p["betas"], p["expression"], self.full_pose(p), p["transl"],
-                         p["vertex_offsets"] if has_offsets else None)
+                         p["vertex_offsets"] if has_offsets else None, cache)
 
     def contour_chain(self) -> list[int]:
         chain, j = [], 12  # the neck, then its ancestors up to the pelvis

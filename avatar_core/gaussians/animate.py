@@ -16,6 +16,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..body.cache import StageCache
 from ..body.model_data import load_smplx
 from ..body.model_paths import BodyModelFiles
 from ..body.params import SMPLXParams
@@ -51,13 +52,17 @@ def _params_key(params: dict[str, Any]) -> bytes | None:
 
 
 class AvatarAnimator:
-    """Poses one avatar on one body model, frame after frame."""
+    """Poses one avatar on one body model, frame after frame.
+
+    ``cache``: the animator's own stage cache, so that animators sharing one (read-only) body
+    model each keep theirs (a server's sessions); None: the body model's own."""
 
     def __init__(self, body_model: UpperBodyModel, avatar: GaussianAvatar,
-                 betas: np.ndarray | None = None) -> None:
+                 betas: np.ndarray | None = None, cache: StageCache | None = None) -> None:
         if avatar.num and int(avatar.parents.max()) >= body_model.faces.shape[0]:
             raise ValueError("the avatar's parent triangles exceed the body model's faces")
         self.body_model = body_model
+        self.cache = cache
         self.avatar = avatar.to(body_model.device, body_model.dtype)
         self.betas = None if betas is None else np.asarray(betas, dtype=np.float64)
         self.hits = self.misses = 0
@@ -95,7 +100,7 @@ class AvatarAnimator:
             self.hits += 1
             return self._last
         self.misses += 1
-        out = self.body_model(raw)
+        out = self.body_model(raw, cache=self.cache)
         if out.vertices.shape[0] != 1:
             raise ValueError("the animator poses one frame at a time (batch 1)")
         vertices = out.vertices[0]

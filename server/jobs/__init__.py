@@ -1,8 +1,8 @@
-"""Training jobs: the store, the worker, the REST routes (docs/jobs.md).
+"""Training jobs: the store, the worker, the service (docs/jobs.md); the REST routes are
+server/routers/jobs.py.
 
-``router`` (the ``/v1/jobs`` APIRouter) and ``JobService`` (store + worker, ``start()`` /
-``stop()`` in the app's lifespan) load lazily, so the training process
-(``python -m server.jobs.run``) does not import FastAPI.
+``JobService`` (store + worker, ``start()`` / ``stop()`` in the app's lifespan) loads lazily,
+so the training process (``python -m server.jobs.run``) does not import FastAPI.
 """
 
 from __future__ import annotations
@@ -10,17 +10,12 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from .routes import router
     from .service import JobService
 
-__all__ = ["JobService", "router"]
+__all__ = ["JobService"]
 
 
 def __getattr__(name: str) -> Any:
-    if name == "router":
-        from .routes import router
-
-        return router
     if name == "JobService":
         from .service import JobService
 

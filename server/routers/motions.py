@@ -10,19 +10,18 @@ from __future__ import annotations
 
 from typing import Any
 
-from fastapi import APIRouter, HTTPException, Query, Request
+from fastapi import APIRouter, HTTPException, Query
 from pydantic import BaseModel, Field
 
 from avatar_core.motion.keyframes import Rig
 from avatar_core.motion.library import ALIASES, MOTIONS, motion
 from avatar_core.motion.rig import model_rig
 
-from .auth import Principal, require_scope
-from .context import ServerContext
-from .routes_avatars import visible_avatar
+from ..context import ServerContext
+from ..dependencies import Context, StreamPrincipal
+from .avatars import visible_avatar
 
 router = APIRouter(prefix="/v1/motions", tags=["motions"])
-_STREAM = require_scope("stream")
 MAX_FPS = 60.0
 
 
@@ -43,19 +42,16 @@ class MotionFrames(MotionOut):
 
 
 @router.get("", summary="List the built-in motion clips", response_model=MotionList)
-def list_motions(principal: Principal = _STREAM) -> MotionList:
+def list_motions(principal: StreamPrincipal) -> MotionList:
     return MotionList(motions=[MotionOut(name=n, category=s.category,
                                          duration=round(motion(n).duration, 3))
                                for n, s in MOTIONS.items()])
 
 
-def _rig(request: Request, avatar_id: str) -> Rig:
+def _rig(ctx: ServerContext, avatar_id: str) -> Rig:
     """The avatar's rig, cached per app (a race only computes one twice)."""
-    rigs: dict[str, Rig] | None = getattr(request.app.state, "motion_rigs", None)
-    if rigs is None:
-        rigs = request.app.state.motion_rigs = {}
+    rigs = ctx.motion_rigs
     if avatar_id not in rigs:
-        ctx: ServerContext = request.app.state.ctx
         loaded = ctx.registry.open(avatar_id)
         rigs[avatar_id] = model_rig(loaded.files, loaded.animator.body_model)
     return rigs[avatar_id]
@@ -64,16 +60,15 @@ def _rig(request: Request, avatar_id: str) -> Rig:
 @router.get("/{name}", summary="A clip sampled for one avatar", response_model=MotionFrames,
             responses={404: {"description": "Unknown motion or avatar"},
                        403: {"description": "Another owner's avatar"}})
-def get_motion(name: str, request: Request, principal: Principal = _STREAM,
+def get_motion(name: str, ctx: Context, principal: StreamPrincipal,
                avatar: str = Query(description="avatar id whose rig samples the clip"),
                fps: float = Query(30.0, gt=0, le=MAX_FPS)) -> MotionFrames:
-    ctx: ServerContext = request.app.state.ctx
     canonical = ALIASES.get(name, name)
     if canonical not in MOTIONS:
         raise HTTPException(404, f"unknown motion {name!r}; known: {sorted(MOTIONS)}")
     clip = motion(canonical)
     record = visible_avatar(ctx, principal, avatar)
-    rig = _rig(request, record.id)
+    rig = _rig(ctx, record.id)
     count = max(1, int(round(clip.duration * fps)) + 1)
     frames = []
     for i in range(count):

@@ -2,8 +2,8 @@
 
 Every route needs the ``train`` scope (``admin`` implies it). A job of another owner is
 answered 404, exactly like a job that does not exist, so ids leak nothing; admins see all.
-The service is ``request.app.state.jobs`` (a :class:`JobService`), set up by :func:`lifespan`,
-which server/app.py runs inside its own.
+The service is the context's ``jobs`` (a :class:`JobService`, the ``Jobs`` dependency), set
+up by :func:`lifespan`, which server/app.py runs inside its own.
 """
 
 from __future__ import annotations
@@ -20,15 +20,16 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from starlette.concurrency import run_in_threadpool
 from starlette.datastructures import UploadFile
 
-from ..auth import Principal, require_scope
-from .service import JobService, SubmitError
-from .store import InvalidTransition, Job, JobNotFound
-from .worker import LOG_FILE
+from ..auth import Principal
+from ..context import ServerContext
+from ..dependencies import Jobs, TrainPrincipal
+from ..jobs.service import JobService, SubmitError
+from ..jobs.store import InvalidTransition, Job, JobNotFound
+from ..jobs.worker import LOG_FILE
 
 __all__ = ["AttemptEnd", "JobList", "JobOut", "JobResult", "JobSubmit", "lifespan", "router"]
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
-_TRAIN = require_scope("train")  # every route: the caller's Principal, 401 / 403 otherwise
 
 MAX_JSON_BODY = 1 << 20
 MULTIPART_SLACK = 1 << 20     # form fields and boundaries around the archive
@@ -131,25 +132,18 @@ _SUBMIT_BODY = {"requestBody": {"required": True, "content": {
 }}}
 
 
-def _service(request: Request) -> JobService:
-    service = getattr(request.app.state, "jobs", None)
-    if service is None:
-        raise HTTPException(503, "the job service is not running")
-    return service
-
-
 @contextlib.asynccontextmanager
-async def lifespan(app: Any) -> AsyncIterator[None]:
-    """Runs inside the app's lifespan (server/app.py): the JobService on the app's settings
-    and registry, as ``app.state.jobs``; queued and interrupted jobs resume at start, running
-    ones are checkpointed and re-queued at stop."""
-    service = JobService.from_settings(app.state.settings, app.state.registry)
+async def lifespan(ctx: ServerContext) -> AsyncIterator[None]:
+    """Runs inside the app's lifespan (server/app.py): the JobService on the context's
+    settings and registry, as ``ctx.jobs``; queued and interrupted jobs resume at start,
+    running ones are checkpointed and re-queued at stop."""
+    service = JobService.from_settings(ctx.settings, ctx.registry)
     await asyncio.to_thread(service.start)
-    app.state.jobs = service
+    ctx.jobs = service
     try:
         yield
     finally:
-        app.state.jobs = None
+        ctx.jobs = None
         await asyncio.to_thread(service.stop)
 
 
@@ -238,12 +232,11 @@ async def _submit_named(request: Request, service: JobService, owner: str,
                                              "key)."},
                         429: {"description": "The owner's job quota is used up (the detail "
                                              "says which)."}})
-async def submit_job(request: Request, response: Response,
-                     principal: Principal = _TRAIN) -> JobOut:
+async def submit_job(request: Request, response: Response, principal: TrainPrincipal,
+                     service: Jobs) -> JobOut:
     """Train an avatar: on a dataset on the server (JSON ``{"dataset", "config", "name"}``)
     or on an uploaded zip (multipart: ``archive``, ``config``, ``name``). Past the per-user
     job quotas (admins exempt): 429."""
-    service = _service(request)
     kind = request.headers.get("content-type", "").split(";")[0].strip().lower()
     try:
         # before reading (and unpacking) a body that would be refused anyway
@@ -264,30 +257,26 @@ async def submit_job(request: Request, response: Response,
 
 
 @router.get("", response_model=JobList, summary="List jobs", responses=_ERRORS)
-def list_jobs(request: Request,
+def list_jobs(principal: TrainPrincipal, service: Jobs,
               state: Annotated[StateName | None, Query()] = None,
-              limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-              principal: Principal = _TRAIN) -> JobList:
+              limit: Annotated[int, Query(ge=1, le=1000)] = 100) -> JobList:
     """Your jobs, newest first (admins: everyone's)."""
     owner = None if principal.is_admin else principal.subject
-    jobs = _service(request).store.list(owner=owner, state=state, limit=limit)
+    jobs = service.store.list(owner=owner, state=state, limit=limit)
     return JobList(jobs=[JobOut.of(j) for j in jobs])
 
 
 @router.get("/{job_id}", response_model=JobOut, summary="A job's status and progress",
             responses=_ERRORS)
-def get_job(job_id: str, request: Request,
-            principal: Principal = _TRAIN) -> JobOut:
-    return JobOut.of(_visible(_service(request), principal, job_id))
+def get_job(job_id: str, principal: TrainPrincipal, service: Jobs) -> JobOut:
+    return JobOut.of(_visible(service, principal, job_id))
 
 
 @router.post("/{job_id}/cancel", status_code=202, response_model=JobOut, summary="Cancel a job",
              responses={**_ERRORS, 409: {"description": "The job has already finished."}})
-def cancel_job(job_id: str, request: Request,
-               principal: Principal = _TRAIN) -> JobOut:
+def cancel_job(job_id: str, principal: TrainPrincipal, service: Jobs) -> JobOut:
     """A queued job is cancelled at once; a running one when its process stops (within
     seconds: ``cancel_requested`` is set meanwhile)."""
-    service = _service(request)
     _visible(service, principal, job_id)
     try:
         return JobOut.of(service.cancel(job_id))
@@ -300,10 +289,9 @@ def cancel_job(job_id: str, request: Request,
              responses={**_ERRORS,
                         409: {"description": "The job is not failed, or its dataset is gone."},
                         429: {"description": "The owner has the most active jobs allowed."}})
-def resume_job(job_id: str, request: Request, principal: Principal = _TRAIN) -> JobOut:
+def resume_job(job_id: str, principal: TrainPrincipal, service: Jobs) -> JobOut:
     """A failed job goes back to the queue and goes on from its latest checkpoint (from the
     start without one), with a fresh budget of attempts."""
-    service = _service(request)
     _visible(service, principal, job_id)
     try:
         return JobOut.of(service.resume(job_id, exempt=principal.is_admin))
@@ -315,9 +303,8 @@ def resume_job(job_id: str, request: Request, principal: Principal = _TRAIN) -> 
 
 @router.delete("/{job_id}", status_code=204, summary="Delete a finished job",
                responses={**_ERRORS, 409: {"description": "The job is queued or running."}})
-def delete_job(job_id: str, request: Request, principal: Principal = _TRAIN) -> Response:
+def delete_job(job_id: str, principal: TrainPrincipal, service: Jobs) -> Response:
     """Forgets the job, its events, log and files; its avatar, if any, stays registered."""
-    service = _service(request)
     _visible(service, principal, job_id)
     try:
         service.delete(job_id)
@@ -330,9 +317,8 @@ def delete_job(job_id: str, request: Request, principal: Principal = _TRAIN) -> 
 
 @router.get("/{job_id}/result", response_model=JobResult, summary="The trained avatar",
             responses={**_ERRORS, 409: {"description": "The job has not succeeded (yet)."}})
-def job_result(job_id: str, request: Request,
-               principal: Principal = _TRAIN) -> JobResult:
-    job = _visible(_service(request), principal, job_id)
+def job_result(job_id: str, principal: TrainPrincipal, service: Jobs) -> JobResult:
+    job = _visible(service, principal, job_id)
     if job.state != "succeeded" or job.avatar_id is None:
         why = f": {job.error}" if job.error else ""
         raise HTTPException(409, f"job {job.id} is {job.state}{why}; no avatar")
@@ -341,11 +327,10 @@ def job_result(job_id: str, request: Request,
 
 @router.get("/{job_id}/logs", response_class=PlainTextResponse, summary="The training log",
             responses={**_ERRORS, 200: {"content": {"text/plain": {}}}})
-def job_logs(job_id: str, request: Request,
-             tail: Annotated[int | None, Query(ge=1, le=MAX_TAIL_LINES)] = None,
-             principal: Principal = _TRAIN) -> PlainTextResponse:
+def job_logs(job_id: str, principal: TrainPrincipal, service: Jobs,
+             tail: Annotated[int | None, Query(ge=1, le=MAX_TAIL_LINES)] = None
+             ) -> PlainTextResponse:
     """The log (at most its last 1 MiB); ``tail``: only the last N lines."""
-    service = _service(request)
     _visible(service, principal, job_id)
     path = service.worker.job_dir(job_id) / LOG_FILE
     text = ""
@@ -373,15 +358,13 @@ def _sse(event_id: int | None, kind: str, data: dict[str, Any]) -> str:
             responses={**_ERRORS, 200: {"content": {"text/event-stream": {}},
                                         "description": "id: seq, event: type, data: JSON; "
                                                        "a last 'end' event when the job ends."}})
-def job_events(job_id: str, request: Request,
+def job_events(job_id: str, request: Request, principal: TrainPrincipal, service: Jobs,
                after: Annotated[int, Query(ge=0)] = 0,
                timeout: Annotated[float, Query(gt=0, le=MAX_STREAM_S)] = MAX_STREAM_S,
-               last_event_id: Annotated[str | None, Header()] = None,
-               principal: Principal = _TRAIN) -> StreamingResponse:
+               last_event_id: Annotated[str | None, Header()] = None) -> StreamingResponse:
     """Replays the events after ``after`` / ``Last-Event-ID`` (the larger), then streams new
     ones; ends with an ``end`` event once the job has finished, or after ``timeout`` s
     (reconnect with Last-Event-ID)."""
-    service = _service(request)
     _visible(service, principal, job_id)
     start = after
     if last_event_id is not None and last_event_id.strip().isdigit():

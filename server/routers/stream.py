@@ -17,7 +17,6 @@ import contextlib
 import logging
 
 from fastapi import APIRouter, HTTPException, WebSocket
-from fastapi import Request as HTTPRequest
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from protocol import (
@@ -34,18 +33,18 @@ from protocol import (
 )
 from protocol.messages import Orbit
 
-from .auth import Principal, require_scope, token_from_websocket
-from .context import ServerContext
-from .inbound import InboundLimits
-from .net import PREAUTH_EXTENSION
-from .registry import DEMO_ID, AvatarNotFound, AvatarRecord
-from .renderer import SessionRenderer
-from .session import SessionConfig, StreamSession, error_message
-from .tickets import TicketsExhausted
+from ..auth import Principal, token_from_websocket
+from ..context import ServerContext
+from ..dependencies import Context, StreamPrincipal
+from ..inbound import InboundLimits
+from ..net import PREAUTH_EXTENSION
+from ..registry import DEMO_ID, AvatarNotFound, AvatarRecord
+from ..renderer import SessionRenderer
+from ..session import SessionConfig, StreamSession, error_message
+from ..tickets import TicketsExhausted
 
 log = logging.getLogger(__name__)
 router = APIRouter()
-_STREAM = require_scope("stream")
 
 # Close codes: 4000 + the HTTP status the refusal would have had; 1013 "try again later".
 CLOSE_BAD_HELLO = 4400
@@ -180,10 +179,9 @@ async def _refuse(ws: WebSocket, refusal: Refusal, ctx: ServerContext) -> None:
 
 
 @router.post("/v1/stream/tickets", status_code=201)
-def stream_ticket(request: HTTPRequest, principal: Principal = _STREAM) -> dict:
+def stream_ticket(ctx: Context, principal: StreamPrincipal) -> dict:
     """A single-use ticket for ``/v1/stream?ticket=...``, valid ``ticket_ttl_s`` seconds: for
     clients that can send neither an Authorization header nor a hello with the token."""
-    ctx: ServerContext = request.app.state.ctx
     try:
         ticket = ctx.admission.tickets.issue(principal)
     except TicketsExhausted as exc:
@@ -192,9 +190,8 @@ def stream_ticket(request: HTTPRequest, principal: Principal = _STREAM) -> dict:
 
 
 @router.websocket("/v1/stream")
-async def stream(ws: WebSocket, avatar: str = DEMO_ID) -> None:
+async def stream(ws: WebSocket, ctx: Context, avatar: str = DEMO_ID) -> None:
     """Drive an avatar and receive its frames (see protocol/ for the messages)."""
-    ctx: ServerContext = ws.app.state.ctx
     await ws.accept()
     subject = None  # holds a per-user slot while set
     try:
@@ -231,17 +228,18 @@ async def stream(ws: WebSocket, avatar: str = DEMO_ID) -> None:
 
 async def _serve(ws: WebSocket, ctx: ServerContext, record: AvatarRecord) -> None:
     try:
-        loaded, animator, manos = await asyncio.to_thread(ctx.session_models, record.id)
+        animator, manos = await asyncio.to_thread(ctx.session_models, record.id)
+        tracker = await asyncio.to_thread(ctx.session_tracker, record.id)
     except Exception as exc:  # noqa: BLE001 - a broken package must not take the server down
         log.exception("cannot load avatar %s", record.id)
         await _refuse(ws, Refusal("internal", f"cannot load avatar {record.id!r}: {exc}",
                                   CLOSE_INTERNAL), ctx)
         return
     s = ctx.settings
-    renderer = SessionRenderer(loaded, animator, manos, backend=s.backend)
+    renderer = SessionRenderer(animator, manos, backend=s.backend)
     request = default_request(ctx, record)
     session = StreamSession(
-        ws, renderer, ctx.scheduler, ctx.track_scheduler, ctx.metrics,
+        ws, renderer, tracker, ctx.scheduler, ctx.track_scheduler, ctx.metrics,
         SessionConfig(s.limits, s.jpeg_quality, s.jpeg_quality_moving, s.stats_interval_s,
                       inbound_limits(s)),
         request, View(orbit=Orbit()), session_count=lambda: ctx.slots.count)

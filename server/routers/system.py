@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Request, Response
+from fastapi import APIRouter, Response
 from prometheus_client import CONTENT_TYPE_LATEST
 from pydantic import BaseModel
 
 from protocol import PROTOCOL_VERSION
 
-from .context import ServerContext
+from ..dependencies import Context
 
 router = APIRouter(tags=["system"])
 
@@ -23,8 +23,7 @@ class HealthOut(BaseModel):
 
 
 @router.get("/v1/health", summary="Liveness and load", response_model=HealthOut)
-def health(request: Request) -> HealthOut:
-    ctx: ServerContext = request.app.state.ctx
+def health(ctx: Context) -> HealthOut:
     return HealthOut(status="ok", protocol_version=PROTOCOL_VERSION, sessions=ctx.slots.count,
                      max_sessions=ctx.slots.limit, avatars=len(ctx.registry.list()),
                      render_queue=ctx.scheduler.queued)
@@ -32,8 +31,7 @@ def health(request: Request) -> HealthOut:
 
 @router.get("/metrics", summary="Prometheus metrics", response_class=Response,
             responses={200: {"content": {CONTENT_TYPE_LATEST: {}}}})
-def metrics(request: Request) -> Response:
-    ctx: ServerContext = request.app.state.ctx
+def metrics(ctx: Context) -> Response:
     ctx.metrics.sessions.set(ctx.slots.count)
     ctx.metrics.render_queue.set(ctx.scheduler.queued)
     return Response(ctx.metrics.render_text(), media_type=CONTENT_TYPE_LATEST)

@@ -18,16 +18,15 @@ from fastapi.responses import FileResponse
 from pydantic import BaseModel, Field
 from starlette.background import BackgroundTask
 
-from .auth import Principal, require_scope
-from .context import ServerContext
-from .private import private_dir
-from .quotas import check_avatar_quota, storage_left
-from .registry import AvatarNotFound, AvatarRecord, PackageError, StorageQuotaExceeded
-from .uploads import receive_upload
+from ..auth import Principal
+from ..context import ServerContext
+from ..dependencies import Context, StreamPrincipal, TrainPrincipal
+from ..private import private_dir
+from ..quotas import check_avatar_quota, storage_left
+from ..registry import AvatarNotFound, AvatarRecord, PackageError, StorageQuotaExceeded
+from ..uploads import receive_upload
 
 router = APIRouter(prefix="/v1/avatars", tags=["avatars"])
-_STREAM = require_scope("stream")  # reading
-_TRAIN = require_scope("train")    # creating and deleting
 
 
 class AvatarOut(BaseModel):
@@ -56,10 +55,6 @@ ERRORS: dict[int | str, dict[str, Any]] = {
 }
 
 
-def _ctx(request: Request) -> ServerContext:
-    return request.app.state.ctx
-
-
 def visible_avatar(ctx: ServerContext, principal: Principal, avatar_id: str) -> AvatarRecord:
     """The avatar if the caller may see it: 404 when unknown, 403 when another owner's."""
     try:
@@ -72,10 +67,9 @@ def visible_avatar(ctx: ServerContext, principal: Principal, avatar_id: str) -> 
 
 
 @router.get("", summary="List avatars", response_model=list[AvatarOut], responses=ERRORS)
-def list_avatars(request: Request, principal: Principal = _STREAM
-                 ) -> list[AvatarOut]:
+def list_avatars(ctx: Context, principal: StreamPrincipal) -> list[AvatarOut]:
     """The caller's avatars and the public ones (every avatar for an admin)."""
-    registry = _ctx(request).registry
+    registry = ctx.registry
     recs = registry.list() if principal.is_admin else \
         registry.list(principal.subject, include_public=True)
     return [AvatarOut.of(r) for r in recs]
@@ -83,9 +77,8 @@ def list_avatars(request: Request, principal: Principal = _STREAM
 
 @router.get("/{avatar_id}", summary="Get one avatar", response_model=AvatarOut,
             responses={**ERRORS, 404: {"model": ErrorOut, "description": "No such avatar"}})
-def get_avatar(avatar_id: str, request: Request,
-               principal: Principal = _STREAM) -> AvatarOut:
-    return AvatarOut.of(visible_avatar(_ctx(request), principal, avatar_id))
+def get_avatar(avatar_id: str, ctx: Context, principal: StreamPrincipal) -> AvatarOut:
+    return AvatarOut.of(visible_avatar(ctx, principal, avatar_id))
 
 
 @router.post(
@@ -103,13 +96,12 @@ def get_avatar(avatar_id: str, request: Request,
             "properties": {"file": {"type": "string", "format": "binary"},
                            "name": {"type": "string", "maxLength": 200}}}},
         "application/zip": {"schema": {"type": "string", "format": "binary"}}}}})
-async def upload_avatar(request: Request, name: str | None = None,
-                        principal: Principal = _TRAIN) -> AvatarOut:
+async def upload_avatar(request: Request, ctx: Context, principal: TrainPrincipal,
+                        name: str | None = None) -> AvatarOut:
     """A package zip (``avatar.json`` + ``gaussians.npz``), validated before anything is
     unpacked; the caller owns the new avatar. ``name`` (query or form field) overrides the
     package's name."""
-    ctx = _ctx(request)
-    jobs = getattr(request.app.state, "jobs", None)
+    jobs = ctx.jobs
     exempt = principal.is_admin
     if not exempt:  # before the body is read
         await asyncio.to_thread(check_avatar_quota, principal.subject, 0, ctx.settings,
@@ -137,9 +129,8 @@ async def upload_avatar(request: Request, name: str | None = None,
             response_class=FileResponse,
             responses={**ERRORS, 200: {"content": {"application/zip": {}}},
                        404: {"model": ErrorOut, "description": "No such avatar"}})
-async def download_avatar(avatar_id: str, request: Request,
-                          principal: Principal = _STREAM) -> FileResponse:
-    ctx = _ctx(request)
+async def download_avatar(avatar_id: str, ctx: Context,
+                          principal: StreamPrincipal) -> FileResponse:
     rec = visible_avatar(ctx, principal, avatar_id)
     tmp_dir = private_dir(ctx.settings.data_dir / "tmp")
     with tempfile.NamedTemporaryFile(dir=tmp_dir, suffix=".zip", delete=False) as fh:
@@ -155,10 +146,8 @@ async def download_avatar(avatar_id: str, request: Request,
 
 @router.delete("/{avatar_id}", summary="Delete an avatar", status_code=204,
                responses={**ERRORS, 404: {"model": ErrorOut, "description": "No such avatar"}})
-def delete_avatar(avatar_id: str, request: Request,
-                  principal: Principal = _TRAIN) -> None:
+def delete_avatar(avatar_id: str, ctx: Context, principal: TrainPrincipal) -> None:
     """Only its owner or an admin may delete an avatar (public ones: admins only)."""
-    ctx = _ctx(request)
     rec = visible_avatar(ctx, principal, avatar_id)
     if not principal.can_modify(rec.owner):
         raise HTTPException(403, f"only the owner or an admin may delete avatar {avatar_id!r}")
