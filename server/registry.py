@@ -29,6 +29,7 @@ from typing import Any
 from avatar_core.body.cache import StageCache
 from avatar_core.bounded_npz import NpzLimits
 from avatar_core.gaussians.animate import AvatarAnimator
+from avatar_core.gaussians.loading import LoadedAvatar, load_avatar
 from avatar_core.gaussians.package import (
     GAUSSIANS,
     MANIFEST,
@@ -37,7 +38,6 @@ from avatar_core.gaussians.package import (
     load_package,
     save_package,
 )
-from avatar_core.pipeline import LoadedAvatar, load_avatar
 
 from .auth import PUBLIC_OWNER
 from .private import make_private, private_dir

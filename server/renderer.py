@@ -16,14 +16,13 @@ import torch
 from avatar_core.body.models import MANOModel
 from avatar_core.gaussians.animate import AvatarAnimator, PosedAvatar
 from avatar_core.render.camera import Camera, orbit
+from avatar_core.render.camera_path import framing_target
 from avatar_core.render.rasterize import rasterize
-from avatar_core.render.types import RenderRequest
+from avatar_core.render.types import RenderRequest, to_uint8
 from protocol import Request, Timings, View
 
 from .drive import DriveState, drive_shapes
 from .encoders import H264Encoder, encode_depth_png, encode_jpeg, encode_png
-
-CHEST_DROP_M = 0.2  # orbit target: this far below the neck joint (as the render CLI)
 
 
 @dataclass(frozen=True)
@@ -57,7 +56,7 @@ class SessionRenderer:
         self.backend = backend
         model = animator.body_model
         self.shapes = drive_shapes(model, manos)
-        self.chest = model.joint_template[12].cpu().numpy() - np.array([0.0, CHEST_DROP_M, 0.0])
+        self.chest = framing_target(model.joint_template)  # the default orbit target
         self._posed: PosedAvatar | None = None  # of the drive state version below
         self._posed_version = -1
         self._h264: H264Encoder | None = None
@@ -90,9 +89,8 @@ class SessionRenderer:
             out = rasterize(posed.gaussians, cam, RenderRequest(
                 outputs=outputs, background=tuple(req.background), sh_degree=req.sh_degree,
                 budget=budget, backend=self.backend))
-            rgb = (out.rgb.clamp(0, 1) * 255).round().to(torch.uint8).cpu().numpy()  # [H,W,3]
-            alpha = None if out.alpha is None else \
-                (out.alpha.clamp(0, 1) * 255).round().to(torch.uint8).cpu().numpy()  # [H, W]
+            rgb = to_uint8(out.rgb)  # [H, W, 3]
+            alpha = None if out.alpha is None else to_uint8(out.alpha)  # [H, W]
             depth = None if out.depth is None else out.depth.cpu().numpy()  # [H, W] metres
         t2 = time.perf_counter()
         codec, keyframe = req.codec, True
