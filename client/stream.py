@@ -95,7 +95,6 @@ class StreamClient:
         self._sent_at: dict[int, float] = {}  # seq -> monotonic time sent
         self._frames: asyncio.Queue[Frame | None] = asyncio.Queue(maxsize=queue_size)
         self._pongs: dict[float, asyncio.Future[float]] = {}
-        self._latest: Frame | None = None
         self._frame_event = asyncio.Event()
         self._reader = asyncio.create_task(self._read())
 
@@ -246,7 +245,6 @@ class StreamClient:
             sent = self._sent_at.pop(message.seq, None)
             if sent is not None:
                 self.latencies.append(time.monotonic() - sent)
-            self._latest = message
             self._put(message)
             self._frame_event.set()
         elif isinstance(message, Stats):
@@ -304,10 +302,6 @@ class StreamClient:
             frame = await self.next_frame(left)
             if frame.seq >= seq:
                 return frame
-
-    @property
-    def latest_frame(self) -> Frame | None:
-        return self._latest
 
     def errors_for(self, seq: int) -> list[Error]:
         """Errors that answer the message with ``seq``."""

@@ -141,7 +141,6 @@ class StreamSession:
         self._image_ready = asyncio.Event()
         self._track_inflight = None
         self._track_ms = 0.0
-        self.images_dropped = 0
         self.closed = asyncio.Event()
 
     # -- sending -----------------------------------------------------------------------------
@@ -218,9 +217,7 @@ class StreamSession:
             if self.tracking.unavailable:
                 raise ProtocolError("unsupported", self.tracking.unavailable,
                                     {"type": "image", "seq": msg.seq})
-            if self._image is not None:
-                self.images_dropped += 1  # superseded before tracking started
-            self._image = (msg, time.monotonic())
+            self._image = (msg, time.monotonic())  # supersedes one not yet tracking
             self._image_ready.set()
         elif isinstance(msg, Hello):
             if msg.version != PROTOCOL_VERSION:
