@@ -62,6 +62,18 @@ def test_health_metrics_and_openapi(server):
                  "/v1/avatars/{avatar_id}/package"):
         assert path in spec["paths"]
     assert spec["paths"]["/v1/avatars"]["get"]["summary"] == "List avatars"
+    for path in ("/v1/motions", "/v1/motions/{name}", "/v1/stream/tickets", "/v1/jobs",
+                 "/v1/jobs/{job_id}/events"):
+        assert path in spec["paths"]
+    # dependencies (context, principal, job service) are never request parameters
+    params = {p["name"] for ops in spec["paths"].values() for op in ops.values()
+              for p in op.get("parameters", [])}
+    assert not params & {"ctx", "conn", "request", "principal", "service"}, params
+
+
+def test_the_app_carries_only_its_context(server):
+    assert set(server.app.state._state) == {"ctx"}
+    assert server.ctx.jobs is not None  # the job service, while the app runs
 
 
 def test_rest_auth_refusals(server):
