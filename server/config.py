@@ -14,9 +14,11 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from avatar_core.gaussians.validate import GaussianRanges
 from protocol import Limits
 
 ENV_PREFIX = "TELESPLAT_"
+NESTED = frozenset({"limits", "gaussian_ranges"})  # tables in the file, JSON in the env
 
 
 def default_data_dir() -> Path:
@@ -155,6 +157,12 @@ class Settings(BaseModel):
         20 * 2**30, ge=1024, description="Bytes one user may store: their avatars plus their "
                                          "jobs' folders (uploaded datasets, checkpoints); an "
                                          "upload past it is 413 (admins exempt).")
+    gaussian_ranges: GaussianRanges = Field(
+        default_factory=GaussianRanges,
+        description="Allowed values of an avatar's Gaussians (count, log-scales, local means, "
+                    "opacity logits, SH, quaternion norms), checked on upload (422) and when a "
+                    "stored avatar is opened; a [gaussian_ranges] table or JSON in "
+                    "TELESPLAT_GAUSSIAN_RANGES.")
 
     @field_validator("demo_avatar")
     @classmethod
@@ -197,7 +205,7 @@ def _from_env(environ: dict[str, str]) -> dict[str, Any]:
         raw = environ.get(ENV_PREFIX + name.upper())
         if raw is None:
             continue
-        out[name] = json.loads(raw) if name == "limits" else raw
+        out[name] = json.loads(raw) if name in NESTED else raw
     return out
 
 
@@ -206,8 +214,8 @@ def load_settings(path: str | Path | None = None, *, environ: dict[str, str] | N
     """Settings from defaults < file (``path``) < env vars < keyword overrides."""
     data: dict[str, Any] = _read_file(Path(path)) if path is not None else {}
     env = _from_env(dict(os.environ if environ is None else environ))
-    if "limits" in env:
-        env["limits"] = {**data.get("limits", {}), **env["limits"]}
+    for name in NESTED & env.keys():  # merged over the file's table, field by field
+        env[name] = {**data.get(name, {}), **env[name]}
     data.update(env)
     data.update({k: v for k, v in overrides.items() if v is not None})
     return Settings.model_validate(data)

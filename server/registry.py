@@ -38,6 +38,7 @@ from avatar_core.gaussians.package import (
     load_package,
     save_package,
 )
+from avatar_core.gaussians.validate import GaussianRanges
 
 from .auth import PUBLIC_OWNER
 from .private import make_private, private_dir
@@ -92,8 +93,10 @@ class AvatarRegistry:
     """Avatar packages under ``root``, with owners; thread-safe."""
 
     def __init__(self, root: str | Path, *, max_package_bytes: int = MAX_PACKAGE_BYTES,
-                 npz_limits: NpzLimits | None = None) -> None:
+                 npz_limits: NpzLimits | None = None,
+                 ranges: GaussianRanges | None = None) -> None:
         self.root = private_dir(root)
+        self.ranges = ranges  # None: GaussianRanges' defaults
         self.max_package_bytes = max_package_bytes
         self.npz_limits = npz_limits  # None: load_package's, from max_package_bytes
         self._lock = threading.RLock()
@@ -109,7 +112,7 @@ class AvatarRegistry:
                            max_total_bytes=settings.max_npz_bytes,
                            max_ratio=settings.max_unpack_ratio)
         # the files together may be larger than the zip, and hold the arrays and the manifest
-        return cls(settings.avatars_dir, npz_limits=limits,
+        return cls(settings.avatars_dir, npz_limits=limits, ranges=settings.gaussian_ranges,
                    max_package_bytes=max(4 * settings.max_upload_bytes, settings.max_npz_bytes))
 
     # -- records ---------------------------------------------------------------------------
@@ -163,7 +166,7 @@ class AvatarRegistry:
         """
         src = Path(src)
         package = load_package(src, max_bytes=self.max_package_bytes,
-                               npz_limits=self.npz_limits)  # raises PackageError
+                               npz_limits=self.npz_limits, ranges=self.ranges)  # PackageError
         avatar_id = avatar_id or secrets.token_hex(8)
         if not ID_PATTERN.match(avatar_id):
             raise ValueError(f"bad avatar id {avatar_id!r}")
@@ -264,7 +267,8 @@ class AvatarRegistry:
             if loaded is None:
                 # the limits it was accepted under: a package that was added also opens
                 loaded = load_avatar(str(self.package_dir(avatar_id)),
-                                     max_bytes=self.max_package_bytes, npz_limits=self.npz_limits)
+                                     max_bytes=self.max_package_bytes, npz_limits=self.npz_limits,
+                                     ranges=self.ranges)
                 with self._lock:
                     if avatar_id in self._records:
                         self._loaded[avatar_id] = loaded

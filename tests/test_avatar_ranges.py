@@ -16,6 +16,8 @@ import torch
 from avatar_core.gaussians.loading import load_avatar
 from avatar_core.gaussians.package import PackageError, load_package, save_package
 from avatar_core.gaussians.validate import GaussianRanges, RangeError, check_gaussian_ranges
+from server.config import load_settings
+from server.registry import AvatarRegistry
 from tests.server_fixtures import (
     is_type,
     recv_until,
@@ -136,3 +138,19 @@ def test_server_refuses_the_log_scale_80_package_and_keeps_serving(server, synth
         async with stream(server) as ws:
             return await recv_until(ws, is_type("frame"))
     assert asyncio.run(one_frame()).type == "frame"
+
+
+def test_ranges_are_a_server_setting(synthetic, tmp_path):
+    # A [gaussian_ranges] table in the settings file, a field overridden from the environment.
+    config = tmp_path / "server.toml"
+    config.write_text("[gaussian_ranges]\nmax_gaussians = 10\n")
+    settings = load_settings(config, data_dir=tmp_path / "data",
+                             environ={"TELESPLAT_GAUSSIAN_RANGES": '{"log_scale_max": 5.0}'})
+    assert settings.gaussian_ranges == GaussianRanges(max_gaussians=10, log_scale_max=5.0)
+    registry = AvatarRegistry.from_settings(settings)
+    path = _absurd_package(synthetic, tmp_path)  # nothing changed: valid by default
+    with pytest.raises(PackageError, match="more than the allowed 10"):
+        registry.add_package(path, owner="alice")
+    assert registry.list() == []
+    relaxed = AvatarRegistry(tmp_path / "relaxed")
+    assert relaxed.add_package(path, owner="alice").num_gaussians == synthetic.avatar.num
