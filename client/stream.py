@@ -16,7 +16,7 @@ import asyncio
 import collections
 import contextlib
 import time
-from collections.abc import AsyncIterator, Mapping
+from collections.abc import AsyncIterator, Callable, Mapping
 from typing import Any
 from urllib.parse import urlencode, urlsplit, urlunsplit
 
@@ -34,8 +34,10 @@ from protocol import (
     Orbit,
     Ping,
     Pong,
+    Presence,
     ProtocolError,
     Request,
+    RoomWelcome,
     Stats,
     View,
     Welcome,
@@ -44,7 +46,9 @@ from protocol import (
 )
 
 # Codes after which the server closes the session.
-FATAL_CODES = frozenset({"unauthorized", "forbidden", "not_found", "busy", "version"})
+# A viewer's drive or image gets `forbidden` with `answers` set and the session goes on: only
+# a refusal that answers nothing closes it.
+FATAL_CODES = frozenset({"unauthorized", "forbidden", "not_found", "busy", "version", "gone"})
 MAX_WIRE_BYTES = 64 * 1024 * 1024
 
 
@@ -115,8 +119,8 @@ class StreamClient:
         self._frames: asyncio.Queue[Frame | None] = asyncio.Queue(maxsize=queue_size)
         self._pongs: dict[float, asyncio.Future[float]] = {}
         self._frame_event = asyncio.Event()
-        self.room = getattr(welcome, "room", None)  # RoomWelcome in a room, else None
-        self.presence: Any = None             # the latest Presence message (rooms only)
+        self.room: RoomWelcome | None = welcome.room  # None outside rooms
+        self.presence: Presence | None = None  # the latest presence message (rooms only)
         self._presence_event = asyncio.Event()
         self._reader = asyncio.create_task(self._read())
 
@@ -280,12 +284,12 @@ class StreamClient:
             future = self._pongs.get(message.t)
             if future is not None and not future.done():
                 future.set_result(time.monotonic() - message.t)
-        elif getattr(message, "type", None) == "presence":
+        elif isinstance(message, Presence):
             self.presence = message
             self._presence_event.set()
         elif isinstance(message, Error):
             self.errors.append(message)
-            if message.code in FATAL_CODES:
+            if message.code in FATAL_CODES and message.answers is None:
                 self.closed = StreamError(message.code, message.message)
 
     def _put(self, frame: Frame | None) -> None:
@@ -333,7 +337,8 @@ class StreamClient:
             if frame.seq >= seq:
                 return frame
 
-    async def wait_presence(self, predicate: Any, timeout: float = 10.0) -> Any:
+    async def wait_presence(self, predicate: Callable[[Presence], bool],
+                            timeout: float = 10.0) -> Presence:
         """The first presence (the latest one included) for which ``predicate`` is true."""
         deadline = time.monotonic() + timeout
         while True:  # bounded by the deadline

@@ -15,9 +15,6 @@ from client.watch import frame_record, parse_view
 from protocol import Frame, Hello
 from tests.server_fixtures import server_fixture  # noqa: F401 (the `server` fixture)
 
-ROOMS_PROTOCOL = "role" in Hello.model_fields
-needs_rooms = pytest.mark.skipif(not ROOMS_PROTOCOL, reason="the protocol has no rooms yet")
-
 
 def test_stream_url_for_a_room_has_the_room_and_no_avatar_or_token():
     assert stream_url("http://h:1", room="r 1") == "ws://h:1/v1/stream?room=r+1"
@@ -37,7 +34,6 @@ def test_plain_hello_is_unchanged_and_role_needs_a_room():
         room_hello("c", room="r", role="drive")
 
 
-@needs_rooms
 def test_room_hello_carries_role_and_seat():
     hello = room_hello("c", room="r", role="perform", seat=2)
     assert (hello.role, hello.seat, hello.client) == ("perform", 2, "c")
