@@ -4,10 +4,15 @@ while a performer drives the seat."""
 
 from __future__ import annotations
 
+import asyncio
+import importlib.util
 import json
+import time
 
+import numpy as np
 import pytest
 
+from client import RestClient, StreamClient, decode_image
 from client.cli import build_parser
 from client.cli import main as cli_main
 from client.stream import room_hello, stream_url
@@ -108,3 +113,70 @@ def test_rest_client_room_requests():
         assert seen[-1].url.path == "/v1/rooms/r1"
         with pytest.raises(Exception, match="404.*no such room"):
             api.room("nope")
+
+
+# -- against a real server ----------------------------------------------------------------
+
+needs_rooms = pytest.mark.skipif(importlib.util.find_spec("server.routers.rooms") is None,
+                                 reason="the server has no rooms yet")
+
+
+@needs_rooms
+def test_watch_room_records_what_the_performer_drives(server, tmp_path):  # noqa: F811
+    with RestClient(server.url, server.token) as api:
+        room = api.create_room(name="watch test")
+        watch = api.invite(room["id"], "watch")
+    assert watch["token"].startswith("tsr_") and watch["link"].startswith("/?room=")
+    out = tmp_path / "watched"
+    argv = ["watch", "--room", room["id"], "--out", str(out), "--frames", "4", "--seconds",
+            "120", "--size", "96", "--server", server.url, "--token", watch["token"]]
+
+    async def run():
+        async with await StreamClient.connect(server.url, token=server.token, room=room["id"],
+                                              role="perform", seat=0) as performer:
+            assert (performer.room.role, performer.room.seat) == ("perform", 0)
+            recorder = asyncio.create_task(asyncio.to_thread(cli_main, argv))
+            await performer.wait_presence(lambda p: p.viewers >= 1, timeout=60)
+            for i in range(400):  # bounded; ends once the recorder has its frames
+                if recorder.done():
+                    break
+                seq = await performer.drive(jaw_pose=[min(0.5, 0.1 * (i + 1)), 0.0, 0.0])
+                await performer.wait_frame(seq, timeout=30)
+            return await recorder
+
+    assert asyncio.run(run()) == 0
+    records = [json.loads(line) for line in (out / "frames.jsonl").read_text().splitlines()]
+    assert [r["index"] for r in records] == [0, 1, 2, 3]
+    images = [decode_image((out / r["file"]).read_bytes()) for r in records]
+    assert all(image.shape == (96, 96, 3) for image in images)
+    assert all(r["codec"] == "jpeg" and r["bytes"] > 0 for r in records)
+    # The viewer's first frame shows the seat at rest, its last one the driven jaw.
+    assert np.abs(images[0].astype(int) - images[-1]).mean() > 0.1
+
+
+@needs_rooms
+def test_a_viewers_drive_is_forbidden_and_its_session_goes_on(server):  # noqa: F811
+    with RestClient(server.url, server.token) as api:
+        room = api.create_room()
+        token = api.invite(room["id"], "watch")["token"]
+
+    async def run():
+        async with await StreamClient.connect(server.url, token=token, room=room["id"]) as viewer:
+            assert viewer.room is not None and viewer.room.role == "watch"
+            presence = await viewer.wait_presence(lambda p: p.viewers >= 1, timeout=30)
+            assert presence.room == room["id"] and presence.seats[0].performer is None
+            seq = await viewer.drive(jaw_pose=[0.3, 0.0, 0.0])
+            await _poll(lambda: viewer.errors_for(seq), 30, "the refusal of the drive")
+            assert viewer.errors_for(seq)[0].code == "forbidden"
+            assert viewer.closed is None  # still watching
+            assert 0 < await viewer.ping() < 30
+
+    asyncio.run(run())
+
+
+async def _poll(predicate, timeout: float, what: str) -> None:
+    deadline = time.monotonic() + timeout
+    while not predicate():  # bounded by the deadline
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"timed out after {timeout} s waiting for {what}")
+        await asyncio.sleep(0.01)
