@@ -34,16 +34,19 @@ def frame_record(frame: Frame, index: int, file: str, received_s: float) -> dict
 async def watch_room(server: str, token: str | None, room: str, out: Path, *,
                      seconds: float | None = 10.0, max_frames: int | None = None,
                      view: dict[str, float] | None = None, size: int = 512,
-                     timeout: float = 30.0) -> dict[str, Any]:
+                     timeout: float = 30.0, max_stale: int = 8) -> dict[str, Any]:
     """Join ``room`` as a viewer and save its frames in ``out`` until ``seconds`` have passed or
-    ``max_frames`` arrived (whichever first; at least one of them must be given)."""
+    ``max_frames`` arrived (whichever first; at least one of them must be given).
+
+    Up to ``max_stale`` frames rendered before our request landed (not ``size`` square) are
+    skipped; after the first frame of the asked size, or that many, every frame is kept."""
     from .images import save_frame
     from .stream import StreamClient
 
     if seconds is None and max_frames is None:
         raise ValueError("give seconds or max_frames: a recording must end")
     out.mkdir(parents=True, exist_ok=True)
-    saved = 0
+    saved = stale = 0
     async with await StreamClient.connect(server, token=token, room=room, role="watch",
                                           timeout=timeout,
                                           client_name="telesplat-client watch") as client:
@@ -65,10 +68,13 @@ async def watch_room(server: str, token: str | None, room: str, out: Path, *,
                     break
                 if frame.codec == "h264":
                     continue
+                if saved == 0 and stale < max_stale and (frame.width, frame.height) != (size, size):
+                    stale += 1
+                    continue
                 path = save_frame(frame, out / f"{saved:05d}")
                 log.write(json.dumps(frame_record(frame, saved, path.name,
                                                   time.monotonic() - start)) + "\n")
                 saved += 1
         presence = client.presence
-    return {"frames": saved, "room": room,
+    return {"frames": saved, "stale_skipped": stale, "room": room,
             "presence": presence.model_dump() if presence is not None else None}
