@@ -180,3 +180,31 @@ async def _poll(predicate, timeout: float, what: str) -> None:
         if time.monotonic() > deadline:
             raise TimeoutError(f"timed out after {timeout} s waiting for {what}")
         await asyncio.sleep(0.01)
+
+
+@needs_rooms
+def test_drive_room_performs_a_seat_from_a_video(server, tmp_path):  # noqa: F811
+    from tests.test_track_drive import _astronaut_video, models_available
+
+    if not models_available():
+        pytest.skip("MediaPipe ONNX models not fetched (telesplat track fetch-models)")
+    video = tmp_path / "clip.avi"
+    _astronaut_video(video, frames=2)
+    with RestClient(server.url, server.token) as api:
+        room = api.create_room()
+        perform = api.invite(room["id"], "perform", seat=0)
+        watch = api.invite(room["id"], "watch")
+    out = tmp_path / "performed"
+    argv = ["drive", "--server", server.url, "--token", perform["token"], "--room", room["id"],
+            "--seat", "0", "--video", str(video), "--out", str(out), "--quiet"]
+
+    async def run():
+        async with await StreamClient.connect(server.url, token=watch["token"],
+                                              room=room["id"]) as viewer:
+            assert await asyncio.to_thread(cli_main, argv) == 0
+            # The performer came and went: the seat holds its last pose.
+            presence = await viewer.wait_presence(lambda p: p.seats[0].holding, timeout=30)
+            assert presence.seats[0].performer is None
+
+    asyncio.run(run())
+    assert len(list(out.iterdir())) == 2
