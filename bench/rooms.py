@@ -76,6 +76,7 @@ class Receiver:
 
     name: str
     frames: int = 0
+    bytes: int = 0        # encoded image bytes received
     latencies_ms: list[float] = field(default_factory=list)
     stage_ms: dict[str, list[float]] = field(default_factory=lambda: {
         "pose": [], "render": [], "encode": []})
@@ -109,6 +110,10 @@ class Run:
                      if names is None or r.name.startswith(names))
         return 1000 * self.cpu_s / frames if frames else float("nan")
 
+    def kb_per_frame(self) -> float:
+        frames = sum(r.frames for r in self.receivers)
+        return sum(r.bytes for r in self.receivers) / 1000 / frames if frames else float("nan")
+
     def stage(self, name: str) -> float:
         values = [x for r in self.receivers for x in r.stage_ms[name]]
         return float(np.median(values)) if values else float("nan")
@@ -123,6 +128,7 @@ async def receive(client: StreamClient, out: Receiver, sent: dict[int, float] | 
         if got < measure_from:
             continue
         out.frames += 1
+        out.bytes += len(frame.data)
         if sent is not None and frame.seq in sent:
             out.latencies_ms.append(1000 * (got - sent[frame.seq]))
         for stage, values in out.stage_ms.items():
@@ -306,8 +312,8 @@ def ratio(values: list[float]) -> float:
 def same_view_table(rows: list[tuple[int, Run]]) -> list[str]:
     out = ["| viewers | fps / viewer (mean) | fps (min) | performer fps | p50 (ms) | p95 (ms) "
            "| server CPU (s/s) | CPU per extra viewer (ms/s) | bench CPU (s/s) "
-           "| pose / render / encode (ms) |",
-           "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+           "| pose / render / encode (ms) | JPEG (kB) |",
+           "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     previous: tuple[int, Run] | None = None
     for n, run in rows:
         fps = run.fps("viewer")
@@ -320,7 +326,7 @@ def same_view_table(rows: list[tuple[int, Run]]) -> list[str]:
             f"| {percentile(lat, 50):.0f} | {percentile(lat, 95):.0f} | {run.cpu_per_s:.2f} "
             f"| {extra} | {run.bench_cpu_s / run.seconds:.2f} "
             f"| {run.stage('pose'):.1f} / {run.stage('render'):.1f} / "
-            f"{run.stage('encode'):.1f} |")
+            f"{run.stage('encode'):.1f} | {run.kb_per_frame():.0f} |")
         previous = (n, run)
     return out
 
