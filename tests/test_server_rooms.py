@@ -412,3 +412,34 @@ def test_a_stalled_viewer_slows_neither_the_performer_nor_other_viewers(srv):
     alone, stalled = asyncio.run(run())
     assert stalled[0] > 0.6 * alone[0], (alone, stalled)  # the performer
     assert stalled[1] > 0.6 * alone[1], (alone, stalled)  # the other viewer
+
+
+# -- the start-up room ----------------------------------------------------------------------------
+
+
+def test_serve_prints_the_start_up_rooms_links_and_they_join(tmp_path, capsys, srv):
+    from fastapi.testclient import TestClient
+
+    from server.app import create_app
+    from server.cli import _announce
+    from server.config import Settings
+
+    app = create_app(Settings(data_dir=tmp_path, demo_avatar="synthetic", warmup=False))
+    _announce(app, "http://127.0.0.1:8000")
+    with TestClient(app):
+        links = app.state.ctx.startup_links
+    out = capsys.readouterr().out
+    assert f"  watch link: http://127.0.0.1:8000/?room={links['room']}#token=tsr_" in out
+    assert f"  perform link: http://127.0.0.1:8000/?room={links['room']}#token=tsr_" in out
+    # The running server's start-up room: pinned, and its links join with their scopes.
+    links = srv.ctx.startup_links
+    assert srv.ctx.rooms.get(links["room"]).pinned
+    token = {scope: links[scope].split("#token=")[1] for scope in ("watch", "perform")}
+
+    async def run():
+        async with join(srv, links["room"], token["watch"]) as viewer:
+            assert viewer.welcome.room.role == "watch"
+            assert viewer.welcome.room.name == "demo"
+            await recv_until(viewer, is_type("frame"))
+
+    asyncio.run(run())
