@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import websockets
 
-from protocol import Drive, Hello, Orbit, Ping, Request, View, encode
+from protocol import Drive, Hello, Image, Orbit, Ping, Request, View, encode
 from server.drive import DriveState, fit_drive
 from server.renderer import view_camera
 from server.rooms import frames as room_frames
@@ -232,6 +232,9 @@ def test_refusals_have_their_codes(srv):
                 await viewer.send(jaw(5, 0.3))  # a viewer cannot drive; the session goes on
                 err = await recv_until(viewer, is_type("error"))
                 assert err.code == "forbidden" and err.answers.seq == 5
+                await viewer.send(encode(Image(seq=7, data=b"\xff\xd8 not tracked")))
+                err = await recv_until(viewer, is_type("error"))
+                assert err.code == "forbidden" and err.answers.type == "image"
                 await viewer.send(encode(Ping(t=3.0)))
                 await recv_until(viewer, is_type("pong", t=3.0))
                 await performer.send(jaw(6, 0.3))
@@ -375,6 +378,33 @@ def test_viewers_at_one_view_share_posing_rendering_and_encoding(srv):
     assert renders == poses and encodes == renders  # one view: one render per pose
     assert sum(counts) >= 3 * renders, (counts, renders)  # each frame went to many
     assert min(counts) >= 0.5 * max(counts), counts
+
+
+def test_distinct_views_render_once_each_per_drive_update(srv):
+    room = create_room(srv)
+    watch = invite(srv, room["id"], "watch")
+    side = View(orbit=Orbit(yaw_deg=45))
+
+    async def run():
+        async with join(srv, room["id"], srv.token) as performer, \
+                contextlib.AsyncExitStack() as stack:
+            viewers = [await stack.enter_async_context(join(srv, room["id"], watch["token"]))
+                       for _ in range(4)]
+            for ws in viewers[2:]:
+                await ws.send(encode(side))
+            for ws in (performer, *viewers):
+                await recv_until(ws, is_type("frame"))
+            counters = live(srv, room["id"]).frames.counters
+            await asyncio.sleep(0.3)  # frames of the side view settle
+            poses, renders = counters.poses, counters.renders
+            sender = asyncio.create_task(_drive_for(performer, 1.5, hz=10))
+            counts = await asyncio.gather(*(_count_frames(ws, 2.0) for ws in viewers))
+            await sender
+            return counts, counters.poses - poses, counters.renders - renders
+
+    counts, poses, renders = asyncio.run(run())
+    assert poses >= 1 and min(counts) >= 1
+    assert poses < renders <= 2 * poses, (poses, renders)  # two views: two renders a pose
 
 
 def _small_buffer_socket(srv) -> socket.socket:
