@@ -310,24 +310,28 @@ def ratio(values: list[float]) -> float:
 
 
 def same_view_table(rows: list[tuple[int, Run]]) -> list[str]:
+    """CPU is normalised per frame update (the performer's frames: every viewer gets the same
+    ones), so the per-viewer increment does not depend on the fps the load allowed."""
     out = ["| viewers | fps / viewer (mean) | fps (min) | performer fps | p50 (ms) | p95 (ms) "
-           "| server CPU (s/s) | CPU per extra viewer (ms/s) | bench CPU (s/s) "
+           "| server CPU (s/s) | CPU per update (ms) | per extra viewer (ms) | bench CPU (s/s) "
            "| pose / render / encode (ms) | JPEG (kB) |",
-           "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
-    previous: tuple[int, Run] | None = None
+           "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    first: tuple[int, float] | None = None
     for n, run in rows:
         fps = run.fps("viewer")
         lat = run.latencies("viewer")
+        per_update = run.cpu_ms_per_frame("performer")
         extra = "-"
-        if previous is not None and n > previous[0]:
-            extra = f"{1000 * (run.cpu_per_s - previous[1].cpu_per_s) / (n - previous[0]):.1f}"
+        if first is not None and n > first[0]:
+            extra = f"{(per_update - first[1]) / (n - first[0]):.2f}"
+        else:
+            first = (n, per_update)
         out.append(
             f"| {n} | {np.mean(fps):.1f} | {min(fps):.1f} | {run.fps('performer')[0]:.1f} "
             f"| {percentile(lat, 50):.0f} | {percentile(lat, 95):.0f} | {run.cpu_per_s:.2f} "
-            f"| {extra} | {run.bench_cpu_s / run.seconds:.2f} "
+            f"| {per_update:.1f} | {extra} | {run.bench_cpu_s / run.seconds:.2f} "
             f"| {run.stage('pose'):.1f} / {run.stage('render'):.1f} / "
             f"{run.stage('encode'):.1f} | {run.kb_per_frame():.0f} |")
-        previous = (n, run)
     return out
 
 
@@ -403,6 +407,8 @@ def main() -> int:
     parser.add_argument("--size", type=int, default=512)
     parser.add_argument("--rate", type=float, default=30.0, help="performer drives per second")
     parser.add_argument("--render-threads", type=int, default=1)
+    parser.add_argument("--torch-threads", type=int, default=None,
+                        help="the server's torch/numba threads per render (default: its own)")
     parser.add_argument("--avatar", default="synthetic",
                         help="the server's demo avatar: synthetic (untrained, 16k Gaussians), "
                              "trained (make run's, built first if missing) or a package path")
@@ -414,6 +420,8 @@ def main() -> int:
     viewer_counts = [int(n) for n in args.viewers.split(",")]
     args.seat_counts = [int(n) for n in args.seats.split(",")]
 
+    if args.torch_threads is not None:  # start_server passes the environment on
+        os.environ["TELESPLAT_TORCH_THREADS"] = str(args.torch_threads)
     with tempfile.TemporaryDirectory(prefix="telesplat-bench-") as tmp:
         # Room participants are sessions too: room for the largest room plus slack.
         proc, url, token = start_server(Path(tmp), args.render_threads,
@@ -430,10 +438,11 @@ def main() -> int:
     load = os.getloadavg() if hasattr(os, "getloadavg") else ("?",) * 3
     print(f"\nRooms on loopback, {args.size}x{args.size} JPEG, {args.avatar} demo avatar, "
           f"performers paced at {args.rate:g} Hz, {args.seconds:g} s per row, render threads "
-          f"{args.render_threads}; {os.cpu_count()} CPUs "
-          f"({platform.processor() or platform.machine()}), load average {load[0]:.1f} at "
-          f"the end. Server CPU: utime+stime of the server process over the measured window. "
-          f"Stage times: medians of the frames' timings.\n")
+          f"{args.render_threads}, torch threads {args.torch_threads or 'default'}; "
+          f"{os.cpu_count()} CPUs ({platform.processor() or platform.machine()}), load average "
+          f"{load[0]:.1f} at the end. Server CPU: utime+stime of the server process over the "
+          f"measured window (per update: divided by the performer's frames). Stage times: "
+          f"medians of the frames' timings.\n")
     print("\n".join(lines))
     return 0
 
