@@ -4,7 +4,12 @@
 Runs on the render threads. A seat's world Gaussians (placement applied) are cached per drive
 version under the seat's lock; a frame's concurrent future is kept under its key, so a second
 participant asking the same picture gets the same future (or the finished frame) instead of a
-render of its own. H.264 is stateful per client: such a frame is keyed by its participant.
+render of its own. While the performer drives, participants snapshot at slightly different
+moments and so at different versions: one asking while a render of its group (same view and
+request) is in flight joins that render instead of starting another, and asks again once it
+has it (``RoomFrame.versions`` tells it the frame is older than its snapshot). So a group has
+at most one render in flight, and the newest state is always rendered next. H.264 is stateful
+per client: such a frame is keyed by its participant.
 """
 
 from __future__ import annotations
@@ -44,6 +49,7 @@ class RoomFrameJob(FrameJob):
 @dataclass
 class RoomFrame(RenderedFrame):
     seat_seqs: tuple[int, ...] = ()  # each seat's newest drive seq: a participant reports its
+    versions: tuple[int, ...] = ()   # each seat's drive version this frame shows
 
 
 @dataclass
@@ -108,18 +114,24 @@ class SeatPoser:
             chest = self.rotation.double().cpu().numpy() @ chest
         self.chest = chest + trans  # where an orbit without a target looks
         self._lock = threading.Lock()
-        self._version = -1
-        self._world: GaussianSet | None = None
+        # The newest versions posed: groups rendering one drive update apart reuse them.
+        self._worlds: collections.OrderedDict[int, GaussianSet] = collections.OrderedDict()
 
     def world(self, drive: DriveState, counters: FrameCounters) -> GaussianSet:
         with self._lock:
-            if self._world is None or drive.version != self._version:
+            world = self._worlds.get(drive.version)
+            if world is None:
                 params = drive.smplx_params(self.animator.body_model, self.manos)
                 posed = self.animator.pose(params)
-                self._world = place(posed.gaussians, self.rotation, self.translation)
-                self._version = drive.version
+                world = place(posed.gaussians, self.rotation, self.translation)
+                self._worlds[drive.version] = world
+                if len(self._worlds) > POSED_VERSIONS:
+                    self._worlds.popitem(last=False)
                 counters.poses += 1
-            return self._world
+            return world
+
+
+POSED_VERSIONS = 2  # per seat: the version being rendered and the one before
 
 
 class RoomFrames:
@@ -133,6 +145,7 @@ class RoomFrames:
         self._lock = threading.Lock()
         self._frames: collections.OrderedDict[Hashable, concurrent.futures.Future] = (
             collections.OrderedDict())
+        self._inflight: dict[Hashable, concurrent.futures.Future] = {}  # group -> render
 
     @property
     def chest(self) -> np.ndarray:
@@ -145,17 +158,21 @@ class RoomFrames:
         future returned is the caller's own (cancelling it leaves the shared render alone)."""
         versions = tuple(d.version for d in job.seats)
         owner = id(h264) if job.request.codec == "h264" else None
-        key = (versions, job.view.model_dump_json(exclude={"moving"}),
-               job.request.model_dump_json(), job.jpeg_quality, owner)
+        group = (job.view.model_dump_json(exclude={"moving"}), job.request.model_dump_json(),
+                 job.jpeg_quality, owner)
+        key = (versions, *group)
         with self._lock:
             shared = self._frames.get(key)
+            if shared is None or _failed(shared):
+                shared = self._inflight.get(group)  # an older state of this group, rendering
+                if shared is not None and shared.done():
+                    shared = None  # finished: this participant's newer state renders now
             if shared is not None and not _failed(shared):
                 self.counters.shared += 1
-                self._frames.move_to_end(key)
             else:
                 shared = scheduler.submit(self._render, job, h264, last_codec,
                                           key=self.share_key)
-                self._frames[key] = shared
+                self._frames[key] = self._inflight[group] = shared
                 self._evict(versions)
         if owner is not None:
             return shared  # a participant's own H.264 frame: nobody else waits on it
@@ -168,6 +185,8 @@ class RoomFrames:
             del self._frames[key]
         while len(self._frames) > self.max_frames:
             self._frames.popitem(last=False)
+        for group in [g for g, f in self._inflight.items() if f.done()]:
+            del self._inflight[group]
 
     def _render(self, job: RoomFrameJob, h264: H264Stream | None,
                 last_codec: str | None) -> RoomFrame:
@@ -201,7 +220,8 @@ class RoomFrames:
         timings = Timings(track=job.track_ms, pose=(t1 - t0) * 1e3, render=(t2 - t1) * 1e3,
                           encode=(t3 - t2) * 1e3)
         return RoomFrame(job.drive.seq, codec, cam.width, cam.height, data, depth_png,
-                         keyframe, timings, seat_seqs=tuple(d.seq for d in job.seats))
+                         keyframe, timings, seat_seqs=tuple(d.seq for d in job.seats),
+                         versions=tuple(d.version for d in job.seats))
 
 
 def _failed(future: concurrent.futures.Future) -> bool:

@@ -45,6 +45,7 @@ class RoomParticipant(StreamSession):
         self.name = name
         self.share_key = live.frames.share_key
         self.drive = live.seats[self.position].drive
+        self._asked: tuple[int, ...] = ()  # seat versions of the newest snapshot submitted
 
     def wake(self) -> None:
         self._changed()
@@ -66,11 +67,14 @@ class RoomParticipant(StreamSession):
 
     def _submit(self, job: RoomFrameJob):
         r = self.renderer
+        self._asked = tuple(d.version for d in job.seats)
         return self.live.frames.submit(self.scheduler, job, r.h264, r.last_codec)
 
     async def _send_frame(self, f: RenderedFrame) -> None:
         if isinstance(f, RoomFrame) and f.seat_seqs:
             f = dataclasses.replace(f, seq=f.seat_seqs[self.position])
+            if f.versions != self._asked:
+                self._dirty.set()  # it joined an older render: its own state comes next
         self.renderer.last_codec = f.codec
         await super()._send_frame(f)
 
