@@ -19,7 +19,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from ..auth import Principal, bearer_token
 from ..context import ServerContext
 from ..dependencies import Context, StreamPrincipal, get_context
-from ..registry import AvatarNotFound
+from ..registry import DEMO_ID, AvatarNotFound
 from ..rooms.registry import Invitation, Placement, Room, RoomError, SeatSpec, is_invitation
 from .avatars import ErrorOut
 
@@ -63,7 +63,7 @@ class SeatIn(_In):
 
 class RoomIn(_In):
     name: str | None = Field(None, max_length=200)
-    seats: list[SeatIn] = Field(default_factory=lambda: [SeatIn(avatar="demo")], min_length=1,
+    seats: list[SeatIn] = Field(default_factory=lambda: [SeatIn(avatar=DEMO_ID)], min_length=1,
                                 max_length=16)
 
 
