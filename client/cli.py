@@ -2,6 +2,9 @@
 
     telesplat-client stream --avatar demo --motion smile.json --out frames/ [--fps 30]
     telesplat-client drive --avatar demo --webcam   (or --video clip.mp4)
+    telesplat-client drive --room ID --seat 0 --webcam   (perform into a room)
+    telesplat-client watch --room ID --out frames/ [--seconds 10] [--view 30,0,2.7]
+    telesplat-client rooms create --avatar demo   (then: rooms invite ID --scope watch)
     telesplat-client motions get smile --avatar demo --out smile.json
     telesplat-client jobs submit --dataset NAME [--config cfg.json] --watch
     telesplat-client avatars list
@@ -98,15 +101,62 @@ def cmd_stream(args: argparse.Namespace) -> int:
 def cmd_drive(args: argparse.Namespace) -> int:
     from .remote_tracker import drive_from_camera
 
+    if (args.avatar is None) == (args.room is None):
+        print("telesplat-client: error: give --avatar or --room", file=sys.stderr)
+        return 2
+    if args.seat is not None and args.room is None:
+        print("telesplat-client: error: --seat needs --room", file=sys.stderr)
+        return 2
     source = args.webcam if args.webcam is not None else str(args.video)
     try:
         stats = asyncio.run(drive_from_camera(
-            args.server, args.token, args.avatar, source, max_frames=args.frames,
+            args.server, args.token, args.avatar, source, room=args.room, seat=args.seat,
+            max_frames=args.frames,
             fov_x_deg=args.fov, out=args.out, timeout=args.timeout, progress=not args.quiet))
     except (OSError, RuntimeError, ValueError) as exc:
         print(f"telesplat-client: error: {exc}", file=sys.stderr)
         return 2
     print(f"sent {stats['sent']} drives (tracking {stats['track_ms']:.0f} ms per frame)")
+    return 0
+
+
+def cmd_watch(args: argparse.Namespace) -> int:
+    from .watch import parse_view, watch_room
+
+    view = parse_view(args.view) if args.view else None
+    result = asyncio.run(watch_room(args.server, args.token, args.room, args.out,
+                                    seconds=args.seconds, max_frames=args.frames, view=view,
+                                    size=args.size, timeout=args.timeout))
+    print(f"wrote {result['frames']} frames of room {args.room} to {args.out}")
+    return 0
+
+
+# -- rooms -------------------------------------------------------------------------------
+
+
+def cmd_rooms(args: argparse.Namespace) -> int:
+    with _rest(args) as api:
+        if args.action == "list":
+            _print(args, api.rooms(), ("id", "name", "owner", "viewers"))
+        elif args.action == "get":
+            _print(args, api.room(args.id))
+        elif args.action == "create":
+            seats = [{"avatar": avatar} for avatar in args.avatar] if args.avatar else None
+            _print(args, api.create_room(seats, name=args.name))
+        elif args.action == "delete":
+            api.delete_room(args.id)
+            print(f"deleted room {args.id}")
+        elif args.action == "invite":
+            invitation = api.invite(args.id, args.scope, seat=args.seat, ttl_s=args.ttl)
+            if args.json:
+                _print(args, invitation)
+            else:  # the token is shown once: in the link
+                print(api.link(invitation["link"]))
+        elif args.action == "invitations":
+            _print(args, api.invitations(args.id), ("id", "scope", "seat", "expires_at"))
+        elif args.action == "revoke":
+            api.revoke_invitation(args.id, args.invitation)
+            print(f"revoked invitation {args.invitation}")
     return 0
 
 
@@ -259,7 +309,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("drive", help="track the webcam or a video here and drive an avatar "
                                      "with the fitted parameters (the remote tracker)")
     _common(p)
-    p.add_argument("--avatar", required=True)
+    p.add_argument("--avatar", help="drive a private session on this avatar")
+    p.add_argument("--room", help="perform into this room instead (see 'rooms')")
+    p.add_argument("--seat", type=int, default=None,
+                   help="the room's seat to perform (default: the invitation's, else 0)")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--webcam", type=int, nargs="?", const=0, metavar="INDEX",
                      help="camera index (default 0)")
@@ -271,6 +324,42 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--timeout", type=float, default=30.0, help="seconds to wait per frame")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_drive)
+
+    p = sub.add_parser("watch", help="join a room as a viewer and save the frames it gets")
+    _common(p)
+    p.add_argument("--room", required=True)
+    p.add_argument("--out", type=Path, required=True,
+                   help="folder for the frames and frames.jsonl")
+    p.add_argument("--seconds", type=float, default=10.0, help="record this long")
+    p.add_argument("--frames", type=int, default=None, help="stop after this many frames")
+    p.add_argument("--view", default=None, metavar="YAW,PITCH,DIST",
+                   help="own viewpoint: degrees, degrees, metres")
+    p.add_argument("--size", type=int, default=512, help="frame width and height")
+    p.add_argument("--timeout", type=float, default=30.0, help="seconds to wait per frame")
+    p.set_defaults(func=cmd_watch)
+
+    p = sub.add_parser("rooms", help="live rooms: one performer per seat, viewers watch")
+    rooms = p.add_subparsers(dest="action", required=True)
+    _common(rooms.add_parser("list"))
+    for action in ("get", "delete", "invitations"):
+        r = rooms.add_parser(action)
+        _common(r)
+        r.add_argument("id")
+    r = rooms.add_parser("create")
+    _common(r)
+    r.add_argument("--avatar", action="append", help="a seat's avatar (repeat for more seats)")
+    r.add_argument("--name")
+    r = rooms.add_parser("invite", help="print an invitation's page link (its token inside)")
+    _common(r)
+    r.add_argument("id")
+    r.add_argument("--scope", choices=("watch", "perform"), default="watch")
+    r.add_argument("--seat", type=int, default=None, help="perform: the seat")
+    r.add_argument("--ttl", type=float, default=None, help="seconds until it expires")
+    r = rooms.add_parser("revoke")
+    _common(r)
+    r.add_argument("id")
+    r.add_argument("invitation")
+    p.set_defaults(func=cmd_rooms)
 
     p = sub.add_parser("avatars", help="list, upload, download, delete avatars")
     avatars = p.add_subparsers(dest="action", required=True)

@@ -11,12 +11,14 @@ import asyncio
 from pathlib import Path
 
 
-async def drive_from_camera(server: str, token: str | None, avatar: str, source: str | int, *,
-                            max_frames: int | None = None, fov_x_deg: float = 60.0,
-                            out: Path | None = None, timeout: float = 30.0,
-                            progress: bool = True) -> dict[str, float]:
-    """Track ``source`` (a webcam index or a video path) and drive ``avatar`` with the fit.
-    Returns counts and the mean tracking time."""
+async def drive_from_camera(server: str, token: str | None, avatar: str | None,
+                            source: str | int, *, room: str | None = None,
+                            seat: int | None = None, max_frames: int | None = None,
+                            fov_x_deg: float = 60.0, out: Path | None = None,
+                            timeout: float = 30.0, progress: bool = True) -> dict[str, float]:
+    """Track ``source`` (a webcam index or a video path) and drive ``avatar`` with the fit, or
+    perform ``seat`` of ``room`` (then viewers of the room see it). Returns counts and the
+    mean tracking time."""
     from tqdm import tqdm
 
     from avatar_core.track.fit.video import default_sequence_fit, frames_from, tracked_frames
@@ -34,7 +36,9 @@ async def drive_from_camera(server: str, token: str | None, avatar: str, source:
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
     try:
-        async with await StreamClient.connect(server, avatar, token, timeout=timeout,
+        role = "perform" if room is not None else None
+        async with await StreamClient.connect(server, avatar, token, room=room, role=role,
+                                              seat=seat, timeout=timeout,
                                               client_name="telesplat-client drive") as client:
             with tqdm(total=max_frames, unit="frame", disable=not progress,
                       desc="driving") as bar:

@@ -1,4 +1,4 @@
-"""A synchronous REST client (httpx) for avatars, jobs, motions and health.
+"""A synchronous REST client (httpx) for avatars, rooms, jobs, motions and health.
 
     with RestClient("http://127.0.0.1:8000", token) as api:
         for avatar in api.avatars():
@@ -168,6 +168,42 @@ class RestClient:
                fps: float | None = None) -> dict[str, Any]:
         params = {k: v for k, v in (("avatar", avatar), ("fps", fps)) if v is not None}
         return self._json("GET", f"/v1/motions/{name}", params=params)
+
+    # -- rooms --------------------------------------------------------------------------
+
+    def create_room(self, seats: list[dict[str, Any]] | None = None, *,
+                    name: str | None = None) -> dict[str, Any]:
+        """A live room: ``seats`` is ``[{"avatar": ID, "placement"?: {"translation": [x, y, z],
+        "rotation": [rx, ry, rz]}}]`` (default: one seat of the demo avatar)."""
+        body = {k: v for k, v in (("name", name), ("seats", seats)) if v is not None}
+        return self._json("POST", "/v1/rooms", json=body)
+
+    def rooms(self) -> list[dict[str, Any]]:
+        return _items(self._json("GET", "/v1/rooms"), "rooms")
+
+    def room(self, room_id: str) -> dict[str, Any]:
+        return self._json("GET", f"/v1/rooms/{room_id}")
+
+    def delete_room(self, room_id: str) -> None:
+        self._json("DELETE", f"/v1/rooms/{room_id}")
+
+    def invite(self, room_id: str, scope: str, seat: int | None = None,
+               ttl_s: float | None = None) -> dict[str, Any]:
+        """An invitation token of ``scope`` "perform" (one seat) or "watch"; the answer is the
+        only place its token is ever shown, with the page's relative ``link``."""
+        body = {k: v for k, v in (("scope", scope), ("seat", seat), ("ttl_s", ttl_s))
+                if v is not None}
+        return self._json("POST", f"/v1/rooms/{room_id}/invitations", json=body)
+
+    def invitations(self, room_id: str) -> list[dict[str, Any]]:
+        return _items(self._json("GET", f"/v1/rooms/{room_id}/invitations"), "invitations")
+
+    def revoke_invitation(self, room_id: str, invitation_id: str) -> None:
+        self._json("DELETE", f"/v1/rooms/{room_id}/invitations/{invitation_id}")
+
+    def link(self, relative: str) -> str:
+        """An absolute page URL from a relative ``link`` the server answered."""
+        return str(self._http.base_url.join(relative))
 
     # -- jobs -----------------------------------------------------------------------------
 

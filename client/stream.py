@@ -16,7 +16,7 @@ import asyncio
 import collections
 import contextlib
 import time
-from collections.abc import AsyncIterator, Mapping
+from collections.abc import AsyncIterator, Callable, Mapping
 from typing import Any
 from urllib.parse import urlencode, urlsplit, urlunsplit
 
@@ -34,8 +34,10 @@ from protocol import (
     Orbit,
     Ping,
     Pong,
+    Presence,
     ProtocolError,
     Request,
+    RoomWelcome,
     Stats,
     View,
     Welcome,
@@ -44,7 +46,9 @@ from protocol import (
 )
 
 # Codes after which the server closes the session.
-FATAL_CODES = frozenset({"unauthorized", "forbidden", "not_found", "busy", "version"})
+# A viewer's drive or image gets `forbidden` with `answers` set and the session goes on: only
+# a refusal that answers nothing closes it.
+FATAL_CODES = frozenset({"unauthorized", "forbidden", "not_found", "busy", "version", "gone"})
 MAX_WIRE_BYTES = 64 * 1024 * 1024
 
 
@@ -57,15 +61,34 @@ class StreamError(RuntimeError):
         self.message = message
 
 
-def stream_url(server: str, avatar: str) -> str:
-    """``ws(s)://host/v1/stream?avatar=...`` from an http(s) or ws(s) base URL. Never with the
-    token: URLs end up in logs; it goes in the ``Authorization`` header instead."""
+def stream_url(server: str, avatar: str | None = None, *, room: str | None = None) -> str:
+    """``ws(s)://host/v1/stream?avatar=...`` (or ``?room=...``) from an http(s) or ws(s) base
+    URL. Never with the token: URLs end up in logs; it goes in the ``Authorization`` header."""
+    if (avatar is None) == (room is None):
+        raise ValueError("give exactly one of avatar and room")
     parts = urlsplit(server if "://" in server else f"http://{server}")
     scheme = {"http": "ws", "https": "wss"}.get(parts.scheme, parts.scheme)
     path = parts.path.rstrip("/")
     if not path.endswith("/v1/stream"):
         path += "/v1/stream"
-    return urlunsplit((scheme, parts.netloc, path, urlencode({"avatar": avatar}), ""))
+    query = urlencode({"room": room} if room is not None else {"avatar": avatar})
+    return urlunsplit((scheme, parts.netloc, path, query, ""))
+
+
+ROLES = ("perform", "watch")
+
+
+def room_hello(client_name: str, *, room: str | None = None, role: str | None = None,
+               seat: int | None = None) -> Hello:
+    """The hello: role and seat only in a room (a plain session's hello stays as it was)."""
+    if room is None:
+        if role is not None or seat is not None:
+            raise ValueError("role and seat are for rooms only")
+        return Hello(client=client_name)
+    if role is not None and role not in ROLES:
+        raise ValueError(f"role must be one of {ROLES}, not {role!r}")
+    fields = {k: v for k, v in (("role", role), ("seat", seat)) if v is not None}
+    return Hello.model_validate({"client": client_name, **fields})
 
 
 def _float32(values: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -96,28 +119,35 @@ class StreamClient:
         self._frames: asyncio.Queue[Frame | None] = asyncio.Queue(maxsize=queue_size)
         self._pongs: dict[float, asyncio.Future[float]] = {}
         self._frame_event = asyncio.Event()
+        self.room: RoomWelcome | None = welcome.room  # None outside rooms
+        self.presence: Presence | None = None  # the latest presence message (rooms only)
+        self._presence_event = asyncio.Event()
         self._reader = asyncio.create_task(self._read())
 
     # -- connecting -----------------------------------------------------------------------
 
     @classmethod
-    async def connect(cls, server: str, avatar: str, token: str | None = None, *,
-                      client_name: str = "telesplat-python", timeout: float = 30.0,
-                      queue_size: int = 64) -> StreamClient:
-        """Open a session on ``avatar``; returns once ``welcome`` arrived (StreamError if the
-        server refuses). ``server`` is the base URL (http://host:port) or a full ws:// URL."""
+    async def connect(cls, server: str, avatar: str | None = None, token: str | None = None,
+                      *, room: str | None = None, role: str | None = None,
+                      seat: int | None = None, client_name: str = "telesplat-python",
+                      timeout: float = 30.0, queue_size: int = 64) -> StreamClient:
+        """Open a session on ``avatar``, or join ``room`` (``role`` "perform" or "watch" and
+        ``seat``; both default to what the token allows); returns once ``welcome`` arrived
+        (StreamError if the server refuses). ``server`` is the base URL (http://host:port) or
+        a full ws:// URL."""
+        hello = room_hello(client_name, room=room, role=role, seat=seat)
         from websockets.asyncio.client import connect
         from websockets.exceptions import ConnectionClosed
 
         # The token in the header: authenticated at the handshake, so the server's limits on
         # connections still waiting for a hello (a few per address and in total) never apply.
         headers = {"Authorization": f"Bearer {token}"} if token else None
-        ws = await connect(stream_url(server, avatar), compression=None,
+        ws = await connect(stream_url(server, avatar, room=room), compression=None,
                            max_size=MAX_WIRE_BYTES, proxy=None, open_timeout=timeout,
                            user_agent_header=client_name, additional_headers=headers)
         try:
             with contextlib.suppress(ConnectionClosed):  # refused already: read why below
-                await ws.send(encode(Hello(client=client_name)))
+                await ws.send(encode(hello))
             welcome = await asyncio.wait_for(cls._first(ws), timeout)
         except BaseException:
             await ws.close()
@@ -239,6 +269,7 @@ class StreamClient:
                 self.closed = StreamError("internal", "connection closed")
             self._put(None)
             self._frame_event.set()
+            self._presence_event.set()
 
     def _dispatch(self, message: Any) -> None:
         if isinstance(message, Frame):
@@ -253,9 +284,12 @@ class StreamClient:
             future = self._pongs.get(message.t)
             if future is not None and not future.done():
                 future.set_result(time.monotonic() - message.t)
+        elif isinstance(message, Presence):
+            self.presence = message
+            self._presence_event.set()
         elif isinstance(message, Error):
             self.errors.append(message)
-            if message.code in FATAL_CODES:
+            if message.code in FATAL_CODES and message.answers is None:
                 self.closed = StreamError(message.code, message.message)
 
     def _put(self, frame: Frame | None) -> None:
@@ -302,6 +336,22 @@ class StreamClient:
             frame = await self.next_frame(left)
             if frame.seq >= seq:
                 return frame
+
+    async def wait_presence(self, predicate: Callable[[Presence], bool],
+                            timeout: float = 10.0) -> Presence:
+        """The first presence (the latest one included) for which ``predicate`` is true."""
+        deadline = time.monotonic() + timeout
+        while True:  # bounded by the deadline
+            if self.presence is not None and predicate(self.presence):
+                return self.presence
+            if self.closed is not None:
+                raise self.closed
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise TimeoutError(f"no matching presence within {timeout} s")
+            self._presence_event.clear()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._presence_event.wait(), left)
 
     def errors_for(self, seq: int) -> list[Error]:
         """Errors that answer the message with ``seq``."""

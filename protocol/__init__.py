@@ -12,6 +12,7 @@ from .messages import (
     CLIENT_TYPES,
     CODECS,
     OUTPUTS,
+    PROTOCOL_MINOR,
     PROTOCOL_VERSION,
     SERVER_TYPES,
     AvatarInfo,
@@ -24,7 +25,10 @@ from .messages import (
     Orbit,
     Ping,
     Pong,
+    Presence,
     Request,
+    RoomWelcome,
+    SeatPresence,
     Stats,
     Timings,
     View,
@@ -34,8 +38,9 @@ from .params import FAMILIES
 
 __all__ = [
     "CLIENT_TYPES", "CODECS", "DEFAULT_LIMITS", "ERROR_CODES", "FAMILIES", "OUTPUTS",
-    "PROTOCOL_VERSION", "SERVER_TYPES", "AvatarInfo", "CameraSpec", "Drive", "Error", "Frame",
-    "Hello", "Image", "Limits", "Orbit", "Ping", "Pong", "ProtocolError", "Request", "Stats",
-    "Timings", "View", "Welcome", "decode_client", "decode_server", "encode", "pack_array",
+    "PROTOCOL_MINOR", "PROTOCOL_VERSION", "SERVER_TYPES", "AvatarInfo", "CameraSpec", "Drive",
+    "Error", "Frame", "Hello", "Image", "Limits", "Orbit", "Ping", "Pong", "Presence",
+    "ProtocolError", "Request", "RoomWelcome", "SeatPresence", "Stats", "Timings",
+    "View", "Welcome", "decode_client", "decode_server", "encode", "pack_array",
     "unpack_array",
 ]

@@ -11,8 +11,10 @@ ERROR_CODES = (
     "unsupported",       # a valid request this server cannot serve (codec, backend)
     "version",           # protocol version mismatch
     "unauthorized",      # missing or bad token
-    "forbidden",         # token lacks the scope, or the avatar is another owner's
-    "not_found",         # unknown avatar
+    "forbidden",         # token lacks the scope, the avatar is another owner's, a watcher
+                         # sent drive/image, or a room seat is taken
+    "not_found",         # unknown avatar or room
+    "gone",              # the room was deleted while this session was in it
     "busy",              # session cap reached
     "internal",          # the server failed; the session goes on
 )

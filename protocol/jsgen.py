@@ -29,6 +29,7 @@ from .messages import (
     IMAGE_FORMATS,
     MAX_SEQ,
     OUTPUTS,
+    PROTOCOL_MINOR,
     PROTOCOL_VERSION,
     SERVER_TYPES,
 )
@@ -75,6 +76,7 @@ def render() -> str:
     defs, client_schemas, server_schemas = _schemas()
     constants = [
         ("PROTOCOL_VERSION", PROTOCOL_VERSION),
+        ("PROTOCOL_MINOR", PROTOCOL_MINOR),
         ("MAX_SEQ", MAX_SEQ),
         ("OUTPUTS", list(OUTPUTS)),
         ("CODECS", list(CODECS)),

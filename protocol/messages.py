@@ -3,7 +3,9 @@ JavaScript module) the browser page all use these.
 
 Every message is a msgpack map with a ``type``. Client -> server: ``hello``, ``drive``,
 ``view``, ``request``, ``image``, ``ping``. Server -> client: ``welcome``, ``frame``, ``error``,
-``stats``, ``pong``. Unknown fields are errors, so a typo never passes silently.
+``stats``, ``pong``, ``presence`` (rooms). Unknown fields are errors, so a typo never passes
+silently. Minor version 1 (rooms) adds only optional fields, left out of plain sessions'
+messages, so a client of minor version 0 keeps working there.
 """
 
 from __future__ import annotations
@@ -26,6 +28,8 @@ from .limits import DEFAULT_LIMITS, Limits
 from .params import validate_family
 
 PROTOCOL_VERSION = 1
+PROTOCOL_MINOR = 1  # 1: rooms (hello.role/seat, welcome.room/minor, presence)
+MAX_SEATS = 16      # seat indices on the wire; server settings bound a room's seats further
 MAX_SEQ = 2**53 - 1  # exact in a JavaScript number
 
 OUTPUTS = ("rgb", "alpha", "depth")
@@ -33,6 +37,8 @@ CODECS = ("jpeg", "png", "h264")
 IMAGE_FORMATS = ("jpeg", "png")
 
 Seq = Annotated[int, Field(ge=0, le=MAX_SEQ)]
+SeatIndex = Annotated[int, Field(ge=0, lt=MAX_SEATS)]
+Role = Literal["perform", "watch"]
 Vec3 = tuple[float, float, float]
 
 
@@ -66,6 +72,8 @@ class Hello(_Message):
     version: int = PROTOCOL_VERSION
     token: str | None = Field(None, max_length=512)
     client: str | None = Field(None, max_length=200)
+    role: Role | None = None       # rooms: perform a seat or watch (default: the token's)
+    seat: SeatIndex | None = None  # rooms: the seat to perform (or to follow, watching)
 
 
 class Drive(_Message):
@@ -263,14 +271,44 @@ class AvatarInfo(_Message):
     metadata: dict[str, Any] = Field(default_factory=dict)
 
 
+class RoomWelcome(_Message):
+    """The room a participant joined, and as what."""
+
+    id: str
+    name: str
+    role: Role
+    seat: SeatIndex | None = None  # the seat performed (None: watching)
+
+
 class Welcome(_Message):
     type: Literal["welcome"] = "welcome"
     version: int = PROTOCOL_VERSION
+    minor: int | None = None  # PROTOCOL_MINOR in room sessions (left out of plain ones)
     session: str
-    avatar: AvatarInfo
+    avatar: AvatarInfo  # a room: the performed seat's avatar (watching: seat 0's)
     limits: Limits
     codecs: list[str]
     request: Request  # the effective render request (defaults filled in)
+    room: RoomWelcome | None = None
+
+
+class SeatPresence(_Message):
+    index: SeatIndex
+    avatar: str
+    performer: str | None = None  # the performer's client name; None: the seat is free
+    holding: bool = False         # performer gone: the last pose held, then easing to rest
+
+
+class Presence(_Message):
+    """Who is in a room: sent after ``welcome`` and to everyone on each join and leave."""
+
+    type: Literal["presence"] = "presence"
+    room: str
+    seats: list[SeatPresence]
+    viewers: int
+    event: Literal["join", "leave", "update"] = "update"
+    who: str | None = None   # the client name that joined or left
+    role: Role | None = None
 
 
 class Timings(_Message):
@@ -325,7 +363,9 @@ class Pong(_Message):
 
 ClientMessage = Annotated[Hello | Drive | View | Request | Image | Ping,
                           Field(discriminator="type")]
-ServerMessage = Annotated[Welcome | Frame | Error | Stats | Pong, Field(discriminator="type")]
+ServerMessage = Annotated[Welcome | Frame | Error | Stats | Pong | Presence,
+                          Field(discriminator="type")]
 CLIENT_TYPES = {m.model_fields["type"].default: m for m in (Hello, Drive, View, Request, Image,
                                                              Ping)}
-SERVER_TYPES = {m.model_fields["type"].default: m for m in (Welcome, Frame, Error, Stats, Pong)}
+SERVER_TYPES = {m.model_fields["type"].default: m for m in (Welcome, Frame, Error, Stats, Pong,
+                                                             Presence)}

@@ -21,7 +21,7 @@ from fastapi.staticfiles import StaticFiles
 from protocol import PROTOCOL_VERSION, View
 from protocol.messages import Orbit
 
-from .auth import LOCAL_SUBJECT, SCOPES, TokenStore
+from .auth import LOCAL_SUBJECT, SCOPES, Principal, TokenStore
 from .config import Settings
 from .context import ServerContext, SessionSlots
 from .drive import DriveState
@@ -30,7 +30,8 @@ from .metrics import ServerMetrics
 from .private import private_dir
 from .registry import DEMO_ID, AvatarRegistry
 from .renderer import FrameJob, SessionRenderer
-from .routers import avatars, jobs, motions, stream, system
+from .rooms.registry import SeatSpec
+from .routers import avatars, jobs, motions, rooms, stream, system
 from .scheduler import RenderScheduler
 
 log = logging.getLogger("telesplat.server")
@@ -58,6 +59,22 @@ def warm_up(ctx: ServerContext) -> float | None:
     return time.perf_counter() - start
 
 
+def open_startup_room(ctx: ServerContext) -> None:
+    """The demo room (owner 'local', pinned) and its watch and perform links, for the
+    start-up banner (``ctx.startup_links``)."""
+    try:
+        ctx.registry.get(DEMO_ID)
+    except KeyError:
+        return
+    owner = Principal(LOCAL_SUBJECT, frozenset(SCOPES))
+    room = ctx.rooms.create(owner, "demo", [SeatSpec(0, DEMO_ID)], pinned=True)
+    links = {"room": room.id}
+    for scope in ("watch", "perform"):
+        invitation, token = ctx.rooms.invite(room, scope, None, None)
+        links[scope] = f"/?room={room.id}#token={token}"
+    ctx.startup_links = links
+
+
 def _start(ctx: ServerContext) -> None:
     s = ctx.settings
     rec = ctx.registry.register_demo(s.demo_avatar)
@@ -68,6 +85,16 @@ def _start(ctx: ServerContext) -> None:
         took = warm_up(ctx)
         if took is not None:
             log.info("warm-up frame rendered in %.1f s", took)
+    if s.startup_room:
+        open_startup_room(ctx)
+
+
+async def _sweep_rooms(ctx: ServerContext) -> None:
+    """Close rooms left empty for room_idle_timeout_s (checked a few times per timeout)."""
+    interval = min(5.0, ctx.settings.room_idle_timeout_s / 4)
+    while True:
+        await asyncio.sleep(interval)
+        rooms.sweep_idle_rooms(ctx)
 
 
 def create_app(settings: Settings) -> FastAPI:
@@ -90,8 +117,12 @@ def create_app(settings: Settings) -> FastAPI:
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         await asyncio.to_thread(_start, ctx)
-        async with jobs.lifespan(ctx):  # the training worker
-            yield
+        sweeper = asyncio.create_task(_sweep_rooms(ctx), name="rooms:sweep")
+        try:
+            async with jobs.lifespan(ctx):  # the training worker
+                yield
+        finally:
+            sweeper.cancel()
         await asyncio.to_thread(ctx.scheduler.shutdown)
         await asyncio.to_thread(ctx.track_scheduler.shutdown)
 
@@ -99,7 +130,7 @@ def create_app(settings: Settings) -> FastAPI:
                   description="Hosts 3D-Gaussian upper-body avatars and drives them live over "
                               f"a WebSocket (protocol version {PROTOCOL_VERSION}).")
     app.state.ctx = ctx
-    for routes in (system, avatars, stream, motions, jobs):
+    for routes in (system, avatars, stream, rooms, motions, jobs):
         app.include_router(routes.router)
     # Last: the browser page at "/" would shadow any route added after it.
     if (WEB_DIR / "index.html").is_file():

@@ -157,6 +157,31 @@ class Settings(BaseModel):
         20 * 2**30, ge=1024, description="Bytes one user may store: their avatars plus their "
                                          "jobs' folders (uploaded datasets, checkpoints); an "
                                          "upload past it is 413 (admins exempt).")
+    max_rooms_per_user: int = Field(
+        8, ge=1, description="Rooms one user may own at once (POST /v1/rooms past it: 429; "
+                             "admins exempt).")
+    max_seats_per_room: int = Field(
+        4, ge=1, le=16, description="Seats (avatars) in one room; a room asking more is 422.")
+    max_participants_per_room: int = Field(
+        64, ge=1, description="Performers + viewers in one room at once; past it a join gets "
+                              "error 'busy', close code 4429.")
+    max_invitations_per_room: int = Field(
+        64, ge=1, description="Unexpired, unrevoked invitations of one room; past it POST "
+                              ".../invitations is 429.")
+    room_invitation_ttl_s: float = Field(
+        86400.0, gt=0, description="Seconds an invitation stays valid unless it asks less.")
+    room_invitation_max_ttl_s: float = Field(
+        7 * 86400.0, gt=0, description="Longest ttl_s an invitation may ask (422 past it).")
+    room_idle_timeout_s: float = Field(
+        300.0, gt=0, description="Seconds a room with no participants lives on; then it is "
+                                 "closed (the start-up room is pinned).")
+    room_seat_hold_s: float = Field(
+        10.0, ge=0, description="Seconds a seat whose performer left holds its last pose.")
+    room_seat_ease_s: float = Field(
+        2.0, ge=0, description="Seconds a held seat then takes to ease back to the rest pose.")
+    startup_room: bool = Field(
+        True, description="telesplat serve creates a room 'demo' (owner 'local', one seat of "
+                          "the demo avatar, never closed for idleness) and prints its links.")
     gaussian_ranges: GaussianRanges = Field(
         default_factory=GaussianRanges,
         description="Allowed values of an avatar's Gaussians (count, log-scales, local means, "

@@ -1,5 +1,6 @@
-"""What the routes share: settings, tokens, avatars, the render scheduler, metrics, sessions,
-the job service. The app carries this one object (``app.state.ctx``; server/dependencies.py)."""
+"""What the routes share: settings, tokens, avatars, rooms, the render scheduler, metrics,
+sessions, the job service. The app carries this one object (``app.state.ctx``;
+server/dependencies.py)."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from .auth import TokenStore
 from .config import Settings
 from .metrics import ServerMetrics
 from .registry import AvatarRegistry
+from .rooms.registry import RoomRegistry
 from .scheduler import RenderScheduler
 from .tracking import SessionTracker
 
@@ -59,12 +61,16 @@ class ServerContext:
     jobs: JobService | None = None  # set while the app's lifespan runs (server/routers/jobs.py)
     motion_rigs: dict[str, Rig] = field(default_factory=dict)  # avatar id -> its motion rig
     admission: Admission = None  # type: ignore[assignment]  # made from settings below
+    rooms: RoomRegistry = None  # type: ignore[assignment]  # made from settings below
+    startup_links: dict[str, str] = field(default_factory=dict)  # the start-up room's
     _manos: dict[str, dict[str, MANOModel]] = field(default_factory=dict)
     _manos_lock: threading.Lock = field(default_factory=threading.Lock)
 
     def __post_init__(self) -> None:
         if self.admission is None:
             self.admission = Admission.from_settings(self.settings)
+        if self.rooms is None:
+            self.rooms = RoomRegistry(self.settings)
 
     def session_models(self, avatar_id: str) -> tuple[AvatarAnimator, dict[str, MANOModel]]:
         """A session's own animator, plus the (shared, read-only) MANO models for fusion."""

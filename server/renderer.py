@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -48,6 +49,61 @@ class RenderedFrame:
     timings: Timings
 
 
+def view_camera(view: View, width: int, height: int, default_target: np.ndarray) -> Camera:
+    """The camera of a view; an orbit without a target looks at ``default_target``."""
+    if view.camera is not None:
+        c = view.camera
+        cam = Camera(np.asarray(c.K), np.asarray(c.R), np.asarray(c.t), c.width, c.height)
+        return cam if cam.size == (width, height) else cam.resized(width, height)
+    o = view.orbit
+    target = default_target if o.target is None else np.asarray(o.target, dtype=np.float64)
+    return orbit(target, o.yaw_deg, o.pitch_deg, o.distance, width=width, height=height,
+                 fov_y_deg=o.fov_y_deg)
+
+
+def encode_outputs(rgb: np.ndarray, alpha: np.ndarray | None, depth: np.ndarray | None,
+                   req: Request, jpeg_quality: int,
+                   encode_h264: Callable[[np.ndarray, Request], tuple[bytes, bool]]
+                   ) -> tuple[str, bytes, bool, bytes | None]:
+    """(codec, data, keyframe, depth PNG) of a rendered frame as ``req`` asks."""
+    codec, keyframe = req.codec, True
+    if "alpha" in req.outputs and codec != "h264":
+        codec, data = "png", encode_png(rgb, alpha)
+    elif codec == "png":
+        data = encode_png(rgb)
+    elif codec == "h264":
+        data, keyframe = encode_h264(rgb, req)
+    else:
+        data = encode_jpeg(rgb, jpeg_quality)
+    depth_png = encode_depth_png(depth) if "depth" in req.outputs else None
+    return codec, data, keyframe, depth_png
+
+
+class H264Stream:
+    """One client's H.264 stream (stateful: never shared); opened at the first frame, reopened
+    when the size changes, a keyframe when the client comes back from another codec."""
+
+    def __init__(self) -> None:
+        self._encoder: H264Encoder | None = None
+
+    def encode(self, rgb: np.ndarray, req: Request, last_codec: str | None
+               ) -> tuple[bytes, bool]:
+        h, w = rgb.shape[:2]
+        enc = self._encoder
+        if enc is None or (enc.width, enc.height) != (w, h):
+            if enc is not None:
+                enc.close()
+            enc = self._encoder = H264Encoder(w, h, fps=req.max_fps)
+        elif last_codec != "h264":
+            enc.force_keyframe()  # back from another codec: the client restarts here
+        return enc.encode(rgb)
+
+    def close(self) -> None:
+        if self._encoder is not None:
+            self._encoder.close()
+            self._encoder = None
+
+
 class SessionRenderer:
     def __init__(self, animator: AvatarAnimator, manos: dict[str, MANOModel],
                  backend: str = "auto") -> None:
@@ -59,19 +115,12 @@ class SessionRenderer:
         self.chest = framing_target(model.joint_template)  # the default orbit target
         self._posed: PosedAvatar | None = None  # of the drive state version below
         self._posed_version = -1
-        self._h264: H264Encoder | None = None
+        self._h264 = H264Stream()
         self._last_codec: str | None = None
         self._closed = threading.Event()
 
     def camera(self, view: View, width: int, height: int) -> Camera:
-        if view.camera is not None:
-            c = view.camera
-            cam = Camera(np.asarray(c.K), np.asarray(c.R), np.asarray(c.t), c.width, c.height)
-            return cam if cam.size == (width, height) else cam.resized(width, height)
-        o = view.orbit
-        target = self.chest if o.target is None else np.asarray(o.target, dtype=np.float64)
-        return orbit(target, o.yaw_deg, o.pitch_deg, o.distance, width=width, height=height,
-                     fov_y_deg=o.fov_y_deg)
+        return view_camera(view, width, height, self.chest)
 
     def render(self, job: FrameJob) -> RenderedFrame:
         req = job.request
@@ -93,17 +142,9 @@ class SessionRenderer:
             alpha = None if out.alpha is None else to_uint8(out.alpha)  # [H, W]
             depth = None if out.depth is None else out.depth.cpu().numpy()  # [H, W] metres
         t2 = time.perf_counter()
-        codec, keyframe = req.codec, True
-        if "alpha" in req.outputs and codec != "h264":
-            codec, data = "png", encode_png(rgb, alpha)
-        elif codec == "png":
-            data = encode_png(rgb)
-        elif codec == "h264":
-            data, keyframe = self._encode_h264(rgb, req)
-        else:
-            data = encode_jpeg(rgb, job.jpeg_quality)
+        codec, data, keyframe, depth_png = encode_outputs(
+            rgb, alpha, depth, req, job.jpeg_quality, self._encode_h264)
         self._last_codec = codec
-        depth_png = encode_depth_png(depth) if "depth" in req.outputs else None
         t3 = time.perf_counter()
         timings = Timings(track=job.track_ms, pose=(t1 - t0) * 1e3, render=(t2 - t1) * 1e3,
                           encode=(t3 - t2) * 1e3)
@@ -111,16 +152,7 @@ class SessionRenderer:
                              keyframe, timings)
 
     def _encode_h264(self, rgb: np.ndarray, req: Request) -> tuple[bytes, bool]:
-        h, w = rgb.shape[:2]
-        if self._h264 is None or (self._h264.width, self._h264.height) != (w, h):
-            if self._h264 is not None:
-                self._h264.close()
-            self._h264 = H264Encoder(w, h, fps=req.max_fps)
-        elif self._last_codec != "h264":
-            self._h264.force_keyframe()  # back from another codec: the client restarts here
-        return self._h264.encode(rgb)
+        return self._h264.encode(rgb, req, self._last_codec)
 
     def close(self) -> None:
-        if self._h264 is not None:
-            self._h264.close()
-            self._h264 = None
+        self._h264.close()

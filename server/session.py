@@ -103,6 +103,7 @@ class StreamSession:
                  metrics: ServerMetrics, config: SessionConfig, request: Request, view: View,
                  session_count: Any) -> None:
         self.id = uuid.uuid4().hex[:12]
+        self.share_key: Any = self.id  # whose render time this is (a room: the room's)
         self.ws = ws
         self.renderer = renderer
         self.scheduler = scheduler
@@ -204,7 +205,7 @@ class StreamSession:
             fitted = fit_drive(msg, self.shapes)  # ProtocolError before anything changes
             self.drive.apply(msg, fitted)
             self._pending_drives += 1
-            self._changed()
+            self._drive_changed()
         elif isinstance(msg, View):
             self.view = msg
             self._changed()
@@ -246,6 +247,10 @@ class StreamSession:
         self._dirty.set()
         self._wake.set()
 
+    def _drive_changed(self) -> None:
+        """The drive state changed (a drive, a tracked image); a room wakes everyone in it."""
+        self._changed()
+
     # -- rendering ---------------------------------------------------------------------------
 
     def _snapshot(self) -> FrameJob:
@@ -266,7 +271,8 @@ class StreamSession:
         """When the next frame may start: the frame-rate cap and the fair share of render
         time, both read now (a request or another session may have changed them)."""
         now = asyncio.get_running_loop().time()  # time.monotonic, as the scheduler's
-        return max(started + 1.0 / self.request.max_fps, now + self.scheduler.pace_s(self.id))
+        return max(started + 1.0 / self.request.max_fps,
+                   now + self.scheduler.pace_s(self.share_key))
 
     async def _pace(self, started: float) -> None:
         """Wait until the next frame may start; inputs keep coalescing meanwhile."""
@@ -284,7 +290,7 @@ class StreamSession:
             self._dirty.clear()
             job = self._snapshot()
             started = asyncio.get_running_loop().time()
-            future = self.scheduler.submit(self.renderer.render, job, key=self.id)
+            future = self._submit(job)
             self._inflight = future  # kept after a cancel: teardown waits for it to finish
             try:
                 frame = await asyncio.wrap_future(future)
@@ -302,6 +308,10 @@ class StreamSession:
                 continue
             self._good = job
             await self._send_watched(frame)
+
+    def _submit(self, job: FrameJob):
+        """The render of ``job`` (a concurrent future); a room may share one between many."""
+        return self.scheduler.submit(self.renderer.render, job, key=self.share_key)
 
     def _restore(self, failed: FrameJob, drive_only: bool) -> None:
         """Put back the last state that rendered wherever the failed frame's state is still
@@ -345,7 +355,7 @@ class StreamSession:
                 continue
             self._track_ms = tracked.track_ms
             self._pending_drives += 1
-            self._changed()
+            self._drive_changed()
 
     async def _send_watched(self, frame: RenderedFrame) -> None:
         """Send a frame; while its client does not take it, the session leaves the render
@@ -354,7 +364,7 @@ class StreamSession:
         try:
             done, _ = await asyncio.wait({send}, timeout=SEND_STALL_S)
             if not done:
-                self.scheduler.stalled(self.id)
+                self.scheduler.stalled(self.share_key)
             await send
         finally:
             send.cancel()  # the session ends: the send goes with it
@@ -408,9 +418,13 @@ class StreamSession:
                 task.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)
             self._release_renderer()
-            self.scheduler.forget(self.id)
+            self._release_share()
             self.track_scheduler.forget(self.id)
             self.closed.set()
+
+    def _release_share(self) -> None:
+        """No longer counted among the render scheduler's active sessions."""
+        self.scheduler.forget(self.share_key)
 
     def _release_renderer(self) -> None:
         """Close the encoder and the tracker once no thread uses them (a running job finishes

@@ -23,8 +23,11 @@ from protocol import (
     Orbit,
     Ping,
     Pong,
+    Presence,
     ProtocolError,
     Request,
+    RoomWelcome,
+    SeatPresence,
     Stats,
     Timings,
     View,
@@ -55,6 +58,7 @@ CLIENT_EXAMPLES = [
             sh_degree=1, quality=0.5, jpeg_quality=70, codec="png", max_fps=24),
     Image(seq=3, format="png", data=b"\x89PNG fake but non-empty"),
     Ping(t=12.5),
+    Hello(token="tsr_x", client="viewer", role="watch", seat=1),
 ]
 SERVER_EXAMPLES = [
     Welcome(session="abc", avatar=AvatarInfo(id="demo", name="ada", num_gaussians=5,
@@ -66,7 +70,21 @@ SERVER_EXAMPLES = [
     Stats(fps=30, frames=10, dropped=1, coalesced=2, bytes_per_s=1e5, render_ms=12,
           sessions=1),
     Pong(t=1.0),
+    Welcome(session="def", minor=1, avatar=AvatarInfo(id="demo", name="ada", num_gaussians=5,
+                                                      sh_degree=3),
+            limits=Limits(), codecs=["jpeg"], request=Request(width=512),
+            room=RoomWelcome(id="r1", name="demo", role="perform", seat=0)),
+    Presence(room="r1", seats=[SeatPresence(index=0, avatar="demo", performer="cam",
+                                            holding=False)],
+             viewers=3, event="join", who="viewer", role="watch"),
 ]
+
+
+def test_a_plain_welcome_carries_no_room_fields():
+    """Old clients forbid unknown fields: room-only ones are left out of plain sessions."""
+    plain = msgpack.unpackb(encode(SERVER_EXAMPLES[0]))
+    assert "room" not in plain and "minor" not in plain
+    assert "role" not in msgpack.unpackb(encode(Hello(token="t")))
 
 
 def _same(a, b):

@@ -2,11 +2,14 @@
 // sliders or the webcam. The token comes from the address (#token=, as the server prints it,
 // or ?token= from older links); it is moved into memory and removed from the address bar at
 // once, then travels only in the WebSocket's hello and REST calls' Authorization header.
+// Opened at /?room=ID#token=T (an invitation link) it joins the room: as a viewer the drive
+// controls are hidden (orbit and zoom stay), as a performer they drive the room's seat.
 
 import { Controls } from "./controls.js";
 import { MotionPlayer } from "./motions.js";
 import { OrbitControl } from "./orbit.js";
 import { Session, streamUrl, takeToken } from "./session.js";
+import { canShare, inviteAll, presenceText, showLinks } from "./share.js";
 import { StreamStats, renderStats } from "./stats.js";
 import { Webcam } from "./webcam.js";
 
@@ -17,6 +20,7 @@ const token = takeToken(window);
 // Shared with tests and the console: what the page is doing.
 const state = window.telesplat = {
   session: null, stats: new StreamStats(), framesShown: 0, errors: [], avatar: null,
+  room: null, presence: null, shareLinks: [],
 };
 
 function notify(text, kind = "info") {
@@ -27,8 +31,12 @@ function notify(text, kind = "info") {
   while ($("messages").childElementCount > 8) $("messages").lastElementChild.remove();
 }
 
-async function api(path) {
-  const response = await fetch(path, { headers: token ? { Authorization: `Bearer ${token}` } : {} });
+async function api(path, { method = "GET", body } = {}) {
+  const headers = token ? { Authorization: `Bearer ${token}` } : {};
+  if (body !== undefined) headers["Content-Type"] = "application/json";
+  const response = await fetch(path, {
+    method, headers, body: body === undefined ? undefined : JSON.stringify(body),
+  });
   if (!response.ok) {
     let detail = response.statusText;
     try { detail = (await response.json()).detail ?? detail; } catch { /* not JSON */ }
@@ -36,7 +44,7 @@ async function api(path) {
     error.status = response.status;
     throw error;
   }
-  return response.json();
+  return response.status === 204 ? null : response.json();
 }
 
 // ---- frames on the canvas: the newest wins, decodes never queue up ---------------------
@@ -107,13 +115,33 @@ function onServerError(message) {
   notify(`server error ${message.code}${about}: ${message.message}`, "error");
 }
 
-async function connect(avatarId) {
+// Viewers keep orbit and zoom only; performers (and plain sessions) keep every control.
+function setViewer(viewer) {
+  $("drive-controls").hidden = viewer;
+  $("viewer-note").hidden = !viewer;
+  if (viewer) {
+    player.stop();
+    webcam.stop();
+    $("webcam").checked = false;
+  }
+}
+
+function showPresence(presence) {
+  state.presence = presence;
+  $("presence").textContent = presenceText(presence);
+}
+
+/** `target`: an avatar id (a private session) or {room, role, seat} (join a room). */
+async function connect(target) {
   state.session?.close();
   player.stop();
-  state.avatar = avatarId;
-  $("status").textContent = `connecting to ${avatarId}…`;
-  const session = new Session(streamUrl(avatarId), token);
+  const inRoom = typeof target !== "string";
+  state.avatar = inRoom ? null : target;
+  state.room = null;
+  $("status").textContent = `connecting to ${inRoom ? `room ${target.room}` : target}…`;
+  const session = new Session(streamUrl(target), token, inRoom ? target : {});
   state.session = session;
+  session.addEventListener("presence", (e) => showPresence(e.detail));
   session.addEventListener("frame", (e) => showFrame(e.detail));
   session.addEventListener("servererror", (e) => onServerError(e.detail));
   session.addEventListener("stats", (e) => { state.stats.server = e.detail; });
@@ -124,7 +152,16 @@ async function connect(avatarId) {
   try {
     const welcome = await session.ready;
     const info = welcome.avatar;
-    $("status").textContent = `${info.name} — ${info.num_gaussians} Gaussians, session ${welcome.session}`;
+    state.avatar = info.id;
+    state.room = welcome.room ?? null;
+    $("room-bar").hidden = !state.room;
+    $("avatar").disabled = Boolean(state.room);
+    setViewer(state.room?.role === "watch");
+    const where = state.room
+      ? `room ${state.room.name || state.room.id} (${state.room.role === "watch" ? "watching"
+        : `performing seat ${state.room.seat}`})`
+      : `session ${welcome.session}`;
+    $("status").textContent = `${info.name} — ${info.num_gaussians} Gaussians, ${where}`;
     controls.build(info.metadata?.expression_names || []);
     sendRequest();
     session.view({ ...orbit.orbit }, false);
@@ -186,7 +223,33 @@ async function loadMotions() {
   }));
 }
 
+async function share() {
+  const button = $("share");
+  button.disabled = true;
+  try {
+    if (!state.room) {  // a room for the avatar on screen; this page performs its seat 0
+      const room = await api("/v1/rooms", { method: "POST", body: { seats: [{ avatar: state.avatar }] } });
+      await connect({ room: room.id, role: "perform", seat: 0 });
+      if (!state.room) throw new Error("could not join the new room");
+      const url = new URL(location.href);
+      url.searchParams.delete("avatar");
+      url.searchParams.set("room", room.id);
+      history.replaceState(history.state, "", url.toString());
+    }
+    const mySeat = state.room.role === "perform" ? state.room.seat : null;
+    state.shareLinks = await inviteAll(api, state.room.id, mySeat, location.origin);
+    showLinks($("share-links"), state.shareLinks);
+    $("room-bar").hidden = false;
+  } catch (err) {
+    notify(`cannot share: ${err.message}`, "error");
+  } finally {
+    button.disabled = false;
+  }
+}
+
 function wire() {
+  $("share").hidden = !canShare(token);
+  $("share").addEventListener("click", share);
   $("avatar").addEventListener("change", (e) => connect(e.target.value));
   $("size").addEventListener("change", sendRequest);
   $("reset").addEventListener("click", () => {
@@ -215,7 +278,20 @@ function wire() {
   setInterval(() => state.session?.ping(), 1000);
 }
 
+async function joinRoom(roomId) {
+  // A viewer may ask to watch with a perform link (?role=watch); otherwise the token decides.
+  const role = params.get("role") === "watch" ? "watch" : undefined;
+  await connect({ room: roomId, role });
+  const info = state.session?.welcome?.avatar;
+  if (info) $("avatar").replaceChildren(new Option(`${info.name || info.id} (${info.id})`, info.id));
+  if (state.room?.role === "perform") loadMotions();
+}
+
 wire();
 if (!token) notify("no #token= in the address: the server prints a URL with one", "error");
-loadAvatars();
-loadMotions();
+if (params.get("room")) {
+  joinRoom(params.get("room"));
+} else {
+  loadAvatars();
+  loadMotions();
+}

@@ -8,6 +8,8 @@ import { decode as unpackMsgpack, encode as packMsgpack } from "./vendor/msgpack
 
 export const PROTOCOL_VERSION = Object.freeze(1);
 
+export const PROTOCOL_MINOR = Object.freeze(1);
+
 export const MAX_SEQ = Object.freeze(9007199254740991);
 
 export const OUTPUTS = Object.freeze([
@@ -37,6 +39,7 @@ export const ERROR_CODES = Object.freeze([
   "unauthorized",
   "forbidden",
   "not_found",
+  "gone",
   "busy",
   "internal"
 ]);
@@ -270,6 +273,7 @@ export const SERVER_TYPES = Object.freeze([
   "error",
   "frame",
   "pong",
+  "presence",
   "stats",
   "welcome"
 ]);
@@ -711,6 +715,36 @@ export const SCHEMA_DEFS = Object.freeze({
         "default": null,
         "title": "Client"
       },
+      "role": {
+        "anyOf": [
+          {
+            "enum": [
+              "perform",
+              "watch"
+            ],
+            "type": "string"
+          },
+          {
+            "type": "null"
+          }
+        ],
+        "default": null,
+        "title": "Role"
+      },
+      "seat": {
+        "anyOf": [
+          {
+            "exclusiveMaximum": 16,
+            "minimum": 0,
+            "type": "integer"
+          },
+          {
+            "type": "null"
+          }
+        ],
+        "default": null,
+        "title": "Seat"
+      },
       "token": {
         "anyOf": [
           {
@@ -996,6 +1030,78 @@ export const SCHEMA_DEFS = Object.freeze({
     "title": "Pong",
     "type": "object"
   },
+  "Presence": {
+    "additionalProperties": false,
+    "description": "Who is in a room: sent after ``welcome`` and to everyone on each join and leave.",
+    "properties": {
+      "event": {
+        "default": "update",
+        "enum": [
+          "join",
+          "leave",
+          "update"
+        ],
+        "title": "Event",
+        "type": "string"
+      },
+      "role": {
+        "anyOf": [
+          {
+            "enum": [
+              "perform",
+              "watch"
+            ],
+            "type": "string"
+          },
+          {
+            "type": "null"
+          }
+        ],
+        "default": null,
+        "title": "Role"
+      },
+      "room": {
+        "title": "Room",
+        "type": "string"
+      },
+      "seats": {
+        "items": {
+          "$ref": "#/$defs/SeatPresence"
+        },
+        "title": "Seats",
+        "type": "array"
+      },
+      "type": {
+        "const": "presence",
+        "default": "presence",
+        "title": "Type",
+        "type": "string"
+      },
+      "viewers": {
+        "title": "Viewers",
+        "type": "integer"
+      },
+      "who": {
+        "anyOf": [
+          {
+            "type": "string"
+          },
+          {
+            "type": "null"
+          }
+        ],
+        "default": null,
+        "title": "Who"
+      }
+    },
+    "required": [
+      "room",
+      "seats",
+      "viewers"
+    ],
+    "title": "Presence",
+    "type": "object"
+  },
   "Request": {
     "additionalProperties": false,
     "description": "What to render and how to send it; fields not sent keep their current value.",
@@ -1154,6 +1260,87 @@ export const SCHEMA_DEFS = Object.freeze({
     "title": "Request",
     "type": "object"
   },
+  "RoomWelcome": {
+    "additionalProperties": false,
+    "description": "The room a participant joined, and as what.",
+    "properties": {
+      "id": {
+        "title": "Id",
+        "type": "string"
+      },
+      "name": {
+        "title": "Name",
+        "type": "string"
+      },
+      "role": {
+        "enum": [
+          "perform",
+          "watch"
+        ],
+        "title": "Role",
+        "type": "string"
+      },
+      "seat": {
+        "anyOf": [
+          {
+            "exclusiveMaximum": 16,
+            "minimum": 0,
+            "type": "integer"
+          },
+          {
+            "type": "null"
+          }
+        ],
+        "default": null,
+        "title": "Seat"
+      }
+    },
+    "required": [
+      "id",
+      "name",
+      "role"
+    ],
+    "title": "RoomWelcome",
+    "type": "object"
+  },
+  "SeatPresence": {
+    "additionalProperties": false,
+    "properties": {
+      "avatar": {
+        "title": "Avatar",
+        "type": "string"
+      },
+      "holding": {
+        "default": false,
+        "title": "Holding",
+        "type": "boolean"
+      },
+      "index": {
+        "exclusiveMaximum": 16,
+        "minimum": 0,
+        "title": "Index",
+        "type": "integer"
+      },
+      "performer": {
+        "anyOf": [
+          {
+            "type": "string"
+          },
+          {
+            "type": "null"
+          }
+        ],
+        "default": null,
+        "title": "Performer"
+      }
+    },
+    "required": [
+      "index",
+      "avatar"
+    ],
+    "title": "SeatPresence",
+    "type": "object"
+  },
   "Stats": {
     "additionalProperties": false,
     "properties": {
@@ -1289,8 +1476,31 @@ export const SCHEMA_DEFS = Object.freeze({
       "limits": {
         "$ref": "#/$defs/Limits"
       },
+      "minor": {
+        "anyOf": [
+          {
+            "type": "integer"
+          },
+          {
+            "type": "null"
+          }
+        ],
+        "default": null,
+        "title": "Minor"
+      },
       "request": {
         "$ref": "#/$defs/Request"
+      },
+      "room": {
+        "anyOf": [
+          {
+            "$ref": "#/$defs/RoomWelcome"
+          },
+          {
+            "type": "null"
+          }
+        ],
+        "default": null
       },
       "session": {
         "title": "Session",
@@ -1350,6 +1560,9 @@ export const SERVER_SCHEMAS = Object.freeze({
   },
   "pong": {
     "$ref": "#/$defs/Pong"
+  },
+  "presence": {
+    "$ref": "#/$defs/Presence"
   },
   "stats": {
     "$ref": "#/$defs/Stats"

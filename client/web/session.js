@@ -1,14 +1,17 @@
 // One streaming session over the WebSocket: messages in and out, seq numbers, latency.
 //
-// Events (EventTarget): "welcome", "frame", "stats", "servererror", "pong", "close";
+// Events (EventTarget): "welcome", "frame", "stats", "presence", "servererror", "pong",
+// "close";
 // each event's `detail` is the decoded message (close: {code, reason}).
 
 import { PROTOCOL_VERSION, ProtocolError, decode, encode } from "./protocol.js";
 
-/** The stream's URL; never with a token in it (URLs end up in logs and histories). */
-export function streamUrl(avatar) {
+/** The stream's URL for an avatar, or a room with `streamUrl({room})`; never with a token in
+ *  it (URLs end up in logs and histories). */
+export function streamUrl(target) {
   const scheme = location.protocol === "https:" ? "wss" : "ws";
-  return `${scheme}://${location.host}/v1/stream?${new URLSearchParams({ avatar })}`;
+  const query = typeof target === "string" ? { avatar: target } : { room: target.room };
+  return `${scheme}://${location.host}/v1/stream?${new URLSearchParams(query)}`;
 }
 
 /** The token from the address (#token= or ?token=), removed from the address bar and the
@@ -27,8 +30,9 @@ export function takeToken(win) {
 }
 
 export class Session extends EventTarget {
-  /** `token` goes in the first message, the hello, which the server reads before anything. */
-  constructor(url, token = null) {
+  /** `token` goes in the first message, the hello, which the server reads before anything;
+   *  `join` ({role, seat}) too, in a room. */
+  constructor(url, token = null, join = {}) {
     super();
     this.url = url;
     this.seq = 0;
@@ -44,6 +48,8 @@ export class Session extends EventTarget {
     this.ws.addEventListener("open", () => {
       const hello = { type: "hello", version: PROTOCOL_VERSION, client: "telesplat-web" };
       if (token) hello.token = token;
+      if (join.role) hello.role = join.role;
+      if (Number.isInteger(join.seat)) hello.seat = join.seat;
       this._send(hello);
     });
     this.ws.addEventListener("message", (event) => this._receive(event.data));

@@ -81,8 +81,17 @@ def _admit_unauthenticated(ctx: ServerContext, address: str) -> None:
 
 
 async def _hello_token(ws: WebSocket, ctx: ServerContext) -> str:
-    """The token of the first message, a ``hello``; read under the pre-auth limits: a short
-    timeout and a small size, checked on the frame's length before anything is decoded."""
+    """The token of the first message, a ``hello``."""
+    hello = await read_hello(ws, ctx)
+    if not hello.token:
+        raise Refusal("unauthorized", "no token: the first message must be a hello with a "
+                                      "token", CLOSE_UNAUTHORIZED)
+    return hello.token
+
+
+async def read_hello(ws: WebSocket, ctx: ServerContext) -> Hello:
+    """The first message, a ``hello``; read under the pre-auth limits: a short timeout and a
+    small size, checked on the frame's length before anything is decoded."""
     s = ctx.settings
     try:
         # Not wait_for: it would run receive() as a task and leave a loop turn between the
@@ -107,13 +116,13 @@ async def _hello_token(ws: WebSocket, ctx: ServerContext) -> str:
         hello = decode_client(data, hello_limits)
     except ProtocolError as exc:
         raise Refusal(exc.code, exc.message, CLOSE_BAD_HELLO) from None
-    if not isinstance(hello, Hello) or not hello.token:
+    if not isinstance(hello, Hello):
         raise Refusal("unauthorized", "no token: the first message must be a hello with a "
                                       "token", CLOSE_UNAUTHORIZED)
     if hello.version != PROTOCOL_VERSION:
         raise Refusal("version", f"this server speaks protocol version {PROTOCOL_VERSION}, "
                                  f"not {hello.version}", CLOSE_BAD_HELLO)
-    return hello.token
+    return hello
 
 
 async def _authenticate(ws: WebSocket, ctx: ServerContext) -> Principal:
@@ -170,7 +179,7 @@ def default_request(ctx: ServerContext, record: AvatarRecord) -> Request:
                    max_fps=min(s.default_max_fps, s.limits.max_fps))
 
 
-async def _refuse(ws: WebSocket, refusal: Refusal, ctx: ServerContext) -> None:
+async def refuse(ws: WebSocket, refusal: Refusal, ctx: ServerContext) -> None:
     ctx.metrics.sessions_refused.labels(refusal.code).inc()
     ctx.metrics.errors.labels(refusal.code).inc()
     with contextlib.suppress(Exception):  # the client may be gone already
@@ -190,9 +199,16 @@ def stream_ticket(ctx: Context, principal: StreamPrincipal) -> dict:
 
 
 @router.websocket("/v1/stream")
-async def stream(ws: WebSocket, ctx: Context, avatar: str = DEMO_ID) -> None:
-    """Drive an avatar and receive its frames (see protocol/ for the messages)."""
+async def stream(ws: WebSocket, ctx: Context, avatar: str = DEMO_ID,
+                 room: str | None = None) -> None:
+    """Drive an avatar and receive its frames (see protocol/ for the messages); with
+    ``?room=ID``, join that room as a performer or a viewer (server/rooms/)."""
     await ws.accept()
+    if room is not None:
+        from ..rooms.join import join_room  # it builds on this module's helpers
+
+        await join_room(ws, ctx, room)
+        return
     subject = None  # holds a per-user slot while set
     try:
         principal = await _authenticate(ws, ctx)
@@ -208,7 +224,7 @@ async def stream(ws: WebSocket, ctx: Context, avatar: str = DEMO_ID) -> None:
                                       "most one user may have; close one first", CLOSE_TOO_MANY)
             subject = principal.subject
     except Refusal as refusal:
-        await _refuse(ws, refusal, ctx)
+        await refuse(ws, refusal, ctx)
         return
     except WebSocketDisconnect:
         return  # left before authenticating
@@ -232,7 +248,7 @@ async def _serve(ws: WebSocket, ctx: ServerContext, record: AvatarRecord) -> Non
         tracker = await asyncio.to_thread(ctx.session_tracker, record.id)
     except Exception as exc:  # noqa: BLE001 - a broken package must not take the server down
         log.exception("cannot load avatar %s", record.id)
-        await _refuse(ws, Refusal("internal", f"cannot load avatar {record.id!r}: {exc}",
+        await refuse(ws, Refusal("internal", f"cannot load avatar {record.id!r}: {exc}",
                                   CLOSE_INTERNAL), ctx)
         return
     s = ctx.settings

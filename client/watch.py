@@ -1,0 +1,80 @@
+"""Record what a room's viewer gets: each frame's encoded image as a file, and one JSON line per
+frame in ``frames.jsonl`` (seq, frame counter, size, codec, stage timings, arrival time)."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+from protocol import Frame
+
+
+def parse_view(text: str) -> dict[str, float]:
+    """``--view yaw,pitch,distance`` (degrees, degrees, metres) as orbit fields."""
+    parts = [p.strip() for p in text.split(",")]
+    if len(parts) != 3:
+        raise ValueError(f"--view wants yaw,pitch,distance, got {text!r}")
+    try:
+        yaw, pitch, distance = (float(p) for p in parts)
+    except ValueError as exc:
+        raise ValueError(f"--view wants three numbers, got {text!r}") from exc
+    return {"yaw_deg": yaw, "pitch_deg": pitch, "distance": distance}
+
+
+def frame_record(frame: Frame, index: int, file: str, received_s: float) -> dict[str, Any]:
+    """One line of frames.jsonl."""
+    return {"index": index, "file": file, "seq": frame.seq, "frame": frame.frame,
+            "codec": frame.codec, "width": frame.width, "height": frame.height,
+            "bytes": len(frame.data), "received_s": round(received_s, 4),
+            "timings": frame.timings.model_dump()}
+
+
+async def watch_room(server: str, token: str | None, room: str, out: Path, *,
+                     seconds: float | None = 10.0, max_frames: int | None = None,
+                     view: dict[str, float] | None = None, size: int = 512,
+                     timeout: float = 30.0, max_stale: int = 8) -> dict[str, Any]:
+    """Join ``room`` as a viewer and save its frames in ``out`` until ``seconds`` have passed or
+    ``max_frames`` arrived (whichever first; at least one of them must be given).
+
+    Up to ``max_stale`` frames rendered before our request landed (not ``size`` square) are
+    skipped; after the first frame of the asked size, or that many, every frame is kept."""
+    from .images import save_frame
+    from .stream import StreamClient
+
+    if seconds is None and max_frames is None:
+        raise ValueError("give seconds or max_frames: a recording must end")
+    out.mkdir(parents=True, exist_ok=True)
+    saved = stale = 0
+    async with await StreamClient.connect(server, token=token, room=room, role="watch",
+                                          timeout=timeout,
+                                          client_name="telesplat-client watch") as client:
+        await client.request(width=size, height=size, codec="jpeg")
+        if view is not None:
+            await client.view(view)
+        start = time.monotonic()
+        deadline = start + seconds if seconds is not None else None
+        with (out / "frames.jsonl").open("w") as log:
+            while max_frames is None or saved < max_frames:  # bounded by frames or deadline
+                left = timeout if deadline is None else deadline - time.monotonic()
+                if left <= 0:
+                    break
+                try:
+                    frame = await client.next_frame(min(left, timeout))
+                except TimeoutError:
+                    if deadline is None:
+                        raise
+                    break
+                if frame.codec == "h264":
+                    continue
+                if saved == 0 and stale < max_stale and (frame.width, frame.height) != (size, size):
+                    stale += 1
+                    continue
+                path = save_frame(frame, out / f"{saved:05d}")
+                log.write(json.dumps(frame_record(frame, saved, path.name,
+                                                  time.monotonic() - start)) + "\n")
+                saved += 1
+        presence = client.presence
+    return {"frames": saved, "stale_skipped": stale, "room": room,
+            "presence": presence.model_dump() if presence is not None else None}

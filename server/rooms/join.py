@@ -1,0 +1,214 @@
+"""``/v1/stream?room=ID``: authenticate, pick the role and seat, admit, then run a participant.
+
+In a room the first message is always a ``hello`` (it carries the role and seat), also when
+the token came in the ``Authorization`` header or a ticket stood in for it. The token is the
+room owner's (or an admin's) bearer token, which may take any role and seat, or an invitation
+token (``tsr_...``) of this room, which takes its scope (a perform invitation: its seat only).
+Refusals: ``unauthorized`` 4401 (bad, expired or revoked token), ``forbidden`` 4403 (wrong
+scope, another room's invitation, a seat taken), ``not_found`` 4404 (no such room or seat),
+``busy`` 1013 (server full) / 4429 (room or user full), ``gone`` 4410 (room deleted).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import uuid
+
+from fastapi import WebSocket
+from starlette.websockets import WebSocketDisconnect
+
+from protocol import PROTOCOL_MINOR, AvatarInfo, Hello, RoomWelcome, View, Welcome, encode
+from protocol.messages import CODECS, Orbit
+
+from ..auth import Principal, token_from_websocket
+from ..context import ServerContext
+from ..net import PREAUTH_EXTENSION
+from ..routers.stream import (
+    CLOSE_BUSY,
+    CLOSE_FORBIDDEN,
+    CLOSE_INTERNAL,
+    CLOSE_NOT_FOUND,
+    CLOSE_TOO_MANY,
+    CLOSE_UNAUTHORIZED,
+    Refusal,
+    _admit_unauthenticated,
+    _client_address,
+    default_request,
+    inbound_limits,
+    read_hello,
+    refuse,
+)
+from ..session import SessionConfig
+from .frames import RoomFrames, SeatPoser
+from .live import CLOSE_GONE, JoinRefused, LiveRoom
+from .participant import RoomParticipant
+from .registry import Invitation, Room, RoomError, is_invitation
+
+log = logging.getLogger(__name__)
+
+JOIN_CLOSE_CODES = {"busy": CLOSE_TOO_MANY, "forbidden": CLOSE_FORBIDDEN, "gone": CLOSE_GONE}
+
+
+async def _credentials(ws: WebSocket, ctx: ServerContext
+                       ) -> tuple[Hello, Principal | None, Invitation | None]:
+    """The hello and who sent it: a principal (bearer token or ticket) or an invitation."""
+    principal = None
+    ticket = ws.query_params.get("ticket")
+    token = None if ticket else token_from_websocket(ws)
+    if ticket:
+        principal = ctx.admission.tickets.redeem(ticket)
+        if principal is None:
+            raise Refusal("unauthorized", "invalid, spent or expired ticket", CLOSE_UNAUTHORIZED)
+    if ticket or token:
+        hello = await read_hello(ws, ctx)
+    else:
+        address = _client_address(ws)
+        _admit_unauthenticated(ctx, address)
+        try:
+            hello = await read_hello(ws, ctx)
+        finally:
+            ctx.admission.waiting.release(address)
+        token = hello.token
+        if not token:
+            raise Refusal("unauthorized", "no token: the first message must be a hello with "
+                                          "a token", CLOSE_UNAUTHORIZED)
+    invitation = None
+    if principal is None:
+        if is_invitation(token):
+            invitation = ctx.rooms.resolve(token)
+            if invitation is None:
+                raise Refusal("unauthorized", "invalid, expired or revoked invitation",
+                              CLOSE_UNAUTHORIZED)
+        else:
+            principal = ctx.tokens.principal(token)
+            if principal is None:
+                raise Refusal("unauthorized", "invalid token", CLOSE_UNAUTHORIZED)
+    preauth = ws.scope.get("extensions", {}).get(PREAUTH_EXTENSION)
+    if preauth is not None:
+        preauth["lift"]()
+    return hello, principal, invitation
+
+
+def _room(ctx: ServerContext, room_id: str) -> Room:
+    try:
+        return ctx.rooms.get(room_id)
+    except RoomError:
+        raise Refusal("not_found", f"no room {room_id!r}", CLOSE_NOT_FOUND) from None
+
+
+def _role(room: Room, hello: Hello, principal: Principal | None,
+          invitation: Invitation | None) -> tuple[str, int]:
+    """(role, seat index) this hello may take in ``room``."""
+    first = room.seats[0].index
+    if invitation is not None:
+        if invitation.room_id != room.id:
+            raise Refusal("forbidden", "this invitation is for another room", CLOSE_FORBIDDEN)
+        role = hello.role or invitation.scope
+        if role == "perform" and invitation.scope != "perform":
+            raise Refusal("forbidden", "a watch invitation cannot perform", CLOSE_FORBIDDEN)
+        if role == "perform":
+            if hello.seat is not None and hello.seat != invitation.seat:
+                raise Refusal("forbidden", f"this invitation performs seat {invitation.seat}, "
+                                           f"not {hello.seat}", CLOSE_FORBIDDEN)
+            return role, invitation.seat
+    else:
+        if not principal.has("stream"):
+            raise Refusal("forbidden", "this token lacks the 'stream' scope", CLOSE_FORBIDDEN)
+        if not room.visible_to(principal):
+            raise Refusal("forbidden", f"room {room.id!r} belongs to another owner; join it "
+                                       "with an invitation", CLOSE_FORBIDDEN)
+        role = hello.role or "perform"
+    seat = first if hello.seat is None else hello.seat
+    if seat not in {s.index for s in room.seats}:
+        raise Refusal("not_found", f"room {room.id!r} has no seat {seat}", CLOSE_NOT_FOUND)
+    return role, seat
+
+
+async def open_live(ctx: ServerContext, room: Room) -> LiveRoom:
+    """The room's runtime, made at its first join: each seat's avatar loaded once."""
+    async with room.opening:
+        if room.live is None:
+            s = ctx.settings
+            posers = []
+            for spec in room.seats:
+                animator, manos = await asyncio.to_thread(ctx.session_models, spec.avatar)
+                posers.append(SeatPoser(animator, manos, spec.placement))
+            frames = RoomFrames(posers, f"room:{room.id}", s.backend,
+                                max_frames=s.max_participants_per_room)
+            room.live = LiveRoom(room, frames, s)
+        return room.live
+
+
+async def join_room(ws: WebSocket, ctx: ServerContext, room_id: str) -> None:
+    subject = None  # holds a per-user slot while set
+    slot = False
+    try:
+        hello, principal, invitation = await _credentials(ws, ctx)
+        room = _room(ctx, room_id)
+        role, seat = _role(room, hello, principal, invitation)
+        if not ctx.slots.try_acquire():
+            raise Refusal("busy", f"server busy: {ctx.slots.limit} sessions are open; try "
+                                  "again later", CLOSE_BUSY)
+        slot = True
+        if principal is not None and not principal.is_admin:
+            if ctx.admission.sessions.try_acquire(principal.subject) is not None:
+                raise Refusal("busy", f"{principal.subject!r} has "
+                                      f"{ctx.settings.max_sessions_per_user} sessions open, the "
+                                      "most one user may have; close one first", CLOSE_TOO_MANY)
+            subject = principal.subject
+        ctx.metrics.sessions.set(ctx.slots.count)
+        ctx.metrics.sessions_total.inc()
+        await _serve(ws, ctx, room, role, seat, hello.client)
+    except Refusal as refusal:
+        await refuse(ws, refusal, ctx)
+    except WebSocketDisconnect:
+        return  # left before joining
+    finally:
+        if slot:
+            ctx.slots.release()
+            ctx.metrics.sessions.set(ctx.slots.count)
+        if subject is not None:
+            ctx.admission.sessions.release(subject)
+
+
+async def _serve(ws: WebSocket, ctx: ServerContext, room: Room, role: str, seat: int,
+                 client: str | None) -> None:
+    s = ctx.settings
+    spec = next(x for x in room.seats if x.index == seat)
+    try:
+        live = await open_live(ctx, room)
+        record = ctx.registry.get(spec.avatar)
+        tracker = await asyncio.to_thread(ctx.session_tracker, spec.avatar)
+    except Exception as exc:  # noqa: BLE001 - a broken package must not take the server down
+        log.exception("cannot open room %s", room.id)
+        raise Refusal("internal", f"cannot open room {room.id!r}: {exc}",
+                      CLOSE_INTERNAL) from None
+    request = default_request(ctx, record)
+    name = client or f"{'performer' if role == 'perform' else 'viewer'}-{uuid.uuid4().hex[:4]}"
+    participant = RoomParticipant(
+        ws, live, role, seat, name, tracker=tracker, scheduler=ctx.scheduler,
+        track_scheduler=ctx.track_scheduler, metrics=ctx.metrics,
+        config=SessionConfig(s.limits, s.jpeg_quality, s.jpeg_quality_moving,
+                             s.stats_interval_s, inbound_limits(s)),
+        request=request, view=View(orbit=Orbit()), session_count=lambda: ctx.slots.count)
+    try:
+        live.join(participant)
+    except JoinRefused as exc:
+        participant.tracking.close()
+        raise Refusal(exc.code, exc.message, JOIN_CLOSE_CODES[exc.code]) from None
+    try:
+        info = AvatarInfo(id=record.id, name=record.name, num_gaussians=record.num_gaussians,
+                          sh_degree=record.sh_degree, owner=record.owner,
+                          metadata=record.metadata)
+        await ws.send_bytes(encode(Welcome(
+            session=participant.id, minor=PROTOCOL_MINOR, avatar=info, limits=s.limits,
+            codecs=list(CODECS), request=request,
+            room=RoomWelcome(id=room.id, name=room.name, role=role,
+                             seat=seat if role == "perform" else None))))
+        live.broadcast(live.presence("join", participant))
+        ctx.sessions[participant.id] = participant
+        await participant.run()
+    finally:
+        ctx.sessions.pop(participant.id, None)
+        live.leave(participant)

@@ -1,0 +1,172 @@
+"""An occupied room: seats (drive state, performer, hold/ease), participants, presence.
+
+Everything here runs on the event loop. A drive applied to a seat wakes every participant's
+render loop; each then renders (or shares) the newest state. A performer who leaves: the seat
+holds its last pose for ``room_seat_hold_s``, then eases back to rest over ``room_seat_ease_s``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from protocol import Presence, SeatPresence
+
+from ..drive import DriveState
+from .frames import RoomFrames
+from .registry import Room, SeatSpec
+
+if TYPE_CHECKING:
+    from .participant import RoomParticipant
+
+log = logging.getLogger(__name__)
+
+EASE_STEP_S = 1 / 20   # easing back to rest: a new pose this often
+KEEP_ON_EASE = frozenset({"betas", "shape"})  # identity, not pose: kept until the reset
+CLOSE_GONE = 4410
+
+
+@dataclass
+class Seat:
+    spec: SeatSpec
+    drive: DriveState = field(default_factory=DriveState)
+    performer: RoomParticipant | None = None
+    holding: bool = False
+    release: asyncio.Task | None = None  # hold, then ease to rest
+
+    @property
+    def index(self) -> int:
+        return self.spec.index
+
+
+class JoinRefused(Exception):
+    def __init__(self, code: str, message: str) -> None:
+        super().__init__(message)
+        self.code, self.message = code, message
+
+
+class LiveRoom:
+    def __init__(self, room: Room, frames: RoomFrames, settings) -> None:
+        self.room = room
+        self.frames = frames
+        self.settings = settings
+        self.seats = [Seat(spec) for spec in room.seats]
+        self.participants: list[RoomParticipant] = []
+        self.closed = False
+        self._closing: set[asyncio.Task] = set()
+
+    # -- seats ----------------------------------------------------------------------------------
+
+    def seat(self, index: int) -> Seat | None:
+        return next((s for s in self.seats if s.index == index), None)
+
+    def snapshot(self) -> tuple[DriveState, ...]:
+        return tuple(s.drive.copy() for s in self.seats)
+
+    def seat_changed(self) -> None:
+        """A seat's drive changed: every participant renders the new state."""
+        for p in self.participants:
+            p.wake()
+
+    # -- joining and leaving ----------------------------------------------------------------------
+
+    def join(self, participant: RoomParticipant) -> None:
+        if self.closed:
+            raise JoinRefused("gone", f"room {self.room.id!r} was closed")
+        if len(self.participants) >= self.settings.max_participants_per_room:
+            raise JoinRefused("busy", f"room {self.room.id!r} has "
+                                      f"{len(self.participants)} participants, the most it "
+                                      "may have (max_participants_per_room)")
+        if participant.role == "perform":
+            seat = self.seat(participant.seat_index)
+            if seat.performer is not None:
+                raise JoinRefused("forbidden", f"seat {seat.index} is performed by "
+                                               f"{seat.performer.name!r} already")
+            seat.performer = participant
+            self._stop_release(seat)
+        self.participants.append(participant)
+        self.room.empty_since = None
+
+    def leave(self, participant: RoomParticipant) -> None:
+        if participant not in self.participants:
+            return
+        self.participants.remove(participant)
+        if participant.role == "perform":
+            seat = self.seat(participant.seat_index)
+            if seat.performer is participant:
+                seat.performer = None
+                self._start_release(seat)
+        if not self.participants:
+            self.room.empty_since = time.monotonic()
+        self.broadcast(self.presence("leave", participant))
+
+    # -- presence -------------------------------------------------------------------------------
+
+    def presence(self, event: str = "update", who: RoomParticipant | None = None) -> Presence:
+        seats = [SeatPresence(index=s.index, avatar=s.spec.avatar,
+                              performer=None if s.performer is None else s.performer.name,
+                              holding=s.holding) for s in self.seats]
+        return Presence(room=self.room.id, seats=seats,
+                        viewers=sum(p.role == "watch" for p in self.participants),
+                        event=event, who=None if who is None else who.name,
+                        role=None if who is None else who.role)
+
+    def broadcast(self, message: Presence) -> None:
+        for p in self.participants:
+            p.send_control(message)
+
+    # -- a performer gone: hold, ease to rest ---------------------------------------------------
+
+    def _start_release(self, seat: Seat) -> None:
+        self._stop_release(seat)
+        seat.holding = True
+        seat.release = asyncio.get_running_loop().create_task(self._release(seat))
+
+    def _stop_release(self, seat: Seat) -> None:
+        if seat.release is not None:
+            seat.release.cancel()
+            seat.release = None
+        seat.holding = False
+
+    async def _release(self, seat: Seat) -> None:
+        s = self.settings
+        await asyncio.sleep(s.room_seat_hold_s)
+        held = {family: dict(values) for family, values in seat.drive.families.items()}
+        steps = max(1, round(s.room_seat_ease_s / EASE_STEP_S))
+        for step in range(1, steps):
+            weight = 1.0 - step / steps
+            seat.drive.families = {
+                family: {name: value if name in KEEP_ON_EASE else np.asarray(value) * weight
+                         for name, value in values.items()}
+                for family, values in held.items()}
+            seat.drive.version += 1
+            self.seat_changed()
+            await asyncio.sleep(s.room_seat_ease_s / steps)
+        seat.drive.families = {family: {} for family in held}  # the rest pose
+        seat.drive.version += 1
+        seat.holding = False
+        seat.release = None
+        self.seat_changed()
+        self.broadcast(self.presence("update"))
+
+    # -- closing --------------------------------------------------------------------------------
+
+    def close(self, message: str) -> None:
+        """The room is gone: everyone gets error ``gone`` and close code 4410."""
+        self.closed = True
+        for seat in self.seats:
+            if seat.release is not None:
+                seat.release.cancel()
+        for p in list(self.participants):
+            task = asyncio.get_running_loop().create_task(p.close_gone(message))
+            self._closing.add(task)
+            task.add_done_callback(self._closing.discard)
+
+    def forget(self, scheduler) -> None:
+        scheduler.forget(self.frames.share_key)
+
