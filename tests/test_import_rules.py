@@ -88,6 +88,16 @@ class _Collector(ast.NodeVisitor):
 
     visit_FunctionDef = visit_AsyncFunctionDef = visit_Lambda = _function
 
+    def visit_If(self, node: ast.If) -> None:
+        """`if TYPE_CHECKING:` imports never run (annotations only): no edge of the graph."""
+        test = node.test
+        name = test.id if isinstance(test, ast.Name) else getattr(test, "attr", None)
+        if name != "TYPE_CHECKING":
+            self.generic_visit(node)
+            return
+        for child in node.orelse:
+            self.visit(child)
+
     def visit_Import(self, node: ast.Import) -> None:
         for alias in node.names:
             self.found.append(Import(self.name, alias.name, node.lineno, self.depth == 0))

@@ -19,7 +19,7 @@ import websockets
 
 from client.stream import StreamClient
 from protocol import Hello, Ping, encode
-from server.routers.stream import (
+from server.handshake import (
     CLOSE_BUSY,
     CLOSE_HELLO_TIMEOUT,
     CLOSE_TOO_LARGE,

@@ -293,12 +293,17 @@ def _render_share(srv, cheap: str, big: str, seconds: float):
 
 
 def test_an_expensive_session_gets_its_share_of_render_time_not_more(fair_srv):
-    (cheap, big), big_share = _render_share(fair_srv, "cheap", "big", 3.0)
+    seconds = 4.0
+    (cheap, big), big_share = _render_share(fair_srv, "cheap", "big", seconds)
     # Served frame for frame, the expensive session would take most of the time (its frames
     # cost several cheap ones) and the two would get equal frame counts.
     assert big >= 1, "the expensive session still gets frames"
-    assert big_share <= 0.6, (big_share, cheap, big)  # its share (1/2) and a margin
-    assert cheap >= 1.5 * big, (cheap, big)  # frame for frame it would be 1:1
+    # Its share is 1/2; the credit it may save up (share x window, 1 s) can fall into the
+    # count, and one frame (~0.1 s on a loaded machine) straddles each end. Measured 0.43-0.61
+    # under -n 2 (the frames policy: ~0.69, which the frame ratio below tells apart).
+    bound = 0.5 * (1 + 1.0 / seconds) + 2 * 0.1 / seconds
+    assert big_share <= bound, (big_share, bound, cheap, big)
+    assert cheap >= 1.5 * big, (cheap, big)  # frame for frame it would be 1:1 (measured 2.5-3.4x)
 
 
 @pytest.mark.parametrize("policy,first", [("time", "light"), ("frames", "heavy")])

@@ -23,8 +23,7 @@ from protocol.messages import CODECS, Orbit
 
 from ..auth import Principal, token_from_websocket
 from ..context import ServerContext
-from ..net import PREAUTH_EXTENSION
-from ..routers.stream import (
+from ..handshake import (
     CLOSE_BUSY,
     CLOSE_FORBIDDEN,
     CLOSE_INTERNAL,
@@ -32,13 +31,14 @@ from ..routers.stream import (
     CLOSE_TOO_MANY,
     CLOSE_UNAUTHORIZED,
     Refusal,
-    _admit_unauthenticated,
-    _client_address,
+    admit_unauthenticated,
+    client_address,
     default_request,
     inbound_limits,
     read_hello,
     refuse,
 )
+from ..net import PREAUTH_EXTENSION
 from ..session import SessionConfig
 from .frames import RoomFrames, SeatPoser
 from .live import CLOSE_GONE, JoinRefused, LiveRoom
@@ -63,8 +63,8 @@ async def _credentials(ws: WebSocket, ctx: ServerContext
     if ticket or token:
         hello = await read_hello(ws, ctx)
     else:
-        address = _client_address(ws)
-        _admit_unauthenticated(ctx, address)
+        address = client_address(ws)
+        admit_unauthenticated(ctx, address)
         try:
             hello = await read_hello(ws, ctx)
         finally:

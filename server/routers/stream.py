@@ -6,8 +6,8 @@ one), in the first message, a ``hello``; or a single-use ``?ticket=`` from
 but keeps the token in URLs. Until it is authenticated a connection may send one small message
 within a short time, and holds one of a few waiting slots per address and in total.
 
-Refusals are sent as an ``error`` message and then a close with one of the codes below, since
-a browser sees neither the status nor the body of a refused WebSocket handshake.
+The handshake both this and a room's join share (refusal codes, pre-auth admission, the hello)
+is server/handshake.py.
 """
 
 from __future__ import annotations
@@ -21,14 +21,9 @@ from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from protocol import (
     CODECS,
-    PROTOCOL_VERSION,
     AvatarInfo,
-    Hello,
-    ProtocolError,
-    Request,
     View,
     Welcome,
-    decode_client,
     encode,
 )
 from protocol.messages import Orbit
@@ -36,94 +31,30 @@ from protocol.messages import Orbit
 from ..auth import Principal, token_from_websocket
 from ..context import ServerContext
 from ..dependencies import Context, StreamPrincipal
-from ..inbound import InboundLimits
+from ..handshake import (
+    CLOSE_BUSY,
+    CLOSE_FORBIDDEN,
+    CLOSE_INTERNAL,
+    CLOSE_NOT_FOUND,
+    CLOSE_TOO_MANY,
+    CLOSE_UNAUTHORIZED,
+    Refusal,
+    admit_unauthenticated,
+    client_address,
+    default_request,
+    hello_token,
+    inbound_limits,
+    refuse,
+)
 from ..net import PREAUTH_EXTENSION
 from ..registry import DEMO_ID, AvatarNotFound, AvatarRecord
 from ..renderer import SessionRenderer
-from ..session import SessionConfig, StreamSession, error_message
+from ..rooms.join import join_room
+from ..session import SessionConfig, StreamSession
 from ..tickets import TicketsExhausted
 
 log = logging.getLogger(__name__)
 router = APIRouter()
-
-# Close codes: 4000 + the HTTP status the refusal would have had; 1013 "try again later".
-CLOSE_BAD_HELLO = 4400
-CLOSE_UNAUTHORIZED = 4401
-CLOSE_FORBIDDEN = 4403
-CLOSE_NOT_FOUND = 4404
-CLOSE_HELLO_TIMEOUT = 4408
-CLOSE_TOO_LARGE = 4413
-CLOSE_TOO_MANY = 4429  # this address waiting, or this user streaming, too much already
-CLOSE_BUSY = 1013
-CLOSE_INTERNAL = 1011
-
-
-class Refusal(Exception):
-    def __init__(self, code: str, message: str, close_code: int) -> None:
-        super().__init__(message)
-        self.code, self.message, self.close_code = code, message, close_code
-
-
-def _client_address(ws: WebSocket) -> str:
-    return ws.client.host if ws.client else "unknown"
-
-
-def _admit_unauthenticated(ctx: ServerContext, address: str) -> None:
-    """Take a waiting slot for ``address`` (Refusal past the per-address or total cap)."""
-    refused = ctx.admission.waiting.try_acquire(address)
-    s = ctx.settings
-    if refused == "total":
-        raise Refusal("busy", f"server busy: {s.max_unauthenticated} connections are waiting "
-                              "to authenticate; try again later", CLOSE_BUSY)
-    if refused == "key":
-        raise Refusal("busy", f"too many connections waiting to authenticate from this address "
-                              f"(limit {s.max_unauthenticated_per_address})", CLOSE_TOO_MANY)
-
-
-async def _hello_token(ws: WebSocket, ctx: ServerContext) -> str:
-    """The token of the first message, a ``hello``."""
-    hello = await read_hello(ws, ctx)
-    if not hello.token:
-        raise Refusal("unauthorized", "no token: the first message must be a hello with a "
-                                      "token", CLOSE_UNAUTHORIZED)
-    return hello.token
-
-
-async def read_hello(ws: WebSocket, ctx: ServerContext) -> Hello:
-    """The first message, a ``hello``; read under the pre-auth limits: a short timeout and a
-    small size, checked on the frame's length before anything is decoded."""
-    s = ctx.settings
-    try:
-        # Not wait_for: it would run receive() as a task and leave a loop turn between the
-        # read and the caller, in which the next frame could meet the parser's pre-auth limit.
-        async with asyncio.timeout(s.hello_timeout_s):
-            message = await ws.receive()
-    except TimeoutError:
-        raise Refusal("unauthorized", f"no hello within {s.hello_timeout_s:g} s: send a hello "
-                                      "with a token first (or an Authorization header)",
-                      CLOSE_HELLO_TIMEOUT) from None
-    if message["type"] == "websocket.disconnect":
-        raise WebSocketDisconnect(message.get("code", 1000))
-    data = message.get("bytes")
-    if data is None:
-        raise Refusal("bad_message", "messages are binary msgpack frames", CLOSE_BAD_HELLO)
-    if len(data) > s.hello_max_bytes:  # before any decoding: an unknown peer costs nothing
-        raise Refusal("too_large", f"a message of {len(data)} bytes before authentication; "
-                                   f"the hello is limited to {s.hello_max_bytes}",
-                      CLOSE_TOO_LARGE)
-    hello_limits = s.limits.model_copy(update={"max_message_bytes": s.hello_max_bytes})
-    try:
-        hello = decode_client(data, hello_limits)
-    except ProtocolError as exc:
-        raise Refusal(exc.code, exc.message, CLOSE_BAD_HELLO) from None
-    if not isinstance(hello, Hello):
-        raise Refusal("unauthorized", "no token: the first message must be a hello with a "
-                                      "token", CLOSE_UNAUTHORIZED)
-    if hello.version != PROTOCOL_VERSION:
-        raise Refusal("version", f"this server speaks protocol version {PROTOCOL_VERSION}, "
-                                 f"not {hello.version}", CLOSE_BAD_HELLO)
-    return hello
-
 
 async def _authenticate(ws: WebSocket, ctx: ServerContext) -> Principal:
     """The principal of a ``?ticket=``, else of the header's (or a legacy ``?token=``'s)
@@ -137,10 +68,10 @@ async def _authenticate(ws: WebSocket, ctx: ServerContext) -> Principal:
         return principal
     token = token_from_websocket(ws)
     if not token:
-        address = _client_address(ws)
-        _admit_unauthenticated(ctx, address)
+        address = client_address(ws)
+        admit_unauthenticated(ctx, address)
         try:
-            token = await _hello_token(ws, ctx)
+            token = await hello_token(ws, ctx)
         finally:
             ctx.admission.waiting.release(address)
     principal = ctx.tokens.principal(token)
@@ -165,27 +96,6 @@ def _check_access(ctx: ServerContext, principal: Principal, avatar_id: str) -> A
     return record
 
 
-def inbound_limits(s) -> InboundLimits:
-    return InboundLimits(max_message_objects=s.max_message_objects,
-                         decode_offload_bytes=s.decode_offload_bytes,
-                         max_bytes_per_s=s.max_inbound_bytes_per_s)
-
-
-def default_request(ctx: ServerContext, record: AvatarRecord) -> Request:
-    s = ctx.settings
-    return Request(outputs=["rgb"], width=s.default_width, height=s.default_height,
-                   background=(1.0, 1.0, 1.0), sh_degree=record.sh_degree, quality=1.0,
-                   jpeg_quality=s.jpeg_quality, codec="jpeg",
-                   max_fps=min(s.default_max_fps, s.limits.max_fps))
-
-
-async def refuse(ws: WebSocket, refusal: Refusal, ctx: ServerContext) -> None:
-    ctx.metrics.sessions_refused.labels(refusal.code).inc()
-    ctx.metrics.errors.labels(refusal.code).inc()
-    with contextlib.suppress(Exception):  # the client may be gone already
-        await ws.send_bytes(encode(error_message(refusal.code, refusal.message)))
-        await ws.close(refusal.close_code, refusal.message[:120])
-
 
 @router.post("/v1/stream/tickets", status_code=201)
 def stream_ticket(ctx: Context, principal: StreamPrincipal) -> dict:
@@ -205,8 +115,6 @@ async def stream(ws: WebSocket, ctx: Context, avatar: str = DEMO_ID,
     ``?room=ID``, join that room as a performer or a viewer (server/rooms/)."""
     await ws.accept()
     if room is not None:
-        from ..rooms.join import join_room  # it builds on this module's helpers
-
         await join_room(ws, ctx, room)
         return
     subject = None  # holds a per-user slot while set
