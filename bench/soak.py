@@ -36,7 +36,6 @@ import json
 import math
 import os
 import platform
-import re
 import subprocess
 import sys
 import tempfile
@@ -53,11 +52,14 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+sys.path.insert(0, str(ROOT / "bench"))
+
+from stream import start_server  # noqa: E402
+
 from client import StreamClient  # noqa: E402
 from client.stream import StreamError, stream_url  # noqa: E402
 from protocol import PROTOCOL_VERSION  # noqa: E402
 
-START_TIMEOUT_S = 300.0
 MAX_WIRE = 64 * 1024 * 1024
 
 
@@ -69,34 +71,6 @@ def issue_token(data_dir: Path, spec: str) -> str:
                           "--issue-token", spec], cwd=ROOT, capture_output=True, text=True,
                          check=True, timeout=120)
     return out.stdout.strip().splitlines()[-1]
-
-
-def _drain(stream, into: collections.deque) -> None:
-    for line in stream:
-        into.append(line)
-
-
-def start_server(data_dir: Path, avatar: str, max_sessions: int):
-    env = {**os.environ, "TELESPLAT_MAX_SESSIONS": str(max_sessions), "PYTHONUNBUFFERED": "1"}
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "server", "--port", "0", "--data-dir", str(data_dir),
-         "--demo-avatar", avatar, "--log-level", "warning"],
-        cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    deadline = time.monotonic() + START_TIMEOUT_S
-    lines: list[str] = []
-    while time.monotonic() < deadline:  # readline blocks until the server prints
-        line = proc.stdout.readline()
-        if not line:
-            break
-        lines.append(line)
-        found = re.search(r"serving at (http://[^/\s]+)/[?#]token=(\S+)", line)
-        if found:
-            log: collections.deque[str] = collections.deque(maxlen=200)
-            # Keep draining the server's output so that its pipe never fills.
-            threading.Thread(target=_drain, args=(proc.stdout, log), daemon=True).start()
-            return proc, found.group(1), found.group(2), log
-    proc.kill()
-    raise RuntimeError("the server did not start:\n" + "".join(lines[-30:]))
 
 
 def _sample_rss(pid: int, into: list, stop: threading.Event, every_s: float = 1.0) -> None:
@@ -426,8 +400,8 @@ def main() -> int:
     with tempfile.TemporaryDirectory(prefix="telesplat-soak-") as tmp:
         data_dir = Path(tmp)
         bad_token = issue_token(data_dir, "mallory:stream,train")
-        proc, url, good_token, log = start_server(data_dir, args.avatar,
-                                                  max_sessions=args.good + args.hostile + 8)
+        proc, url, good_token = start_server(data_dir, 1, args.good + args.hostile + 8,
+                                             args.avatar)
         try:
             baseline = asyncio.run(run_good(url, good_token, args.good, args.size, args.fps,
                                             args.baseline))

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import collections
 import math
 import os
 import platform
@@ -32,6 +33,7 @@ import re
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass, field
@@ -182,6 +184,9 @@ def start_server(data_dir: Path, render_threads: int, max_sessions: int, avatar:
         lines.append(line)
         found = re.search(r"serving at (http://[^/\s]+)/[?#]token=(\S+)", line)
         if found:
+            # Keep reading what the server prints, or a long run fills the pipe and blocks it.
+            threading.Thread(target=collections.deque, args=(proc.stdout, 0),
+                             daemon=True).start()
             return proc, found.group(1), found.group(2)
     proc.kill()
     raise RuntimeError("the server did not start:\n" + "".join(lines[-30:]))
