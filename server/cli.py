@@ -47,13 +47,13 @@ def _announce(app: FastAPI, url: str) -> None:
             if token:
                 print(f"Telesplat is serving at {url}/#token={token}", flush=True)
                 print(f"  admin token (subject 'local'): {token}", flush=True)
+            else:
+                print(f"Telesplat is serving at {url}/ (tokens from "
+                      f"{app.state.ctx.settings.tokens_path})", flush=True)
             links = app.state.ctx.startup_links
             for scope in ("watch", "perform"):
                 if scope in links:
                     print(f"  {scope} link: {url}{links[scope]}", flush=True)
-            else:
-                print(f"Telesplat is serving at {url}/ (tokens from "
-                      f"{app.state.ctx.settings.tokens_path})", flush=True)
             yield
 
     app.router.lifespan_context = announced

@@ -459,6 +459,8 @@ def test_serve_prints_the_start_up_rooms_links_and_they_join(tmp_path, capsys, s
     with TestClient(app):
         links = app.state.ctx.startup_links
     out = capsys.readouterr().out
+    assert out.count("Telesplat is serving at") == 1, out  # one banner, the admin URL's
+    assert "Telesplat is serving at http://127.0.0.1:8000/#token=tsk_" in out
     assert f"  watch link: http://127.0.0.1:8000/?room={links['room']}#token=tsr_" in out
     assert f"  perform link: http://127.0.0.1:8000/?room={links['room']}#token=tsr_" in out
     # The running server's start-up room: pinned, and its links join with their scopes.
