@@ -10,14 +10,17 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+from dataclasses import dataclass
 
 from fastapi import WebSocket
 from starlette.websockets import WebSocketDisconnect
 
 from protocol import PROTOCOL_VERSION, Hello, ProtocolError, Request, decode_client, encode
 
+from .auth import Principal, token_from_websocket
 from .context import ServerContext
 from .inbound import InboundLimits
+from .net import PREAUTH_EXTENSION
 from .registry import AvatarRecord
 from .session import error_message
 
@@ -55,13 +58,46 @@ def admit_unauthenticated(ctx: ServerContext, address: str) -> None:
                               f"(limit {s.max_unauthenticated_per_address})", CLOSE_TOO_MANY)
 
 
-async def hello_token(ws: WebSocket, ctx: ServerContext) -> str:
-    """The token of the first message, a ``hello``."""
-    hello = await read_hello(ws, ctx)
-    if not hello.token:
+@dataclass(frozen=True)
+class Credentials:
+    """What a connection authenticates with, before the caller resolves it."""
+
+    hello: Hello | None           # read when asked for, or when it had to carry the token
+    token: str | None             # a bearer (or a room's invitation) token
+    principal: Principal | None   # a redeemed ``?ticket=``'s
+
+
+async def read_credentials(ws: WebSocket, ctx: ServerContext, *, hello: bool) -> Credentials:
+    """A ``?ticket=``'s principal, else the header's (or a legacy ``?token=``'s) token, else
+    the hello's; with ``hello`` the hello is read in any case (a room's carries role and
+    seat). While a hello that must carry the token is awaited, the connection holds a waiting
+    slot of its address."""
+    ticket = ws.query_params.get("ticket")
+    if ticket:
+        principal = ctx.admission.tickets.redeem(ticket)
+        if principal is None:
+            raise Refusal("unauthorized", "invalid, spent or expired ticket", CLOSE_UNAUTHORIZED)
+        return Credentials(await read_hello(ws, ctx) if hello else None, None, principal)
+    token = token_from_websocket(ws)
+    if token:
+        return Credentials(await read_hello(ws, ctx) if hello else None, token, None)
+    address = client_address(ws)
+    admit_unauthenticated(ctx, address)
+    try:
+        first = await read_hello(ws, ctx)
+    finally:
+        ctx.admission.waiting.release(address)
+    if not first.token:
         raise Refusal("unauthorized", "no token: the first message must be a hello with a "
                                       "token", CLOSE_UNAUTHORIZED)
-    return hello.token
+    return Credentials(first, first.token, None)
+
+
+def lift_preauth(ws: WebSocket) -> None:
+    """Authenticated: the full message size from now on (a no-op where none was set)."""
+    preauth = ws.scope.get("extensions", {}).get(PREAUTH_EXTENSION)
+    if preauth is not None:
+        preauth["lift"]()
 
 
 async def read_hello(ws: WebSocket, ctx: ServerContext) -> Hello:

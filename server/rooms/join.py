@@ -21,7 +21,7 @@ from starlette.websockets import WebSocketDisconnect
 from protocol import PROTOCOL_MINOR, AvatarInfo, Hello, RoomWelcome, View, Welcome, encode
 from protocol.messages import CODECS, Orbit
 
-from ..auth import Principal, token_from_websocket
+from ..auth import Principal
 from ..context import ServerContext
 from ..handshake import (
     CLOSE_BUSY,
@@ -31,14 +31,12 @@ from ..handshake import (
     CLOSE_TOO_MANY,
     CLOSE_UNAUTHORIZED,
     Refusal,
-    admit_unauthenticated,
-    client_address,
     default_request,
     inbound_limits,
-    read_hello,
+    lift_preauth,
+    read_credentials,
     refuse,
 )
-from ..net import PREAUTH_EXTENSION
 from ..session import SessionConfig
 from .frames import RoomFrames, SeatPoser
 from .live import CLOSE_GONE, JoinRefused, LiveRoom
@@ -53,27 +51,8 @@ JOIN_CLOSE_CODES = {"busy": CLOSE_TOO_MANY, "forbidden": CLOSE_FORBIDDEN, "gone"
 async def _credentials(ws: WebSocket, ctx: ServerContext
                        ) -> tuple[Hello, Principal | None, Invitation | None]:
     """The hello and who sent it: a principal (bearer token or ticket) or an invitation."""
-    principal = None
-    ticket = ws.query_params.get("ticket")
-    token = None if ticket else token_from_websocket(ws)
-    if ticket:
-        principal = ctx.admission.tickets.redeem(ticket)
-        if principal is None:
-            raise Refusal("unauthorized", "invalid, spent or expired ticket", CLOSE_UNAUTHORIZED)
-    if ticket or token:
-        hello = await read_hello(ws, ctx)
-    else:
-        address = client_address(ws)
-        admit_unauthenticated(ctx, address)
-        try:
-            hello = await read_hello(ws, ctx)
-        finally:
-            ctx.admission.waiting.release(address)
-        token = hello.token
-        if not token:
-            raise Refusal("unauthorized", "no token: the first message must be a hello with "
-                                          "a token", CLOSE_UNAUTHORIZED)
-    invitation = None
+    credentials = await read_credentials(ws, ctx, hello=True)
+    principal, invitation, token = credentials.principal, None, credentials.token
     if principal is None:
         if is_invitation(token):
             invitation = ctx.rooms.resolve(token)
@@ -84,10 +63,8 @@ async def _credentials(ws: WebSocket, ctx: ServerContext
             principal = ctx.tokens.principal(token)
             if principal is None:
                 raise Refusal("unauthorized", "invalid token", CLOSE_UNAUTHORIZED)
-    preauth = ws.scope.get("extensions", {}).get(PREAUTH_EXTENSION)
-    if preauth is not None:
-        preauth["lift"]()
-    return hello, principal, invitation
+    lift_preauth(ws)
+    return credentials.hello, principal, invitation
 
 
 def _room(ctx: ServerContext, room_id: str) -> Room:

@@ -28,7 +28,7 @@ from protocol import (
 )
 from protocol.messages import Orbit
 
-from ..auth import Principal, token_from_websocket
+from ..auth import Principal
 from ..context import ServerContext
 from ..dependencies import Context, StreamPrincipal
 from ..handshake import (
@@ -39,14 +39,12 @@ from ..handshake import (
     CLOSE_TOO_MANY,
     CLOSE_UNAUTHORIZED,
     Refusal,
-    admit_unauthenticated,
-    client_address,
     default_request,
-    hello_token,
     inbound_limits,
+    lift_preauth,
+    read_credentials,
     refuse,
 )
-from ..net import PREAUTH_EXTENSION
 from ..registry import DEMO_ID, AvatarNotFound, AvatarRecord
 from ..renderer import SessionRenderer
 from ..rooms.join import join_room
@@ -57,29 +55,13 @@ log = logging.getLogger(__name__)
 router = APIRouter()
 
 async def _authenticate(ws: WebSocket, ctx: ServerContext) -> Principal:
-    """The principal of a ``?ticket=``, else of the header's (or a legacy ``?token=``'s)
-    token, else of the hello's; while the hello is awaited the connection holds a waiting
-    slot of its address."""
-    ticket = ws.query_params.get("ticket")
-    if ticket:
-        principal = ctx.admission.tickets.redeem(ticket)
-        if principal is None:
-            raise Refusal("unauthorized", "invalid, spent or expired ticket", CLOSE_UNAUTHORIZED)
-        return principal
-    token = token_from_websocket(ws)
-    if not token:
-        address = client_address(ws)
-        admit_unauthenticated(ctx, address)
-        try:
-            token = await hello_token(ws, ctx)
-        finally:
-            ctx.admission.waiting.release(address)
-    principal = ctx.tokens.principal(token)
+    """The principal of a ``?ticket=``, else of the header's, the legacy ``?token=``'s or the
+    hello's token (server/handshake.py)."""
+    credentials = await read_credentials(ws, ctx, hello=False)
+    principal = credentials.principal or ctx.tokens.principal(credentials.token)
     if principal is None:
         raise Refusal("unauthorized", "invalid token", CLOSE_UNAUTHORIZED)
-    preauth = ws.scope.get("extensions", {}).get(PREAUTH_EXTENSION)
-    if preauth is not None:
-        preauth["lift"]()  # authenticated: the full message size from now on
+    lift_preauth(ws)
     return principal
 
 
