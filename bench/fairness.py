@@ -35,7 +35,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
-from stream import frames_until, motion_frame, paced, start_server  # noqa: E402
+from stream import frames_until, motion_frame, paced, start_server, stop_server  # noqa: E402
 
 from client import StreamClient  # noqa: E402
 
@@ -96,8 +96,7 @@ def run_policy(policy: str, args) -> tuple[Measured, Measured, Measured]:
         try:
             return asyncio.run(measure(url, token, args))
         finally:
-            proc.terminate()
-            proc.wait(30)
+            stop_server(proc)
 
 
 def main() -> int:

@@ -34,7 +34,6 @@ import asyncio
 import inspect
 import os
 import platform
-import subprocess
 import sys
 import tempfile
 import time
@@ -47,7 +46,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
-from stream import frames_until, motion_frame, paced, percentile, start_server  # noqa: E402
+from stream import frames_until, motion_frame, paced, percentile, start_server, stop_server  # noqa: E402
 
 from client import StreamClient  # noqa: E402
 from client.rest import RestClient  # noqa: E402
@@ -452,11 +451,7 @@ def main() -> int:
         try:
             lines = asyncio.run(run_all(url, token, proc.pid, args, viewer_counts))
         finally:
-            proc.terminate()
-            try:
-                proc.wait(15)
-            except subprocess.TimeoutExpired:
-                proc.kill()
+            stop_server(proc)
 
     load = os.getloadavg() if hasattr(os, "getloadavg") else ("?",) * 3
     print(f"\nRooms on loopback, {args.size}x{args.size} JPEG, {args.avatar} demo avatar, "

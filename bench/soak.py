@@ -54,7 +54,7 @@ sys.path.insert(0, str(ROOT))
 
 sys.path.insert(0, str(ROOT / "bench"))
 
-from stream import start_server  # noqa: E402
+from stream import start_server, stop_server  # noqa: E402
 
 from client import StreamClient  # noqa: E402
 from client.stream import StreamError, stream_url  # noqa: E402
@@ -419,11 +419,7 @@ def main() -> int:
             alive = proc.poll() is None
             health = httpx.get(url + "/v1/health", timeout=10).status_code if alive else None
         finally:
-            proc.terminate()
-            try:
-                proc.wait(15)
-            except subprocess.TimeoutExpired:
-                proc.kill()
+            stop_server(proc)
 
     base_fps = float(np.mean([r.fps for r in baseline]))
     soak_fps = float(np.mean([r.fps for r in good]))

@@ -192,6 +192,14 @@ def start_server(data_dir: Path, render_threads: int, max_sessions: int, avatar:
     raise RuntimeError("the server did not start:\n" + "".join(lines[-30:]))
 
 
+def stop_server(proc: subprocess.Popen) -> None:
+    proc.terminate()
+    try:
+        proc.wait(15)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+
+
 def percentile(values: list[float], q: float) -> float:
     return float(np.percentile(values, q)) if values else float("nan")
 
@@ -229,11 +237,7 @@ def main() -> int:
                 print(f"{n} session(s): {rows[-1][1]:.1f} fps each, p95 {rows[-1][4]:.0f} ms",
                       file=sys.stderr, flush=True)
         finally:
-            proc.terminate()
-            try:
-                proc.wait(15)
-            except subprocess.TimeoutExpired:
-                proc.kill()
+            stop_server(proc)
 
     load = os.getloadavg() if hasattr(os, "getloadavg") else ("?",) * 3
     print(f"\nStreaming on loopback, {args.size}x{args.size} JPEG, {args.avatar} demo avatar, "

@@ -33,7 +33,7 @@ for path in (ROOT, ROOT / "bench"):
     if str(path) not in sys.path:
         sys.path.insert(0, str(path))
 
-from stream import frames_until, paced, percentile, start_server  # noqa: E402
+from stream import frames_until, paced, percentile, start_server, stop_server  # noqa: E402
 
 from client import StreamClient  # noqa: E402
 
@@ -101,8 +101,7 @@ def main() -> int:
             asyncio.run(run(url, token, jpegs[:1], 3.0, 2.0, args.size))
             r = asyncio.run(run(url, token, jpegs, args.seconds, args.rate, args.size))
         finally:
-            proc.terminate()
-            proc.wait(timeout=30)
+            stop_server(proc)
     print(f"load {os.getloadavg()[0]:.2f}; {args.rate:g} images/s of 640x480 JPEG, "
           f"{args.size}x{args.size} frames, {args.render_threads} render threads, "
           f"avatar {args.avatar}")
