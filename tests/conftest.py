@@ -55,3 +55,15 @@ def random_smplx_params(batch: int, seed: int, *, scale: float = 0.3, num_betas:
 
 def as_torch(params: dict, dtype=torch.float64) -> dict[str, torch.Tensor]:
     return {k: torch.as_tensor(v, dtype=dtype) for k, v in params.items()}
+
+
+def pytest_collection_modifyitems(config, items):
+    """Tests marked ``gpu`` need a CUDA device (``make gpu-check`` runs them): without one
+    they skip and say so."""
+    gpu_items = [item for item in items if "gpu" in item.keywords]
+    if not gpu_items or torch.cuda.is_available():
+        return
+    skip = pytest.mark.skip(reason="no CUDA device: gpu tests run with `make gpu-check` on a "
+                                   "CUDA machine")
+    for item in gpu_items:
+        item.add_marker(skip)

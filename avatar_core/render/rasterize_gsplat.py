@@ -15,11 +15,21 @@ colour arithmetic (overflowing tile ranges, Inf or NaN colours).
 Known differences from the contract that gsplat itself fixes: it clamps alpha at 0.999
 (3DGS and our other backends: 0.99), and recent releases bound each splat's tiles with an
 opacity-aware, per-axis radius. Pictures agree closely, not to float rounding.
+
+Several cameras (:func:`rasterize_gsplat_views`, behind ``render_views``): one gsplat call
+with one batch entry per camera (``viewmats [C, 1, 4, 4]``, ``Ks [C, 1, 3, 3]``) over the
+union of the Gaussians any camera keeps; a Gaussian that camera ``c`` does not keep (culled
+by our projection or dropped by the budget) gets opacity 0 in entry ``c``, which gsplat culls
+before binning it, so each picture is the single-camera one. Costs ``C`` copies of that union
+on the device (gsplat makes the broadcast contiguous). All cameras must share one size.
+
+Pinned: the ``cuda`` extra's ``gsplat==1.5.3`` (batch dimensions on every argument).
 """
 
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 
 import torch
 
@@ -29,7 +39,8 @@ from .contract import EPS2D, FAR_PLANE, NEAR_PLANE, SH_COEFF_MAX, TILE_SIZE
 from .projection import project_gaussians
 from .types import GaussianSet, RenderOutput, RenderRequest, background_output
 
-__all__ = ["available", "gsplat_arguments", "rasterize_gsplat"]
+__all__ = ["available", "gsplat_arguments", "gsplat_views_arguments", "rasterize_gsplat",
+           "rasterize_gsplat_views"]
 
 
 def available() -> bool:
@@ -116,3 +127,86 @@ def rasterize_gsplat(gaussians: GaussianSet, camera: Camera, request: RenderRequ
     depth = colors[..., -1] if "depth" in outputs else None
     return RenderOutput(rgb=rgb, alpha=alphas if "alpha" in outputs else None, depth=depth,
                         stats=stats)
+
+
+def _kept_masks(gaussians: GaussianSet, cameras: Sequence[Camera],
+                request: RenderRequest) -> torch.Tensor:
+    """[C, N] bool: the Gaussians our projection keeps and the budget selects, per camera
+    (the single-camera rule of :func:`_apply_budget`)."""
+    n = gaussians.num
+    masks = torch.zeros(len(cameras), n, dtype=torch.bool, device=gaussians.means.device)
+    with torch.no_grad():
+        for c, cam in enumerate(cameras):
+            viewmat, K = cam.to_torch(gaussians.means.device, gaussians.means.dtype)
+            p = project_gaussians(gaussians.means, gaussians.quats, gaussians.scales,
+                                  gaussians.opacities, viewmat, K, cam.width, cam.height,
+                                  antialiased=request.antialiased, validate=False)
+            sel, _ = select_rendered(p, request.budget)
+            masks[c, sel] = True
+    return masks
+
+
+def gsplat_views_arguments(gaussians: GaussianSet, cameras: Sequence[Camera],
+                           request: RenderRequest, sh_degree: int) -> tuple[dict, torch.Tensor]:
+    """Keyword arguments of one ``gsplat.rasterization`` call rendering every camera (same
+    size), and the per-camera kept counts [C]; None arguments when no camera keeps any
+    Gaussian. Exposed so the mapping is tested without CUDA."""
+    width, height = cameras[0].width, cameras[0].height
+    if any(cam.size != (width, height) for cam in cameras):
+        raise ValueError("cameras of one gsplat call must share one image size")
+    masks = _kept_masks(gaussians, cameras, request)  # [C, N]
+    counts = masks.sum(1)  # [C]
+    union = masks.any(0).nonzero().squeeze(1)  # [M]
+    if union.numel() == 0:
+        return {}, counts
+    C, M = len(cameras), int(union.numel())
+    g = gaussians
+    single = gsplat_arguments(
+        GaussianSet(g.means[union], g.quats[union], g.scales[union], g.opacities[union],
+                    g.sh[union]), cameras[0], request, sh_degree)
+    device, dtype = g.means.device, g.means.dtype
+    views = [cam.to_torch(device, dtype) for cam in cameras]
+    kw = dict(single)
+    kw.update(
+        means=single["means"].expand(C, M, 3), quats=single["quats"].expand(C, M, 4),
+        scales=single["scales"].expand(C, M, 3),
+        opacities=single["opacities"] * masks[:, union].to(dtype),  # [C, M]
+        colors=single["colors"].expand(C, *single["colors"].shape),  # [C, M, K, 3]
+        viewmats=torch.stack([v for v, _ in views])[:, None],  # [C, 1, 4, 4]
+        Ks=torch.stack([k for _, k in views])[:, None],  # [C, 1, 3, 3]
+        backgrounds=(None if single["backgrounds"] is None
+                     else single["backgrounds"].expand(C, 1, 3)),  # [C, 1, 3]
+    )
+    return kw, counts
+
+
+def rasterize_gsplat_views(gaussians: GaussianSet, cameras: Sequence[Camera],
+                           request: RenderRequest, sh_degree: int,
+                           t_start: float) -> list[RenderOutput]:
+    """Every camera (one size) in one gsplat call (called by ``render_views``)."""
+    from gsplat import rasterization
+
+    outputs = set(request.outputs)
+    width, height = cameras[0].width, cameras[0].height
+    kw, counts = gsplat_views_arguments(gaussians, cameras, request, sh_degree)
+    counts = counts.tolist()  # one host read for the whole batch
+    t0 = time.perf_counter()
+    if kw:
+        colors, alphas, _ = rasterization(**kw)  # [C, 1, H, W, X], [C, 1, H, W, 1]
+    raster_ms = (time.perf_counter() - t0) * 1e3
+    results = []
+    for c in range(len(cameras)):
+        stats = {"backend": "gsplat", "n_gaussians": gaussians.num, "n_rendered": counts[c],
+                 "n_views": len(cameras)}
+        if not kw or counts[c] == 0:
+            results.append(background_output(request, width, height, gaussians.means.dtype,
+                                              gaussians.means.device, stats, t_start))
+            continue
+        stats["raster_ms"] = raster_ms  # of the whole batch
+        stats["total_ms"] = (time.perf_counter() - t_start) * 1e3
+        col, alpha = colors[c, 0], alphas[c, 0, ..., 0]  # [H, W, X], [H, W]
+        results.append(RenderOutput(
+            rgb=col[..., :3] if "rgb" in outputs else None,
+            alpha=alpha if "alpha" in outputs else None,
+            depth=col[..., -1] if "depth" in outputs else None, stats=stats))
+    return results

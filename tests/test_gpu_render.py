@@ -1,0 +1,176 @@
+"""render_views (several cameras, one call) and the batched gsplat mapping; the gsplat-vs-cpu
+checks of the shared scenes run only on CUDA (marked ``gpu``)."""
+
+import math
+
+import pytest
+import torch
+
+from avatar_core.render import render_views
+from avatar_core.render.camera import look_at, orbit
+from avatar_core.render.rasterize import rasterize
+from avatar_core.render.rasterize_gsplat import gsplat_arguments, gsplat_views_arguments
+from avatar_core.render.scenes import avatar_camera, avatar_like_scene, random_scene
+from avatar_core.render.types import GaussianSet, RenderRequest
+
+ALL = ("rgb", "alpha", "depth")
+
+
+def _cams(n: int, width: int = 40, height: int = 32):
+    return [orbit((0.0, 0.0, 0.0), yaw, 10.0, 2.5, width=width, height=height, fov_y_deg=40.0)
+            for yaw in torch.linspace(-60, 60, n).tolist()]
+
+
+@pytest.mark.parametrize("backend", ["cpu", "torch"])
+@pytest.mark.parametrize("request_kw", [
+    dict(outputs=ALL, background=(0.2, 0.1, 0.0)),
+    dict(outputs=("rgb",), budget=0.5, sh_degree=1),
+    dict(outputs=("alpha", "depth"), width=24, height=20, antialiased=True),
+])
+def test_views_equal_one_by_one(backend, request_kw):
+    gs = random_scene(80, 3)
+    req = RenderRequest(backend=backend, **request_kw)
+    cams = _cams(3)
+    outs = render_views(gs, cams, req)
+    assert len(outs) == 3
+    for cam, out in zip(cams, outs, strict=True):
+        ref = rasterize(gs, cam, req)
+        for name in ALL:
+            a, b = getattr(out, name), getattr(ref, name)
+            assert (a is None) == (b is None)
+            if a is not None:
+                assert torch.equal(a, b), name
+
+
+def test_views_need_a_camera():
+    with pytest.raises(ValueError, match="at least one camera"):
+        render_views(random_scene(4, 0), [], RenderRequest())
+
+
+def test_views_reject_what_rasterize_rejects():
+    gs = random_scene(4, 0)
+    gs.means[0, 0] = float("nan")
+    with pytest.raises(ValueError):
+        render_views(gs, _cams(2), RenderRequest(backend="cpu"))
+
+
+def test_batched_gsplat_arguments_mask_each_camera():
+    """One entry per camera over the union of kept Gaussians; a Gaussian culled in camera c
+    (behind it) has opacity 0 in entry c only."""
+    gs = random_scene(30, 1)
+    front = look_at((0.0, 0.0, 2.5), (0.0, 0.0, 0.0), width=40, height=32, fov_y_deg=40.0)
+    back = look_at((0.0, 0.0, -2.5), (0.0, 0.0, 0.0), width=40, height=32, fov_y_deg=40.0)
+    gs.means[1] = torch.tensor([0.0, 0.0, 2.6])  # behind the front camera: only back sees it
+    req = RenderRequest(outputs=ALL, background=(0.1, 0.2, 0.3), antialiased=True)
+    kw, counts = gsplat_views_arguments(gs, [front, back], req, sh_degree=2)
+    M = kw["means"].shape[1]
+    assert kw["means"].shape == (2, M, 3) and kw["quats"].shape == (2, M, 4)
+    assert kw["scales"].shape == (2, M, 3) and kw["opacities"].shape == (2, M)
+    assert kw["colors"].shape == (2, M, 9, 3) and kw["sh_degree"] == 2
+    assert kw["viewmats"].shape == (2, 1, 4, 4) and kw["Ks"].shape == (2, 1, 3, 3)
+    assert kw["backgrounds"].shape == (2, 1, 3)
+    assert (kw["near_plane"], kw["eps2d"], kw["tile_size"]) == (0.01, 0.3, 16)
+    assert kw["render_mode"] == "RGB+ED" and kw["rasterize_mode"] == "antialiased"
+    assert torch.equal((kw["opacities"] > 0).sum(1), counts)
+    from avatar_core.render.rasterize_gsplat import _kept_masks
+
+    masks = _kept_masks(gs, [front, back], req)
+    assert not masks[0, 1] and masks[1, 1]
+    row = int(masks.any(0)[:1].sum())  # Gaussian 1's row in the union
+    assert kw["opacities"][0, row] == 0 and kw["opacities"][1, row] > 0
+    # each entry keeps exactly what the single-camera mapping keeps
+    from avatar_core.render.rasterize_gsplat import _apply_budget
+
+    for c, cam in enumerate((front, back)):
+        sub, n = _apply_budget(gs, cam, req)
+        assert n == int(counts[c])
+        one = gsplat_arguments(sub, cam, req, 2)
+        kept = kw["opacities"][c] > 0
+        assert torch.equal(kw["means"][c][kept], one["means"])
+        assert torch.equal(kw["colors"][c][kept], one["colors"])
+        assert torch.equal(kw["viewmats"][c, 0], one["viewmats"][0])
+
+
+def test_batched_gsplat_budget_is_per_camera():
+    gs = random_scene(50, 2)
+    kw, counts = gsplat_views_arguments(gs, _cams(3), RenderRequest(budget=5), 3)
+    assert counts.tolist() == [5, 5, 5]
+    assert ((kw["opacities"] > 0).sum(1) == 5).all()
+    assert kw["backgrounds"].shape == (3, 1, 3) and kw["render_mode"] == "RGB"
+
+
+def test_batched_gsplat_edge_cases():
+    gs = random_scene(10, 0)
+    with pytest.raises(ValueError, match="one image size"):
+        gsplat_views_arguments(gs, [_cams(1)[0], _cams(1, width=64)[0]], RenderRequest(), 3)
+    behind = GaussianSet(gs.means + torch.tensor([0.0, 0.0, 10.0]), gs.quats, gs.scales,
+                         gs.opacities, gs.sh)  # all behind every camera
+    kw, counts = gsplat_views_arguments(behind, _cams(2), RenderRequest(), 3)
+    assert kw == {} and counts.tolist() == [0, 0]
+    kw, _ = gsplat_views_arguments(gs, _cams(2), RenderRequest(outputs=("alpha",)), 3)
+    assert kw["backgrounds"] is None and kw["render_mode"] == "ED"
+
+
+# ---- CUDA only (make gpu-check) ----------------------------------------------------------
+
+def _cuda(g: GaussianSet, grad: bool = False) -> GaussianSet:
+    return GaussianSet(*(t.detach().cuda().requires_grad_(grad)
+                         for t in (g.means, g.quats, g.scales, g.opacities, g.sh)))
+
+
+def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
+    mse = float(((a.float().cpu() - b.float().cpu()) ** 2).mean())
+    return math.inf if mse == 0 else -10 * math.log10(mse)
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("scene", ["avatar", "random"])
+def test_gsplat_matches_cpu_on_the_shared_scenes(scene):  # pragma: no cover (needs CUDA)
+    pytest.importorskip("gsplat", reason="gsplat not installed (the cuda extra)")
+    if scene == "avatar":
+        gs, cam = avatar_like_scene(20_000, 0), avatar_camera(256)
+    else:
+        gs, cam = random_scene(2_000, 0), look_at((0, 0, 2.5), (0, 0, 0), width=160,
+                                                  height=120, fov_y_deg=40.0)
+    req = dict(outputs=ALL, background=(0.1, 0.3, 0.9))
+    out = rasterize(_cuda(gs), cam, RenderRequest(backend="gsplat", **req))
+    ref = rasterize(gs, cam, RenderRequest(backend="cpu", **req))
+    assert out.stats["backend"] == "gsplat"
+    assert _psnr(out.rgb.clamp(0, 1), ref.rgb.clamp(0, 1)) >= 40.0
+    assert _psnr(out.alpha, ref.alpha) >= 40.0
+
+
+@pytest.mark.gpu
+def test_gsplat_gradients_agree_with_the_reference():  # pragma: no cover (needs CUDA)
+    pytest.importorskip("gsplat", reason="gsplat not installed (the cuda extra)")
+    gs, cam = avatar_like_scene(3_000, 1), avatar_camera(96)
+    target = torch.rand(96, 96, 3, generator=torch.Generator().manual_seed(0))
+    grads = {}
+    for backend, g in (("gsplat", _cuda(gs, True)),
+                       ("torch", GaussianSet(*(t.clone().requires_grad_(True) for t in (
+                           gs.means, gs.quats, gs.scales, gs.opacities, gs.sh))))):
+        out = rasterize(g, cam, RenderRequest(backend=backend, outputs=("rgb", "alpha")))
+        loss = (out.rgb - target.to(out.rgb.device)).abs().mean() + out.alpha.mean()
+        loss.backward()
+        grads[backend] = {n: getattr(g, n).grad.detach().cpu().flatten()
+                          for n in ("means", "scales", "opacities", "sh")}
+    for name in ("means", "scales", "opacities", "sh"):
+        cos = torch.nn.functional.cosine_similarity(grads["gsplat"][name],
+                                                    grads["torch"][name], dim=0)
+        assert cos >= 0.9, (name, float(cos))
+
+
+@pytest.mark.gpu
+def test_gsplat_batched_views_equal_single_renders():  # pragma: no cover (needs CUDA)
+    pytest.importorskip("gsplat", reason="gsplat not installed (the cuda extra)")
+    gs = _cuda(avatar_like_scene(10_000, 2))
+    cams = [orbit((0.0, 0.08, 0.0), yaw, 5.0, 2.0, width=128, height=128, fov_y_deg=30.0)
+            for yaw in (-40.0, -10.0, 0.0, 25.0, 70.0)]
+    for req in (RenderRequest(outputs=ALL, backend="gsplat"),
+                RenderRequest(outputs=("rgb",), budget=0.3, backend="gsplat")):
+        outs = render_views(gs, cams, req)
+        assert outs[0].stats["n_views"] == len(cams)
+        for cam, out in zip(cams, outs, strict=True):
+            one = rasterize(gs, cam, req)
+            for name in req.outputs:
+                assert torch.allclose(getattr(out, name), getattr(one, name), atol=1e-4)
