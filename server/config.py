@@ -103,6 +103,11 @@ class Settings(BaseModel):
         2.0, gt=0, le=60, description="fair_share time: half-life of the recent render time, "
                                       "and how long a session counts as active after its "
                                       "last frame.")
+    render_batch_views: int | None = Field(
+        None, ge=1, le=256, description="Most views of one room state (same request) rendered "
+                                        "in one rasterizer call while they wait together; "
+                                        "1: no batching; None (auto): 32 when renders go to "
+                                        "gsplat (CUDA), else 1 (the cpu kernels gain nothing).")
     track_threads: int = Field(1, ge=1, le=64, description="Webcam-tracking worker threads "
                                                            "shared by all sessions.")
     torch_threads: int = Field(

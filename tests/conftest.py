@@ -60,7 +60,7 @@ def as_torch(params: dict, dtype=torch.float64) -> dict[str, torch.Tensor]:
 def pytest_collection_modifyitems(config, items):
     """Tests marked ``gpu`` need a CUDA device (``make gpu-check`` runs them): without one
     they skip and say so."""
-    gpu_items = [item for item in items if "gpu" in item.keywords]
+    gpu_items = [item for item in items if item.get_closest_marker("gpu") is not None]
     if not gpu_items or torch.cuda.is_available():
         return
     skip = pytest.mark.skip(reason="no CUDA device: gpu tests run with `make gpu-check` on a "

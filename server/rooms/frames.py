@@ -9,7 +9,9 @@ moments and so at different versions: one asking while a render of its group (sa
 request) is in flight joins that render instead of starting another, and asks again once it
 has it (``RoomFrame.versions`` tells it the frame is older than its snapshot). So a group has
 at most one render in flight, and the newest state is always rendered next. H.264 is stateful
-per client: such a frame is keyed by its participant.
+per client: such a frame is keyed by its participant. Renders of one state and request from
+different views that wait together are batched into one rasterizer call
+(:mod:`server.view_batch`, where the backend batches: gsplat).
 """
 
 from __future__ import annotations
@@ -30,12 +32,14 @@ from avatar_core.gaussians.animate import AvatarAnimator
 from avatar_core.render.camera_path import framing_target
 from avatar_core.render.rasterize import rasterize
 from avatar_core.render.types import GaussianSet, RenderRequest, to_uint8
+from avatar_core.render.views import render_views
 from avatar_core.rotations import matrix_to_quaternion, quaternion_multiply
 from protocol import Timings
 
 from ..drive import DriveState, drive_shapes
 from ..renderer import FrameJob, H264Stream, RenderedFrame, encode_outputs, view_camera
 from ..scheduler import RenderScheduler
+from ..view_batch import ViewBatches, batch_views
 from .registry import Placement
 
 
@@ -61,6 +65,7 @@ class FrameCounters:
     renders: int = 0         # rasterize calls (all seats in one)
     encodes: int = 0         # encoded images
     shared: int = 0          # frames a participant got from another's render
+    batched: int = 0         # renders that shared a rasterizer call with other views
 
 
 def place(gaussians: GaussianSet, rotation: torch.Tensor | None,
@@ -136,7 +141,7 @@ POSED_VERSIONS = 2  # per seat: the version being rendered and the one before
 
 class RoomFrames:
     def __init__(self, posers: list[SeatPoser], share_key: Hashable, backend: str,
-                 max_frames: int) -> None:
+                 max_frames: int, batch_max_views: int | None = None) -> None:
         self.posers = posers
         self.share_key = share_key  # the room's account at the fair scheduler
         self.backend = backend
@@ -146,6 +151,8 @@ class RoomFrames:
         self._frames: collections.OrderedDict[Hashable, concurrent.futures.Future] = (
             collections.OrderedDict())
         self._inflight: dict[Hashable, concurrent.futures.Future] = {}  # group -> render
+        views = batch_views(batch_max_views, backend, posers[0].animator.body_model.device)
+        self._batches = ViewBatches(self._render_views, views) if views > 1 else None
 
     @property
     def chest(self) -> np.ndarray:
@@ -170,8 +177,11 @@ class RoomFrames:
             if shared is not None and not _failed(shared):
                 self.counters.shared += 1
             else:
-                shared = scheduler.submit(self._render, job, h264, last_codec,
-                                          key=self.share_key)
+                shared = (scheduler.submit(self._render, job, h264, last_codec,
+                                           key=self.share_key) if self._batches is None
+                          else self._batches.submit(scheduler, (versions, group[1]),
+                                                    (job, h264, last_codec),
+                                                    share_key=self.share_key))
                 self._frames[key] = self._inflight[group] = shared
                 self._evict(versions)
         if owner is not None:
@@ -222,6 +232,52 @@ class RoomFrames:
         return RoomFrame(job.drive.seq, codec, cam.width, cam.height, data, depth_png,
                          keyframe, timings, seat_seqs=tuple(d.seq for d in job.seats),
                          versions=tuple(d.version for d in job.seats))
+
+    def _render_views(self, items: list[tuple[RoomFrameJob, H264Stream | None, str | None]]
+                      ) -> list[RoomFrame]:
+        """``_render`` for several views of one state and request (a batch of
+        :class:`ViewBatches`): one posing, one ``render_views`` call, an encode each."""
+        c = self.counters
+        jobs = [job for job, _, _ in items]
+        req = jobs[0].request
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            gaussians = union([poser.world(drive, c)
+                               for poser, drive in zip(self.posers, jobs[0].seats, strict=True)])
+            t1 = time.perf_counter()
+            cams = [view_camera(job.view, req.width, req.height, self.chest) for job in jobs]
+            outputs = tuple(dict.fromkeys(("rgb", *req.outputs)))
+            budget = None if req.quality >= 1.0 else float(req.quality)
+            outs = render_views(gaussians, cams, RenderRequest(
+                outputs=outputs, background=tuple(req.background),
+                sh_degree=min(req.sh_degree, gaussians.sh_degree), budget=budget,
+                backend=self.backend))
+            c.renders += 1
+            c.batched += len(jobs) if len(jobs) > 1 else 0
+            images = [(to_uint8(o.rgb), None if o.alpha is None else to_uint8(o.alpha),
+                       None if o.depth is None else o.depth.cpu().numpy()) for o in outs]
+        t2 = time.perf_counter()
+        frames = []
+        for (job, h264, last_codec), cam, (rgb, alpha, depth) in zip(items, cams, images,
+                                                                    strict=True):
+            t3 = time.perf_counter()
+
+            def own_h264(rgb_: np.ndarray, req_, h264=h264, last_codec=last_codec
+                         ) -> tuple[bytes, bool]:
+                assert h264 is not None, "an h264 frame is rendered for its own participant"
+                return h264.encode(rgb_, req_, last_codec)
+
+            codec, data, keyframe, depth_png = encode_outputs(rgb, alpha, depth, req,
+                                                              job.jpeg_quality, own_h264)
+            c.encodes += 1
+            timings = Timings(track=job.track_ms, pose=(t1 - t0) * 1e3,
+                              render=(t2 - t1) * 1e3,
+                              encode=(time.perf_counter() - t3) * 1e3)
+            frames.append(RoomFrame(
+                job.drive.seq, codec, cam.width, cam.height, data, depth_png, keyframe,
+                timings, seat_seqs=tuple(d.seq for d in job.seats),
+                versions=tuple(d.version for d in job.seats)))
+        return frames
 
 
 def _failed(future: concurrent.futures.Future) -> bool:

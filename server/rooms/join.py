@@ -112,7 +112,8 @@ async def open_live(ctx: ServerContext, room: Room) -> LiveRoom:
                 animator, manos = await asyncio.to_thread(ctx.session_models, spec.avatar)
                 posers.append(SeatPoser(animator, manos, spec.placement))
             frames = RoomFrames(posers, f"room:{room.id}", s.backend,
-                                max_frames=s.max_participants_per_room)
+                                max_frames=s.max_participants_per_room,
+                                batch_max_views=s.render_batch_views)
             room.live = LiveRoom(room, frames, s)
         return room.live
 
