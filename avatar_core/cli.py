@@ -9,6 +9,17 @@ from pathlib import Path
 from tqdm import tqdm
 
 DEFAULT_CAPTURE_MOTIONS = "smile+grin+mouth_open,thumbs_up+peace+talk_calm,sad+angry+clapping"
+BODY_MODELS_HELP = ("body-model folder, official file names (default: $TELESPLAT_BODY_MODELS, "
+                    "else the synthetic family)")
+
+
+def _add_body_models(parser: argparse.ArgumentParser) -> None:
+    """``--body-models DIR``, resolved by avatar_core.body.model_paths. ``--models`` was its
+    name on render and eval (the synthetic folder); kept hidden for the scripts that use it."""
+    parser.add_argument("--body-models", type=Path, default=None, dest="body_models",
+                        help=BODY_MODELS_HELP)
+    parser.add_argument("--models", type=Path, dest="body_models",
+                        help=argparse.SUPPRESS)
 
 
 def _make_synthetic(args: argparse.Namespace) -> int:
@@ -43,7 +54,7 @@ def _render(args: argparse.Namespace) -> int:
             bar.update(i - bar.n)
 
         out = render_sequence(args.avatar, args.motion, args.camera, args.out, size=args.size,
-                              fps=args.fps, frames=args.frames, model_dir=args.models,
+                              fps=args.fps, frames=args.frames, model_dir=args.body_models,
                               request=request, progress=progress)
     print(f"wrote {out}")
     return 0
@@ -96,7 +107,7 @@ def _eval(args: argparse.Namespace) -> int:
 
         result = evaluate(args.avatar, args.dataset, args.protocol, fusion=not args.no_fusion,
                           max_views=args.max_views, frame_stride=args.frame_stride,
-                          out_dir=args.out, size=args.size, model_dir=args.models,
+                          out_dir=args.out, size=args.size, model_dir=args.body_models,
                           progress=progress)
     print(result_markdown(result).split("\n## ")[0].rstrip())  # the headline table
     if args.out:
@@ -112,7 +123,7 @@ def _train(args: argparse.Namespace) -> int:
 
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if args.resume:
-        trainer = Trainer.resume(args.out, args.dataset, body_model=args.body_model,
+        trainer = Trainer.resume(args.out, args.dataset, body_model=args.body_models,
                                  iterations=args.iterations, device=args.device)
     else:
         from dataclasses import replace
@@ -122,7 +133,7 @@ def _train(args: argparse.Namespace) -> int:
         config = load_config(args.config) if args.config else TrainConfig()
         overrides = {"iterations": args.iterations, "device": args.device}
         config = replace(config, **{k: v for k, v in overrides.items() if v is not None})
-        trainer = Trainer(args.dataset, config, args.out, body_model=args.body_model)
+        trainer = Trainer(args.dataset, config, args.out, body_model=args.body_models)
     with tqdm(total=trainer.config.iterations, initial=trainer.iteration, desc="training",
               unit="it") as bar:
         def progress(event: dict) -> None:
@@ -208,7 +219,8 @@ def _track_fit(args: argparse.Namespace) -> int:
     source = args.webcam if args.webcam is not None else str(args.image or args.video)
     try:
         tracker = Tracker(models=args.cache, iris=True)
-        sequence_fit = default_sequence_fit(args.fov, smoothing=not args.no_smoothing)
+        sequence_fit = default_sequence_fit(args.fov, smoothing=not args.no_smoothing,
+                                            body_models=args.body_models)
         with tqdm(total=args.frames, unit="frame", desc="tracking") as bar:
             params = track_params(frames_from(source, args.frames), sequence_fit, tracker,
                                   with_transl=args.with_transl, progress=lambda: bar.update())
@@ -261,6 +273,7 @@ def _add_track(groups: argparse._SubParsersAction) -> None:
     fit.add_argument("--with-transl", action="store_true",
                      help="keep transl (the subject's place in front of the camera)")
     fit.add_argument("--cache", type=Path, default=None, help="model cache folder")
+    _add_body_models(fit)
     fit.set_defaults(func=_track_fit)
 
 
@@ -353,7 +366,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="built-in clip (demo, rest), or a .json / .npz parameter file")
     render.add_argument("--camera", default="orbit", help="'orbit' or a JSON camera file")
     render.add_argument("--out", type=Path, required=True, help="folder of PNGs or FILE.mp4")
-    render.add_argument("--models", type=Path, default=None, help="synthetic model folder")
+    _add_body_models(render)
     render.add_argument("--size", type=int, default=512)
     render.add_argument("--fps", type=float, default=25.0)
     render.add_argument("--frames", type=int, default=None, help="at most this many frames")
@@ -372,8 +385,7 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--resume", action="store_true", help="continue from OUT's checkpoint")
     train.add_argument("--iterations", type=int, default=None, help="total iterations")
     train.add_argument("--device", default=None, help="auto, cpu, cuda[:N]")
-    train.add_argument("--body-model", type=Path, default=None,
-                       help="body-model folder (default: the dataset's synthetic family)")
+    _add_body_models(train)
     train.set_defaults(func=_train)
 
     ev = groups.add_parser("eval", help="evaluate an avatar on a dataset split")
@@ -388,7 +400,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--max-views", type=int, default=None, help="the first N views")
     ev.add_argument("--frame-stride", type=int, default=1, help="every K-th frame")
     ev.add_argument("--size", type=int, default=None, help="render width (default: dataset's)")
-    ev.add_argument("--models", type=Path, default=None, help="synthetic model folder")
+    _add_body_models(ev)
     ev.set_defaults(func=_eval)
 
     demo = groups.add_parser("demo-avatar", help="build (first run) or find the trained demo "

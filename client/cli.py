@@ -112,7 +112,8 @@ def cmd_drive(args: argparse.Namespace) -> int:
         stats = asyncio.run(drive_from_camera(
             args.server, args.token, args.avatar, source, room=args.room, seat=args.seat,
             max_frames=args.frames,
-            fov_x_deg=args.fov, out=args.out, timeout=args.timeout, progress=not args.quiet))
+            fov_x_deg=args.fov, out=args.out, timeout=args.timeout, progress=not args.quiet,
+            body_models=args.body_models))
     except (OSError, RuntimeError, ValueError) as exc:
         print(f"telesplat-client: error: {exc}", file=sys.stderr)
         return 2
@@ -320,6 +321,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=int, default=None, help="at most this many frames")
     p.add_argument("--fov", type=float, default=60.0,
                    help="the camera's horizontal field of view, degrees")
+    p.add_argument("--body-models", type=Path, default=None,
+                   help="body-model folder to fit, official file names (the server's; "
+                        "default: $TELESPLAT_BODY_MODELS, else the synthetic family)")
     p.add_argument("--out", type=Path, default=None, help="save the returned frames here")
     p.add_argument("--timeout", type=float, default=30.0, help="seconds to wait per frame")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

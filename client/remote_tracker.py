@@ -15,10 +15,13 @@ async def drive_from_camera(server: str, token: str | None, avatar: str | None,
                             source: str | int, *, room: str | None = None,
                             seat: int | None = None, max_frames: int | None = None,
                             fov_x_deg: float = 60.0, out: Path | None = None,
-                            timeout: float = 30.0, progress: bool = True) -> dict[str, float]:
+                            timeout: float = 30.0, progress: bool = True,
+                            body_models: Path | None = None) -> dict[str, float]:
     """Track ``source`` (a webcam index or a video path) and drive ``avatar`` with the fit, or
     perform ``seat`` of ``room`` (then viewers of the room see it). Returns counts and the
-    mean tracking time."""
+    mean tracking time. ``body_models``: the body-model folder to fit (the resolver's order:
+    this, ``$TELESPLAT_BODY_MODELS``, else the synthetic family); use the server's models, so
+    that the fitted parameters mean the same there."""
     from tqdm import tqdm
 
     from avatar_core.track.fit.video import default_sequence_fit, frames_from, tracked_frames
@@ -28,7 +31,7 @@ async def drive_from_camera(server: str, token: str | None, avatar: str | None,
     from .stream import StreamClient
 
     tracker = Tracker(palm_interval=LIVE_PALM_INTERVAL, iris=True)
-    sequence_fit = default_sequence_fit(fov_x_deg)
+    sequence_fit = default_sequence_fit(fov_x_deg, body_models=body_models)
     # Landmarks of the next frame are found while this one is fitted (two threads).
     tracked = tracked_frames(frames_from(source, max_frames), sequence_fit, tracker)
 

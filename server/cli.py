@@ -27,6 +27,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data-dir", type=Path, default=None, help="avatars, tokens, jobs")
     parser.add_argument("--demo-avatar", default=None,
                         help="synthetic, trained, none or a package path")
+    parser.add_argument("--body-models", type=Path, default=None,
+                        help="body-model folder, official file names (setting body_models; "
+                             "default: $TELESPLAT_BODY_MODELS, else the synthetic family)")
     parser.add_argument("--log-level", default="info")
     parser.add_argument("--issue-token", metavar="SUBJECT:SCOPES", default=None,
                         help="add a token to the token store (e.g. alice:stream,train), print "
@@ -67,7 +70,8 @@ def serve(args: argparse.Namespace) -> int:
     from .net import listen_socket, websocket_protocol
 
     settings = load_settings(args.config, host=args.host, port=args.port,
-                             data_dir=args.data_dir, demo_avatar=args.demo_avatar)
+                             data_dir=args.data_dir, demo_avatar=args.demo_avatar,
+                             body_models=args.body_models)
     if args.issue_token:
         from .auth import TokenStore
 

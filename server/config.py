@@ -91,6 +91,12 @@ class Settings(BaseModel):
     demo_avatar: str = Field("synthetic", description="Avatar registered at start-up, owner "
                                                       "'public': synthetic, trained, none, or "
                                                       "a package path.")
+    body_models: Path | None = Field(
+        None, description="Folder of the body-model files under their official names "
+                          "(SMPLX_NEUTRAL.npz, smplx_vert_segmentation.json, MANO_*.pkl, "
+                          "FLAME_NEUTRAL.pkl, ...), for avatars, training jobs and tracking "
+                          "bound to licensed models; None: only the synthetic family. "
+                          "Also TELESPLAT_BODY_MODELS, which every command reads.")
     render_threads: int = Field(1, ge=1, le=64, description="Render worker threads shared by "
                                                             "all sessions (see fair_share).")
     fair_share: Literal["time", "frames"] = Field(
@@ -193,6 +199,11 @@ class Settings(BaseModel):
                     "opacity logits, SH, quaternion norms), checked on upload (422) and when a "
                     "stored avatar is opened; a [gaussian_ranges] table or JSON in "
                     "TELESPLAT_GAUSSIAN_RANGES.")
+
+    @field_validator("body_models", mode="before")
+    @classmethod
+    def _no_folder(cls, value: Any) -> Any:
+        return None if value == "" else value  # an empty variable means "not given"
 
     @field_validator("demo_avatar")
     @classmethod

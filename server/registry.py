@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import re
 import secrets
 import shutil
@@ -27,9 +28,10 @@ from pathlib import Path
 from typing import Any
 
 from avatar_core.body.cache import StageCache
+from avatar_core.body.model_paths import BodyModelsMissing
 from avatar_core.bounded_npz import NpzLimits
 from avatar_core.gaussians.animate import AvatarAnimator
-from avatar_core.gaussians.loading import LoadedAvatar, load_avatar
+from avatar_core.gaussians.loading import BodyModelMismatch, LoadedAvatar, load_avatar
 from avatar_core.gaussians.package import (
     GAUSSIANS,
     MANIFEST,
@@ -43,6 +45,7 @@ from avatar_core.gaussians.validate import GaussianRanges
 from .auth import PUBLIC_OWNER
 from .private import make_private, private_dir
 
+log = logging.getLogger(__name__)
 RECORD, PACKAGE_DIR = "record.json", "package"
 ID_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$")
 DEMO_ID = "demo"
@@ -94,8 +97,10 @@ class AvatarRegistry:
 
     def __init__(self, root: str | Path, *, max_package_bytes: int = MAX_PACKAGE_BYTES,
                  npz_limits: NpzLimits | None = None,
-                 ranges: GaussianRanges | None = None) -> None:
+                 ranges: GaussianRanges | None = None,
+                 body_models: str | Path | None = None) -> None:
         self.root = private_dir(root)
+        self.body_models = body_models  # the setting: resolve_body_models' server setting
         self.ranges = ranges  # None: GaussianRanges' defaults
         self.max_package_bytes = max_package_bytes
         self.npz_limits = npz_limits  # None: load_package's, from max_package_bytes
@@ -107,13 +112,15 @@ class AvatarRegistry:
 
     @classmethod
     def from_settings(cls, settings: Any) -> AvatarRegistry:
-        """The server's registry: ``settings.avatars_dir`` and its unpack limits."""
+        """The server's registry: ``settings.avatars_dir``, its unpack limits and the
+        ``body_models`` setting."""
         limits = NpzLimits(max_array_bytes=settings.max_npz_array_bytes,
                            max_total_bytes=settings.max_npz_bytes,
                            max_ratio=settings.max_unpack_ratio)
         # the files together may be larger than the zip, and hold the arrays and the manifest
         return cls(settings.avatars_dir, npz_limits=limits, ranges=settings.gaussian_ranges,
-                   max_package_bytes=max(4 * settings.max_upload_bytes, settings.max_npz_bytes))
+                   max_package_bytes=max(4 * settings.max_upload_bytes, settings.max_npz_bytes),
+                   body_models=settings.body_models)
 
     # -- records ---------------------------------------------------------------------------
 
@@ -239,7 +246,7 @@ class AvatarRegistry:
         if existing is not None and existing.source == f"demo:{spec}" and spec != "trained":
             return existing
         if spec == "synthetic" or spec.startswith("synthetic:"):
-            loaded = load_avatar(spec)
+            loaded = load_avatar(spec, setting=self.body_models)
             with tempfile.TemporaryDirectory(dir=self.root, prefix=".incoming-") as tmp:
                 src = save_package(loaded.package, Path(tmp) / "pkg")
                 return self.add_package(src, PUBLIC_OWNER, avatar_id=DEMO_ID,
@@ -266,9 +273,18 @@ class AvatarRegistry:
                 loaded = self._loaded.get(avatar_id)
             if loaded is None:
                 # the limits it was accepted under: a package that was added also opens
-                loaded = load_avatar(str(self.package_dir(avatar_id)),
-                                     max_bytes=self.max_package_bytes, npz_limits=self.npz_limits,
-                                     ranges=self.ranges)
+                try:
+                    loaded = load_avatar(str(self.package_dir(avatar_id)),
+                                         setting=self.body_models,
+                                         max_bytes=self.max_package_bytes,
+                                         npz_limits=self.npz_limits, ranges=self.ranges)
+                except BodyModelMismatch as exc:  # the full message names server folders
+                    log.error("avatar %s: %s", avatar_id, exc)
+                    raise BodyModelMismatch(f"avatar {avatar_id}: {exc.public}") from None
+                except BodyModelsMissing as exc:
+                    log.error("avatar %s: %s", avatar_id, exc)
+                    raise BodyModelsMissing(f"avatar {avatar_id} is bound to body-model files "
+                                            "this server does not have (see its log)") from None
                 with self._lock:
                     if avatar_id in self._records:
                         self._loaded[avatar_id] = loaded

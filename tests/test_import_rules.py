@@ -187,6 +187,15 @@ def test_client_imports_no_server():
     assert _violations(lambda n: _within(n, "client"), ("server",)) == []
 
 
+def test_client_reaches_the_engine_only_lazily_for_the_local_tracker():
+    # the remote tracker fits on this machine (avatar_core.track, its body models resolved by
+    # avatar_core.body there); nothing else of the engine, and never at import time
+    found = [f"{i.importer}:{i.line} imports {i.target}" for i in IMPORTS
+             if _within(i.importer, "client") and _within(i.target, "avatar_core")
+             and (i.module_level or not _within(i.target, "avatar_core.track"))]
+    assert found == []
+
+
 def test_client_has_no_torch_at_import_time():
     code = ("import sys, client, client.cli, client.stream, client.rest, client.images\n"
             "assert 'torch' not in sys.modules, 'torch imported'\n"

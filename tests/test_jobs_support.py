@@ -63,7 +63,7 @@ def make_service(data_dir: Path, synthetic_files, **worker: Any) -> JobService:
     def register(job, package):
         return registry.add_package(package, job.owner, job.name, source=f"job:{job.id}").id
 
-    config = WorkerConfig(body_model_dir=str(synthetic_files.root), nice=0, poll_s=0.05,
+    config = WorkerConfig(body_models=str(synthetic_files.root), nice=0, poll_s=0.05,
                           **worker)
     service = JobService(data_dir, register, worker=config)
     service.registry = registry  # for the tests' checks

@@ -81,7 +81,7 @@ _SERVER = textwrap.dedent("""
     sys.path.insert(0, {tests!r})
     from server.jobs.service import JobService
     from server.jobs.worker import WorkerConfig
-    config = WorkerConfig(body_model_dir={models!r}, nice=0, poll_s=0.05)
+    config = WorkerConfig(body_models={models!r}, nice=0, poll_s=0.05)
     JobService({data!r}, lambda job, package: "never", worker=config).start()
     print("started", flush=True)
     threading.Event().wait()

@@ -419,7 +419,7 @@ def test_cli_trains_resumes_and_refuses_to_overwrite(capture_dir, synthetic_file
     config.write_text('preset = "test"\ncheckpoint_interval = 10\n[finetune]\n'
                       'enabled = false\n[densify]\nenabled = false\n')
     out = tmp_path / "run"
-    base = ["train", str(capture_dir), "--out", str(out), "--body-model",
+    base = ["train", str(capture_dir), "--out", str(out), "--body-models",
             str(synthetic_files.root)]
     assert main([*base, "--config", str(config), "--iterations", "10"]) == 0
     assert (out / "avatar" / "avatar.json").is_file()

@@ -1,8 +1,16 @@
 """Where the body-model files are: their official names, and the one resolver that finds them.
 
-`resolve_body_models` takes, in order, an explicit folder, `$TELESPLAT_BODY_MODELS`, the server
-setting passed in by the caller, and finally the synthetic family (the stand-ins the studio
-writes in the official formats, generated into the user cache on first use).
+`resolve_body_models` takes, in order, an explicit folder (`--body-models DIR`),
+`$TELESPLAT_BODY_MODELS`, the server setting `body_models` passed in by the caller, and finally
+the synthetic family (the stand-ins the studio writes in the official formats, generated into
+the user cache on first use).
+
+What was made with a body model names it: a dataset's `body_model.source` ("synthetic-seedN" or
+anything else) and an avatar package's body reference ("synthetic:seedN" or the model file's
+name). `models_for_source` / `models_for_reference` turn those into files: the synthetic family
+of that seed (the given folder when it holds that family, else the generated one), or for any
+other model the given folder, and when none is given a `BodyModelsMissing` that says which
+official files to put where.
 
 Generating the synthetic family is the studio's work, so `synthetic_body_models` imports
 `avatar_core.synth.model_writer` inside the function: the one import of the studio from a
@@ -13,11 +21,22 @@ alternative; every caller would then import the studio itself, which is what thi
 
 from __future__ import annotations
 
+import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
 
+from .errors import ModelFileError
+
 BODY_MODELS_ENV = "TELESPLAT_BODY_MODELS"
+SYNTHETIC_SOURCE = "synthetic-seed"     # a dataset's body_model.source: "synthetic-seed0"
+SYNTHETIC_REFERENCE = "synthetic:seed"  # an avatar package's body reference: "synthetic:seed0"
+HOW_TO_GIVE = ("--body-models DIR, the environment variable TELESPLAT_BODY_MODELS or the "
+               "server setting body_models")
+
+
+class BodyModelsMissing(ModelFileError):
+    """No body-model folder was given where real models are needed, or it lacks a file."""
 
 
 @dataclass(frozen=True)
@@ -73,15 +92,111 @@ class BodyModelFiles:
     def identities(self) -> list[Path]:
         return sorted((self.root / "identities").glob("identity_*.npz"))
 
+    def synthetic_seed(self) -> int | None:
+        """The seed when the folder holds the studio's synthetic family (its manifest says
+        so), else None: official folders have no manifest."""
+        try:
+            manifest = json.loads(self.manifest.read_text())
+        except (OSError, ValueError):
+            return None
+        if not isinstance(manifest, dict) or manifest.get("synthetic") is not True:
+            return None
+        seed = manifest.get("seed")
+        return seed if isinstance(seed, int) and not isinstance(seed, bool) else None
+
+    def describe(self) -> str:
+        seed = self.synthetic_seed()
+        return f"{self.root} (synthetic family, seed {seed})" if seed is not None \
+            else str(self.root)
+
+    def require(self, *paths: Path) -> None:
+        """BodyModelsMissing naming every absent file of `paths` (default: what the upper body
+        needs) and what the folder should hold."""
+        missing = [p.name for p in paths or (self.smplx_npz, self.segmentation)
+                   if not p.is_file()]
+        if missing:
+            raise BodyModelsMissing(f"the body-model folder {self.root} lacks "
+                                    f"{', '.join(missing)}; {official_files_note()}")
+
+
+# (file name, what it is for, needed for the upper body) in the order a user should read them
+OFFICIAL_FILES = (
+    ("SMPLX_NEUTRAL.npz", "the SMPL-X model (smplx package layout)", True),
+    ("smplx_vert_segmentation.json", "SMPL-X part name -> vertex ids (Meshcapade)", True),
+    ("MANO_LEFT.pkl, MANO_RIGHT.pkl", "MANO hands, for fusing MANO parameters", False),
+    ("MANO_SMPLX_vertex_ids.pkl", "MANO -> SMPL-X vertex correspondence", False),
+    ("FLAME_NEUTRAL.pkl", "FLAME head, for fusing FLAME parameters", False),
+    ("SMPL-X__FLAME_vertex_ids.npy", "FLAME -> SMPL-X vertex correspondence", False),
+)
+
+
+def official_files_note() -> str:
+    """Which official files go into the body-model folder, and how to name the folder."""
+    needed = ", ".join(f"{name} ({what})" for name, what, req in OFFICIAL_FILES if req)
+    optional = ", ".join(f"{name} ({what})" for name, what, req in OFFICIAL_FILES if not req)
+    return (f"put {needed} in one folder (optionally {optional}) and name it with "
+            f"{HOW_TO_GIVE}")
+
 
 def resolve_body_models(folder: str | Path | None = None, *, setting: str | Path | None = None,
                         seed: int = 0) -> BodyModelFiles:
     """The body-model files to use: `folder`, else `$TELESPLAT_BODY_MODELS`, else `setting`
     (the server's), else the synthetic family of `seed` (generated on first use)."""
+    given = given_body_models(folder, setting=setting)  # an empty string means "not given"
+    return given if given is not None else synthetic_body_models(seed=seed)
+
+
+def given_body_models(folder: str | Path | None = None, *,
+                      setting: str | Path | None = None) -> BodyModelFiles | None:
+    """The resolver's order without its last resort: None when no folder was given."""
     for candidate in (folder, os.environ.get(BODY_MODELS_ENV), setting):
-        if candidate:  # an empty string or variable means "not given"
+        if candidate:
             return BodyModelFiles(Path(candidate))
+    return None
+
+
+def _synthetic_or_given(seed: int, given: BodyModelFiles | None) -> BodyModelFiles:
+    # A synthetic family can always be generated, so what was made with one uses it even
+    # where the folder given holds other (e.g. the user's licensed) models.
+    if given is not None and given.synthetic_seed() == seed:
+        return given
     return synthetic_body_models(seed=seed)
+
+
+def synthetic_seed_of(name: str, prefix: str) -> int | None:
+    """N of "synthetic-seedN" / "synthetic:seedN" (with that `prefix`), else None."""
+    rest = name.removeprefix(prefix) if name.startswith(prefix) else ""
+    return int(rest) if rest.isdigit() else None
+
+
+def models_for_source(source: str, folder: str | Path | None = None, *,
+                      setting: str | Path | None = None) -> tuple[BodyModelFiles, str]:
+    """The files a dataset's parameters (its `body_model.source`) drive, and the body
+    reference an avatar trained on them records."""
+    seed = synthetic_seed_of(source, SYNTHETIC_SOURCE)
+    given = given_body_models(folder, setting=setting)
+    if seed is not None:
+        return _synthetic_or_given(seed, given), f"{SYNTHETIC_REFERENCE}{seed}"
+    if given is None:
+        raise BodyModelsMissing(f"the dataset's parameters come from body model {source!r} "
+                                f"and no body-model folder is set: {official_files_note()}")
+    given.require()
+    return given, given.smplx_npz.name
+
+
+def models_for_reference(reference: str, folder: str | Path | None = None, *,
+                         setting: str | Path | None = None) -> BodyModelFiles:
+    """The files to pose an avatar whose package records body reference `reference` with
+    (whether they are the very model it was bound to is the caller's fingerprint check)."""
+    seed = synthetic_seed_of(reference, SYNTHETIC_REFERENCE)
+    given = given_body_models(folder, setting=setting)
+    if seed is not None:
+        return _synthetic_or_given(seed, given)
+    if given is None:
+        raise BodyModelsMissing(f"the avatar is bound to body model {reference!r} and no "
+                                f"body-model folder is set: {official_files_note()}")
+    given.require()
+    return given
 
 
 def synthetic_body_models(folder: str | Path | None = None, seed: int = 0) -> BodyModelFiles:

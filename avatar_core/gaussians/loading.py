@@ -1,7 +1,10 @@
 """An avatar ready to animate: its package, the body model it is bound to and that model's files.
 
 ``load_avatar`` resolves an avatar spec (a package path, or ``synthetic[:IDENTITY]`` for an
-untrained avatar on the synthetic model) for the render CLI, the evaluator and the server.
+untrained avatar on the synthetic model) for the render CLI, the evaluator and the server. The
+body-model files come from ``avatar_core.body.model_paths.models_for_reference`` (the package's
+body reference, then ``--body-models`` / ``$TELESPLAT_BODY_MODELS`` / the server setting), and the
+package's fingerprint of the triangles it is bound to must match them.
 """
 
 from __future__ import annotations
@@ -13,12 +16,27 @@ from typing import Any
 import numpy as np
 
 from ..body.model_data import load_mano
-from ..body.model_paths import BodyModelFiles, synthetic_body_models
+from ..body.model_paths import (
+    HOW_TO_GIVE,
+    SYNTHETIC_REFERENCE,
+    BodyModelFiles,
+    models_for_reference,
+)
 from ..body.models import MANOModel
+from ..body.upper_body import UpperBodyModel
 from .animate import AvatarAnimator, synthetic_package
-from .package import AvatarPackage, load_package
+from .package import AvatarPackage, BodyReference, PackageError, faces_fingerprint, load_package
 
-__all__ = ["LoadedAvatar", "load_avatar", "mano_models"]
+__all__ = ["BodyModelMismatch", "LoadedAvatar", "check_binding", "load_avatar", "mano_models"]
+
+
+class BodyModelMismatch(PackageError):
+    """The avatar is bound to other body-model files than the ones it is loaded with.
+    ``public``: the message without the folder, for a client of the server."""
+
+    def __init__(self, message: str, *, public: str = "") -> None:
+        super().__init__(message)
+        self.public = public or message
 
 
 @dataclass
@@ -28,26 +46,41 @@ class LoadedAvatar:
     files: BodyModelFiles
 
 
-def load_avatar(spec: str, model_dir: Path | None = None, **package_limits: Any
-                ) -> LoadedAvatar:
+def load_avatar(spec: str, body_models: str | Path | None = None, *,
+                setting: str | Path | None = None, **package_limits: Any) -> LoadedAvatar:
     """`synthetic[:IDENTITY]` for an untrained avatar on the synthetic model, or the path of a
-    package bound to the synthetic model (its body reference says which seed).
-    ``package_limits``: ``max_bytes`` / ``npz_limits`` for ``load_package``."""
+    package. ``body_models``: the folder given explicitly (``--body-models``); ``setting``: the
+    server's ``body_models``. ``package_limits``: ``max_bytes`` / ``npz_limits`` / ``ranges``
+    for ``load_package``. BodyModelMismatch when the files are not the ones it was bound to."""
     if spec == "synthetic" or spec.startswith("synthetic:"):
         identity = int(spec.split(":", 1)[1]) if ":" in spec else 0
-        files = synthetic_body_models(model_dir)
+        files = models_for_reference(f"{SYNTHETIC_REFERENCE}0", body_models, setting=setting)
         package, model = synthetic_package(files.root, identity)
     else:
         package = load_package(spec, **package_limits)
-        ref = package.body.model
-        if not ref.startswith("synthetic:seed"):
-            raise ValueError(f"{spec}: bound to body model {ref!r}; only synthetic models can be "
-                             "resolved here (the licensed SMPL-X files are not available)")
-        files = synthetic_body_models(model_dir, seed=int(ref.removeprefix("synthetic:seed")))
-        _, model = synthetic_package(files.root, 0)
-        package.body.check_faces(model.faces.cpu().numpy())
+        files = models_for_reference(package.body.model, body_models, setting=setting)
+        model = UpperBodyModel.load(files.smplx_npz, files.segmentation)
+        check_binding(package.body, files, model, spec)
     animator = AvatarAnimator(model, package.avatar, betas=np.asarray(package.body.betas))
     return LoadedAvatar(package, animator, files)
+
+
+def check_binding(body: BodyReference, files: BodyModelFiles, model: UpperBodyModel,
+                  name: str = "the avatar") -> None:
+    """BodyModelMismatch, naming both sides, unless ``model`` (loaded from ``files``) has the
+    very triangles the package's Gaussians are bound to."""
+    faces = model.faces.cpu().numpy()
+    found = faces_fingerprint(faces)
+    if len(faces) == body.num_faces and found == body.faces_sha256:
+        return
+    bound = (f"is bound to body model {body.model!r} ({body.num_faces} upper-body triangles, "
+             f"fingerprint {body.faces_sha256[:16]})")
+    given = f"give {len(faces)} triangles with fingerprint {found[:16]}"
+    raise BodyModelMismatch(
+        f"{name} {bound}, but the body models in use, {files.describe()} "
+        f"({files.smplx_npz.name}), {given}: name the folder it was trained with "
+        f"({HOW_TO_GIVE})",
+        public=f"the avatar {bound}; this server's body models {given}")
 
 
 def mano_models(loaded: LoadedAvatar) -> dict[str, MANOModel]:

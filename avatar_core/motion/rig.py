@@ -12,9 +12,15 @@ from .keyframes import Rig
 
 
 def model_rig(files: BodyModelFiles, model: UpperBodyModel) -> Rig:
-    """Expression names, gestures and hand means of a synthetic model, for pose descriptions."""
-    manifest = json.loads(files.manifest.read_text())
-    with np.load(files.gestures) as g:
-        gestures = {k: g[k] for k in g.files}
+    """Expression names, gestures and hand means of a model, for pose descriptions. Only the
+    synthetic family names its expressions and gestures (manifest, gestures.npz); official
+    files have neither, so their rig poses joints and hands by value only."""
+    names: tuple[str, ...] = ()
+    if files.manifest.is_file():
+        names = tuple(json.loads(files.manifest.read_text()).get("expression_names", ()))
+    gestures = {}
+    if files.gestures.is_file():
+        with np.load(files.gestures) as g:
+            gestures = {k: g[k] for k in g.files}
     means = {s: getattr(model, f"{s}_hand_mean").cpu().numpy() for s in ("left", "right")}
-    return Rig(tuple(manifest["expression_names"]), gestures, means, model.num_betas)
+    return Rig(names, gestures, means, model.num_betas)

@@ -1,9 +1,10 @@
 """The body the avatar is trained on: model files, per-frame parameters on the device,
 fine-tuned deltas, posing, and the initial colour of each triangle.
 
-The model files are resolved from the dataset's ``body_model.source``: ``synthetic-seedN``
-uses the synthetic family of that seed (generated into the cache if missing, or read from
-``body_model_dir``); any other source needs ``body_model_dir`` with the official file names
+The model files are resolved from the dataset's ``body_model.source`` by
+``avatar_core.body.model_paths.models_for_source``: ``synthetic-seedN`` uses the synthetic
+family of that seed; any other source needs a body-model folder (``--body-models DIR``,
+``$TELESPLAT_BODY_MODELS`` or the server setting ``body_models``) with the official file names
 (``SMPLX_NEUTRAL.npz``, ``smplx_vert_segmentation.json``, optionally ``MANO_{LEFT,RIGHT}.pkl``
 for hand fusion and ``FLAME_NEUTRAL.pkl`` + ``SMPL-X__FLAME_vertex_ids.npy`` for a FLAME shape).
 """
@@ -22,7 +23,7 @@ from torch import Tensor
 
 from ..body.fusion import FusionModels
 from ..body.model_data import ModelData, load_flame, load_mano, load_smplx
-from ..body.model_paths import BodyModelFiles, synthetic_body_models
+from ..body.model_paths import BodyModelFiles, models_for_source
 from ..body.models import FLAMEModel, MANOModel
 from ..body.upper_body import UpperBodyModel, load_segmentation
 from ..dataset.loader import View
@@ -35,7 +36,6 @@ __all__ = ["BodySetup", "face_part_ids", "fine_tune_deltas",
 
 log = logging.getLogger(__name__)
 
-SYNTHETIC_PREFIX = "synthetic-seed"
 FINE_TUNED = ("transl", "expression", "body_pose")
 
 
@@ -59,21 +59,8 @@ def resolve_body(meta_body: Mapping[str, Any], body_model_dir: str | Path | None
     if meta_body.get("root", "smplx") != "smplx":
         raise ValueError(f"body_model.root {meta_body.get('root')!r}: training supports "
                          "'smplx' (rotation about the pelvis) only; re-import with the model")
-    source = str(meta_body.get("source", ""))
-    if source.startswith(SYNTHETIC_PREFIX):
-        seed = int(source.removeprefix(SYNTHETIC_PREFIX))
-        files = (BodyModelFiles(Path(body_model_dir)) if body_model_dir is not None
-                 else synthetic_body_models(seed=seed))
-        reference = f"synthetic:seed{seed}"
-    elif body_model_dir is None:
-        raise ValueError(f"the dataset's parameters come from {source!r}: give the SMPL-X "
-                         "model folder (--body-model DIR)")
-    else:
-        files = BodyModelFiles(Path(body_model_dir))
-        reference = files.smplx_npz.name
-    for path in (files.smplx_npz, files.segmentation):
-        if not path.is_file():
-            raise ValueError(f"body model folder {files.root} lacks {path.name}")
+    files, reference = models_for_source(str(meta_body.get("source", "")), body_model_dir)
+    files.require()
     data = load_smplx(files.smplx_npz)
     seg = load_segmentation(files.segmentation, data.num_vertices)
     hand_pca = meta_body.get("hand_pca")

@@ -73,7 +73,7 @@ def _watch_parent(pid: int, every_s: float = 0.25) -> None:
     threading.Thread(target=watch, name="parent-watch", daemon=True).start()
 
 
-def train(store: SQLiteJobStore, job_id: str, job_dir: Path, body_model: str | None) -> int:
+def train(store: SQLiteJobStore, job_id: str, job_dir: Path, body_models: str | None) -> int:
     from avatar_core.train.checkpoint import latest_checkpoint
     from avatar_core.train.config import config_from_dict
     from avatar_core.train.trainer import Trainer
@@ -99,14 +99,14 @@ def train(store: SQLiteJobStore, job_id: str, job_dir: Path, body_model: str | N
             raise _Interrupted
 
     if latest_checkpoint(out) is not None:
-        trainer = Trainer.resume(out, job.dataset_path, body_model=body_model,
+        trainer = Trainer.resume(out, job.dataset_path, body_model=body_models,
                                  progress=progress)
         log.info("resumed job %s at iteration %d", job_id, trainer.iteration)
         store.report(job_id, {"type": "resumed", "iteration": trainer.iteration,
                               "total": trainer.config.iterations})
     else:
         config = config_from_dict(job.config)
-        trainer = Trainer(job.dataset_path, config, out, body_model=body_model,
+        trainer = Trainer(job.dataset_path, config, out, body_model=body_models,
                           progress=progress)
         log.info("training job %s: %d iterations", job_id, config.iterations)
     stop["training"] = True  # from here SIGTERM means: checkpoint at the next event
@@ -132,7 +132,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("job_id")
     parser.add_argument("--db", type=Path, required=True)
     parser.add_argument("--job-dir", type=Path, required=True)
-    parser.add_argument("--body-model", default=None)
+    parser.add_argument("--body-models", default=None,
+                        help="the server setting body_models (resolve_body_models' setting)")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--nice", type=int, default=0)
     parser.add_argument("--parent-pid", type=int, default=None,
@@ -147,7 +148,7 @@ def main(argv: list[str] | None = None) -> int:
     _limit_threads(args.threads)
     store = SQLiteJobStore(args.db)
     try:
-        return train(store, args.job_id, args.job_dir, args.body_model)
+        return train(store, args.job_id, args.job_dir, args.body_models)
     except Exception as exc:  # the reason goes to the store; the traceback to the log
         log.exception("job %s failed", args.job_id)
         reason = f"{type(exc).__name__}: {exc}".strip()

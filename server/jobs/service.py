@@ -16,11 +16,16 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, BinaryIO
 
+from avatar_core.body.model_paths import (
+    SYNTHETIC_SOURCE,
+    BodyModelsMissing,
+    models_for_source,
+    synthetic_seed_of,
+)
 from avatar_core.bounded_npz import NpzLimits
 from avatar_core.dataset import DatasetError, load_dataset
 from avatar_core.train.checkpoint import latest_checkpoint
 from avatar_core.train.config import TrainConfig, config_from_dict, config_to_dict, preset
-from avatar_core.train.posing import SYNTHETIC_PREFIX
 
 from ..quotas import storage_left
 from .archive import ArchiveError, UploadLimits, extract_archive
@@ -100,7 +105,7 @@ def _check_avatar_name(name: str | None) -> str | None:
     return name
 
 
-def _validated(root: Path, body_model_dir: str | None, npz_limits: NpzLimits) -> None:
+def _validated(root: Path, body_models: str | None, npz_limits: NpzLimits) -> None:
     try:
         # shallow validation: files present, headers, parameters (read within npz_limits)
         dataset = load_dataset(root, npz_limits=npz_limits)
@@ -112,10 +117,12 @@ def _validated(root: Path, body_model_dir: str | None, npz_limits: NpzLimits) ->
     except (OSError, ValueError, KeyError) as exc:
         raise SubmitError(f"the dataset cannot be read: {exc}") from exc
     source = str(dataset.meta.get("body_model", {}).get("source", ""))
-    if body_model_dir is None and not source.startswith(SYNTHETIC_PREFIX):
-        # the trainer would fail on it (posing.resolve_body): say so now
-        raise SubmitError(f"the dataset's parameters come from body model {source!r}, and "
-                          "this server has no body-model folder (setting body_model_dir)")
+    if synthetic_seed_of(source, SYNTHETIC_SOURCE) is None:  # (a synthetic one is generated)
+        # the trainer would fail without the model files (posing.resolve_body): say so now
+        try:
+            models_for_source(source, setting=body_models)
+        except BodyModelsMissing as exc:
+            raise SubmitError(f"this server cannot train on the dataset: {exc}") from exc
 
 
 class JobService:
@@ -139,7 +146,7 @@ class JobService:
     @classmethod
     def from_settings(cls, settings: Any, registry: Any) -> JobService:
         """From the server's Settings and AvatarRegistry. Optional settings (defaults when
-        absent): job_max_concurrent, job_threads, job_nice, job_max_attempts, body_model_dir,
+        absent): job_max_concurrent, job_threads, job_nice, job_max_attempts, body_models,
         max_dataset_unpacked_bytes, max_dataset_files, job_max_active_per_user,
         job_max_stored_per_user."""
 
@@ -149,13 +156,13 @@ class JobService:
             return record.id
 
         defaults, limits = WorkerConfig(), UploadLimits()
-        body = getattr(settings, "body_model_dir", None)
+        body = getattr(settings, "body_models", None)
         worker = WorkerConfig(
             max_concurrent=getattr(settings, "job_max_concurrent", defaults.max_concurrent),
             threads=getattr(settings, "job_threads", defaults.threads),
             nice=getattr(settings, "job_nice", defaults.nice),
             max_attempts=getattr(settings, "job_max_attempts", defaults.max_attempts),
-            body_model_dir=None if body is None else str(body))
+            body_models=None if body is None else str(body))
         upload = UploadLimits(
             max_upload_bytes=getattr(settings, "max_upload_bytes", limits.max_upload_bytes),
             max_unpacked_bytes=getattr(settings, "max_dataset_unpacked_bytes",
@@ -219,7 +226,7 @@ class JobService:
         path = self.dataset_path(dataset)
         resolved = resolve_config(config)
         name = _check_avatar_name(name)
-        _validated(path, self.worker.config.body_model_dir, self.limits.npz_limits())
+        _validated(path, self.worker.config.body_models, self.limits.npz_limits())
         return self._create(owner, f"dataset:{dataset}", path, resolved, name,
                             exempt=exempt)
 
@@ -238,7 +245,7 @@ class JobService:
                                        self.upload_limits(owner, exempt))
             except ArchiveError as exc:
                 raise SubmitError(str(exc), exc.status) from exc
-            _validated(root, self.worker.config.body_model_dir, self.limits.npz_limits())
+            _validated(root, self.worker.config.body_models, self.limits.npz_limits())
             folder = self.worker.job_dir(job_id)
             folder.mkdir()
             target = folder / UPLOADED_DATASET

@@ -64,7 +64,9 @@ class WorkerConfig:
     max_concurrent: int = 1      # training processes at once
     threads: int = 1             # torch / numba / BLAS threads per training process
     nice: int = 10               # CPU priority increment of a training process
-    body_model_dir: str | None = None  # None: the synthetic models from the cache
+    body_models: str | None = None  # the server setting body_models (None: resolved by
+    #                                  the training process: $TELESPLAT_BODY_MODELS, else the
+    #                                  synthetic family for a synthetic dataset)
     max_attempts: int = 3        # runs of one job (restarts and retries after a crash
     #                              included) before it is failed; a resume grants as many more
     poll_s: float = 0.2          # how often processes and cancels are checked
@@ -255,8 +257,8 @@ class Worker:
         cmd = [sys.executable, "-m", "server.jobs.run", job.id, "--db", str(self.db_path),
                "--job-dir", str(self.job_dir(job.id)), "--threads", str(self.config.threads),
                "--nice", str(self.config.nice), "--parent-pid", str(os.getpid())]
-        if self.config.body_model_dir is not None:
-            cmd += ["--body-model", str(self.config.body_model_dir)]
+        if self.config.body_models is not None:
+            cmd += ["--body-models", str(self.config.body_models)]
         return cmd
 
     def _env(self) -> dict[str, str]:

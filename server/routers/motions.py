@@ -59,6 +59,8 @@ def _rig(ctx: ServerContext, avatar_id: str) -> Rig:
 
 @router.get("/{name}", summary="A clip sampled for one avatar", response_model=MotionFrames,
             responses={404: {"description": "Unknown motion or avatar"},
+                       422: {"description": "The avatar's body model lacks a name the clip "
+                                            "uses (official models name no expressions)"},
                        403: {"description": "Another owner's avatar"}})
 def get_motion(name: str, ctx: Context, principal: StreamPrincipal,
                avatar: str = Query(description="avatar id whose rig samples the clip"),
@@ -72,7 +74,11 @@ def get_motion(name: str, ctx: Context, principal: StreamPrincipal,
     count = max(1, int(round(clip.duration * fps)) + 1)
     frames = []
     for i in range(count):
-        params = clip.sample(min(i / fps, clip.duration), rig)
+        try:
+            params = clip.sample(min(i / fps, clip.duration), rig)
+        except KeyError as exc:  # official model files name no expressions or gestures
+            raise HTTPException(422, f"motion {canonical!r} names what this avatar's body "
+                                     f"model does not: {exc.args[0]}") from None
         params.pop("betas", None)
         frames.append({"smplx": {k: v.tolist() for k, v in params.items()}})
     return MotionFrames(name=canonical, category=MOTIONS[canonical].category,

@@ -106,12 +106,20 @@ def write_params(frames: list[dict[str, np.ndarray]], path: Path) -> Path:
 
 
 def default_sequence_fit(fov_x_deg: float = 60.0, smoothing: bool = True,
-                         model_dir: Path | None = None) -> SequenceFit:
-    """A sequence fit on the synthetic avatar's body model (identity 0's shape)."""
-    from ...body.model_paths import synthetic_body_models
-    from ...gaussians.animate import synthetic_package
+                         body_models: str | Path | None = None) -> SequenceFit:
+    """A sequence fit on the body model that ``resolve_body_models`` finds (``body_models``,
+    then ``$TELESPLAT_BODY_MODELS``, else the synthetic family), with the shape of the family's
+    first identity where it has identities (the synthetic one), else the mean shape."""
+    from ...body.model_paths import resolve_body_models
+    from ...body.upper_body import UpperBodyModel
 
-    files = synthetic_body_models(model_dir)
-    package, model = synthetic_package(files.root, 0)
-    return SequenceFit(model, np.asarray(package.body.betas),
-                       SequenceFitConfig(fov_x_deg=fov_x_deg, smoothing=smoothing))
+    files = resolve_body_models(body_models)
+    files.require()
+    model = UpperBodyModel.load(files.smplx_npz, files.segmentation)
+    identities = files.identities()
+    if identities:
+        with np.load(identities[0]) as identity:
+            betas = np.asarray(identity["betas"], dtype=np.float64)
+    else:
+        betas = np.zeros(model.num_betas)
+    return SequenceFit(model, betas, SequenceFitConfig(fov_x_deg=fov_x_deg, smoothing=smoothing))
