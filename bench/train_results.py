@@ -54,6 +54,9 @@ def variants(base: TrainConfig) -> dict[str, tuple[TrainConfig, bool]]:
         "full": (base, True),
         "no_fusion": (replace(base, data=replace(base.data, fusion=False)), False),
         "no_finetune": (replace(base, finetune=replace(base.finetune, enabled=False)), True),
+        # the paper's fixed fine-tuning rates, against the rates scaled to the run
+        "finetune_fixed": (replace(base, finetune=replace(base.finetune, schedule="fixed")),
+                           True),
     }
 
 
@@ -216,6 +219,14 @@ def main() -> None:
     ap.add_argument("--curve-views", type=int, default=8)
     ap.add_argument("--eval-stride", type=int, default=5)
     ap.add_argument("--models", default="full,no_fusion,no_finetune")
+    ap.add_argument("--seed", type=int, default=None, help="training seed (view order)")
+    ap.add_argument("--target-size", type=int, default=None,
+                    help="train at this longest image side (px)")
+    ap.add_argument("--finetune-schedule", choices=["fixed", "budget"], default=None,
+                    help="fine-tuning rates: fixed (MVFGA's) or scaled to the iterations")
+    ap.add_argument("--train-only", action="store_true",
+                    help="export the avatars (and fine-tuned parameters) under --work; "
+                         "evaluate later (bench/noisy_results.py)")
     args = ap.parse_args()
     if args.merge:
         merge(args.merge, args.out)
@@ -233,18 +244,29 @@ def main() -> None:
     if args.iterations:
         base = replace(base, iterations=args.iterations,
                        lr=replace(base.lr, position_max_steps=args.iterations))
+    if args.seed is not None:
+        base = replace(base, seed=args.seed)
+    if args.target_size:
+        base = replace(base, data=replace(base.data, target_size=args.target_size))
+    if args.finetune_schedule:
+        base = replace(base, finetune=replace(base.finetune, schedule=args.finetune_schedule))
     args.out.mkdir(parents=True, exist_ok=True)
     curves, results = {}, {}
-    for name, (config, fusion) in variants(base).items():
-        if name not in args.models.split(","):
-            continue
+    chosen = variants(base)
+    for name in args.models.split(","):
+        config, fusion = chosen[name]
         final, curves[name] = train_with_curve(name, config, fusion, data, args.work,
                                                args.points, args.curve_views)
+        if args.train_only:
+            (args.out / f"{name}_curve.json").write_text(json.dumps(curves[name], indent=2))
+            continue
         results[name] = {}
         for protocol in ("novel-view", "self-reenactment"):
             results[name][protocol] = evaluate(
                 final, data, protocol, fusion=fusion, frame_stride=args.eval_stride,
                 out_dir=args.out / name / protocol, max_images=4)
+    if args.train_only:
+        return
     (args.out / "ablation.md").write_text(ablation_table(results) + "\n")
     (args.out / "results.json").write_text(json.dumps(
         {"ablation": ablation_json(results), "curves": curves, "preset": args.preset,

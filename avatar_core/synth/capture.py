@@ -13,13 +13,17 @@ PNG encoding release the GIL). The splits follow the paper's protocol:
 The parameters written are what a real studio's trackers would report (see
 :mod:`.trackers`): a body tracker's SMPL-X plus exact FLAME face and MANO hand parameters,
 which fusion turns back into the truth. ``trackers="exact"`` writes the true SMPL-X only.
+``tracker_noise`` adds tracker errors that fusion cannot remove (:class:`.trackers.TrackerNoise`);
+the true parameters are then also written, as ``sequences/<seq>/true_params.npz`` (SMPL-X
+keys; :func:`true_params_path`), so an evaluation can drive the avatar with the truth.
 """
 
 from __future__ import annotations
 
+import io
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -27,15 +31,18 @@ import numpy as np
 from ..body.model_paths import BodyModelFiles
 from ..body.skeleton import SMPLX_PART_NAMES, UPPER_BODY_PARTS
 from ..dataset.format import CameraSpec
+from ..dataset.imageio import write_atomic
 from ..dataset.writer import DatasetWriter
 from ..motion.library import motion_sequence
 from ..motion.rig import model_rig
 from .actor import Actor, ActorView
 from .model_writer import ensure_models
 from .studio import RigCamera, StudioConfig, studio_rig
-from .trackers import simulate_trackers
+from .trackers import TrackerNoise, simulate_trackers
 
-__all__ = ["CaptureSpec", "capture", "parse_sequences"]
+__all__ = ["CaptureSpec", "capture", "parse_sequences", "true_params_path"]
+
+TRUE_PARAMS_NPZ = "true_params.npz"
 
 Progress = Callable[[int, int], None]
 
@@ -56,6 +63,7 @@ class CaptureSpec:
     supersample: int = 2
     workers: int = 2
     trackers: str = "simulated"  # "simulated": body/face/hand tracker split; "exact": truth
+    tracker_noise: TrackerNoise = field(default_factory=TrackerNoise)  # simulated only
     seed: int = 0
     studio: StudioConfig = field(default_factory=StudioConfig)
 
@@ -71,6 +79,8 @@ class CaptureSpec:
                              f"{len(self.sequences)} sequences: keep one for training")
         if self.trackers not in ("simulated", "exact"):
             raise ValueError(f"trackers must be 'simulated' or 'exact', got {self.trackers!r}")
+        if self.tracker_noise.enabled and self.trackers != "simulated":
+            raise ValueError("tracker_noise needs trackers='simulated'")
         if self.workers < 1 or self.supersample < 1:
             raise ValueError("workers and supersample must be at least 1")
 
@@ -82,6 +92,11 @@ def parse_sequences(text: str) -> tuple[tuple[str, ...], ...]:
     if not out:
         raise ValueError("no motions given")
     return out
+
+
+def true_params_path(dataset_root: str | Path, sequence: str) -> Path:
+    """Where a noisy-tracker capture keeps a sequence's true SMPL-X parameters."""
+    return Path(dataset_root) / "sequences" / sequence / TRUE_PARAMS_NPZ
 
 
 def sequence_name(motions: Sequence[str]) -> str:
@@ -147,10 +162,17 @@ def _film(actor: Actor, motions: Sequence[str], seq: str, spec: CaptureSpec,
         per_frame.append(params)
     stacked = {k: np.stack([p[k] for p in per_frame]) for k in per_frame[0] if k != "betas"}
     stacked["betas"] = np.asarray(actor.betas, dtype=np.float64)
+    info = None
+    if spec.tracker_noise.enabled:
+        info = {"tracker_noise": asdict(spec.tracker_noise)}
+        buf = io.BytesIO()
+        np.savez(buf, **stacked)
+        write_atomic(true_params_path(writer.root, seq), buf.getvalue())
     if spec.trackers == "simulated":
         rng = np.random.default_rng([spec.seed, 2024, *seq.encode()])
-        stacked = simulate_trackers(stacked, actor.model.data.hand_components, rng=rng)
-    writer.write_params(seq, stacked)
+        stacked = simulate_trackers(stacked, actor.model.data.hand_components, rng=rng,
+                                    noise=spec.tracker_noise)
+    writer.write_params(seq, stacked, info)
 
 
 def _num_held(spec: CaptureSpec) -> int:

@@ -123,22 +123,64 @@ class DensifyConfig:
                  "densify.max_gaussians", "must be >= 1", self.max_gaussians)
 
 
+FINETUNE_SCHEDULES = ("fixed", "budget")
+
+
 @dataclass(frozen=True)
 class FineTuneConfig:
-    """Per-frame SMPL-X deltas optimised with the Gaussians (MVFGA's rates)."""
+    """Per-frame SMPL-X deltas optimised with the Gaussians.
+
+    ``schedule = "fixed"``: the rates below throughout (MVFGA's; they assume ~600k
+    iterations). ``"budget"``: the rates follow from the run's length instead (see
+    :meth:`lrs_at`): Adam moves a parameter by about its rate per update, and a frame's delta
+    is updated only when one of its views is drawn, ``iterations / frames`` times in all, so
+    each rate is set so that its delta can travel ``reach_*`` over the run: nothing for the
+    first ``start`` of the run (the Gaussians settle first), then decaying log-linearly to
+    ``final`` x the first rate at the end."""
 
     enabled: bool = True
     transl: float = DEFAULT_PARAM_LRS["transl"]
     expression: float = DEFAULT_PARAM_LRS["expression"]
     body_pose: float = DEFAULT_PARAM_LRS["body_pose"]
+    schedule: str = "fixed"
+    reach_transl: float = 0.01          # m
+    reach_expression: float = 0.3       # expression units (the library's reach about 1)
+    reach_body_pose_deg: float = 5.0    # per axis
+    start: float = 0.2                  # fraction of the run before the deltas move
+    final: float = 0.1                  # last rate / first rate
 
     def lrs(self) -> dict[str, float]:
         return {"transl": self.transl, "expression": self.expression,
                 "body_pose": self.body_pose}
 
+    def reach(self) -> dict[str, float]:
+        return {"transl": self.reach_transl, "expression": self.reach_expression,
+                "body_pose": math.radians(self.reach_body_pose_deg)}
+
+    def lrs_at(self, iteration: int, iterations: int, frames: int) -> dict[str, float]:
+        """Rates at ``iteration`` (1-based) of a run of ``iterations`` over ``frames``
+        training frames (all sequences together)."""
+        if self.schedule == "fixed":
+            return self.lrs()
+        if frames < 1 or iterations < 1:
+            raise ValueError(f"frames and iterations must be >= 1, got {frames}, {iterations}")
+        first = math.floor(self.start * iterations)
+        if iteration <= first:
+            return dict.fromkeys(self.lrs(), 0.0)
+        active = iterations - first
+        t = min((iteration - first - 1) / max(active - 1, 1), 1.0)
+        # mean of final**t over t in [0, 1]: the sum of the rates is reach
+        mean = 1.0 if self.final == 1 else (1 - self.final) / -math.log(self.final)
+        updates = max(active / frames, 1.0)
+        return {k: r / (updates * mean) * self.final ** t for k, r in self.reach().items()}
+
     def __post_init__(self) -> None:
-        for name, v in self.lrs().items():
+        for name, v in (*self.lrs().items(), *self.reach().items()):
             _require(math.isfinite(v) and v >= 0, f"finetune.{name}", "must be >= 0", v)
+        _require(self.schedule in FINETUNE_SCHEDULES, "finetune.schedule",
+                 f"must be one of {list(FINETUNE_SCHEDULES)}", self.schedule)
+        _require(0 <= self.start < 1, "finetune.start", "must be in [0, 1)", self.start)
+        _require(0 < self.final <= 1, "finetune.final", "must be in (0, 1]", self.final)
 
 
 @dataclass(frozen=True)

@@ -181,6 +181,7 @@ class Trainer:
         self.faces = self.body.model.faces  # [F, 3]
         self.views = TrainingViews(self.dataset, config.data, self.device)
         self.sequences = list(dict.fromkeys(k.sequence for k in self.views.keys))
+        self.num_frames = len({(k.sequence, k.frame) for k in self.views.keys})
         self.fused = False
         self.params = self._sequence_tensors()
         cams = {k.camera for k in self.views.keys}
@@ -265,6 +266,14 @@ class Trainer:
         rates = self.config.finetune.lrs()
         return make_param_optimizer(named, {n: rates[n.rsplit("/", 1)[1]] for n in named},
                                     enabled=bool(named))
+
+    def _set_finetune_lrs(self, it: int) -> None:
+        """The fine-tuning rates of this iteration (FineTuneConfig.lrs_at)."""
+        if self.param_optimizer is None:
+            return
+        rates = self.config.finetune.lrs_at(it, self.config.iterations, self.num_frames)
+        for group in self.param_optimizer.param_groups:
+            group["lr"] = rates[group["name"].rsplit("/", 1)[1]]
 
     def _projected_colors(self) -> np.ndarray:
         """[F, 3] initial colours (see the module docstring)."""
@@ -416,6 +425,7 @@ class Trainer:
         self.iteration = it = self.iteration + 1
         ph.start()
         set_position_lr(self.optimizer, cfg.lr, it)
+        self._set_finetune_lrs(it)
         view = self.views.get(self._next_view())
         self._posed_k = None
         ph.mark("data")
