@@ -280,6 +280,13 @@ class RoomWelcome(_Message):
     seat: SeatIndex | None = None  # the seat performed (None: watching)
 
 
+class EncodersInfo(_Message):
+    """The server's encoders: on a GPU server nvJPEG and NVENC, else the CPU ones."""
+
+    jpeg: Literal["nvjpeg", "opencv"]
+    h264: Literal["h264_nvenc", "libx264"]
+
+
 class Welcome(_Message):
     type: Literal["welcome"] = "welcome"
     version: int = PROTOCOL_VERSION
@@ -290,6 +297,7 @@ class Welcome(_Message):
     codecs: list[str]
     request: Request  # the effective render request (defaults filled in)
     room: RoomWelcome | None = None
+    encoders: EncodersInfo | None = None  # what encodes the frames (servers that report it)
 
 
 class SeatPresence(_Message):

@@ -25,6 +25,7 @@ from .auth import LOCAL_SUBJECT, SCOPES, Principal, TokenStore
 from .config import Settings
 from .context import ServerContext, SessionSlots
 from .drive import DriveState
+from .encoders import select_encoders
 from .logsafe import install_log_redaction
 from .metrics import ServerMetrics
 from .private import private_dir
@@ -77,6 +78,8 @@ def open_startup_room(ctx: ServerContext) -> None:
 
 def _start(ctx: ServerContext) -> None:
     s = ctx.settings
+    chosen = select_encoders(s.encoders)  # probes the GPU encoders once
+    log.info("encoders: JPEG %s, H.264 %s", chosen.jpeg, chosen.h264)
     rec = ctx.registry.register_demo(s.demo_avatar)
     if rec is not None:
         log.info("demo avatar %r (%s, %d Gaussians)", rec.id, rec.name, rec.num_gaussians)

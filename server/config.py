@@ -114,6 +114,11 @@ class Settings(BaseModel):
                                         "in one rasterizer call while they wait together; "
                                         "1: no batching; None (auto): 32 when renders go to "
                                         "gsplat (CUDA), else 1 (the cpu kernels gain nothing).")
+    encoders: Literal["auto", "cpu"] = Field(
+        "auto", description="Frame encoders. auto: nvJPEG (torchvision on CUDA) and NVENC "
+                            "(PyAV's h264_nvenc) where a probe at start-up shows they work, "
+                            "else OpenCV JPEG and libx264; cpu: always the CPU ones. The "
+                            "choice is reported in welcome.encoders.")
     track_threads: int = Field(1, ge=1, le=64, description="Webcam-tracking worker threads "
                                                            "shared by all sessions.")
     torch_threads: int = Field(

@@ -2,15 +2,27 @@
 and H.264 through PyAV (one stateful encoder per session, re-created on a size change).
 
 Inputs are uint8 RGB ``[H, W, 3]`` (alpha ``[H, W]`` uint8, depth ``[H, W]`` float metres).
+
+On a GPU server two encoders move to the device (:func:`select_encoders`, once per process,
+reported in ``welcome.encoders``): JPEG through nvJPEG (torchvision's ``encode_jpeg`` of a CUDA
+tensor: the picture never crosses to the host, only its bytes), and H.264 through NVENC
+(PyAV's ``h264_nvenc``). Each is probed by using it once; where a probe fails, or with the
+setting ``encoders = "cpu"``, OpenCV's JPEG and libx264 are used.
 """
 
 from __future__ import annotations
 
+import functools
+import threading
+from dataclasses import dataclass
 from fractions import Fraction
+from typing import Any, Literal
 
 import av
 import cv2
 import numpy as np
+
+from protocol.messages import EncodersInfo
 
 DEPTH_MAX_MM = 65535  # 65.535 m: deeper is clipped; 0 means no surface
 
@@ -19,7 +31,113 @@ class EncodeError(RuntimeError):
     pass
 
 
-def encode_jpeg(rgb: np.ndarray, quality: int) -> bytes:
+# -- which encoders: probed once, chosen from the probes' answers ----------------------------
+
+EncoderPreference = Literal["auto", "cpu"]
+JPEG_GPU, JPEG_CPU = "nvjpeg", "opencv"
+H264_GPU, H264_CPU = "h264_nvenc", "libx264"
+
+
+@dataclass(frozen=True)
+class EncoderChoice:
+    jpeg: str = JPEG_CPU   # "nvjpeg" | "opencv"
+    h264: str = H264_CPU   # "h264_nvenc" | "libx264"
+
+    def as_dict(self) -> dict[str, str]:
+        return {"jpeg": self.jpeg, "h264": self.h264}
+
+
+def choose_encoders(prefer: EncoderPreference, *, nvjpeg: bool, nvenc: bool) -> EncoderChoice:
+    """The encoders to use, from the probes' answers (``nvjpeg``, ``nvenc``: it works here)."""
+    if prefer not in ("auto", "cpu"):
+        raise ValueError(f"encoders must be 'auto' or 'cpu', got {prefer!r}")
+    gpu = prefer == "auto"
+    return EncoderChoice(jpeg=JPEG_GPU if gpu and nvjpeg else JPEG_CPU,
+                         h264=H264_GPU if gpu and nvenc else H264_CPU)
+
+
+@functools.cache
+def probe_nvjpeg() -> bool:
+    """torchvision with CUDA installed and one tiny JPEG encoded on the GPU (cached)."""
+    try:
+        import torch
+        import torchvision.io
+
+        if not torch.cuda.is_available():
+            return False
+        img = torch.zeros(3, 16, 16, dtype=torch.uint8, device="cuda")
+        data = torchvision.io.encode_jpeg(img, quality=80)
+        return bool(data.numel() > 0)
+    except Exception:  # noqa: BLE001 - not importable, no CUDA build, no nvJPEG: the CPU one
+        return False
+
+
+@functools.cache
+def probe_nvenc() -> bool:
+    """PyAV lists ``h264_nvenc`` and one tiny frame encodes with it (cached: PyAV's FFmpeg
+    lists NVENC even where no NVIDIA driver is, and only opening it tells)."""
+    if H264_GPU not in av.codecs_available:
+        return False
+    try:
+        enc = H264Encoder(64, 64, codec=H264_GPU)
+        try:
+            enc.encode(np.zeros((64, 64, 3), np.uint8))
+        finally:
+            enc.close()
+        return True
+    except Exception:  # noqa: BLE001 - no driver, no device, a busy one: libx264
+        return False
+
+
+_active = EncoderChoice()
+_active_lock = threading.Lock()
+
+
+def select_encoders(prefer: EncoderPreference = "auto") -> EncoderChoice:
+    """Probe (once per process) and make the choice the process's encoders (the server calls
+    this at start-up)."""
+    global _active
+    probed = prefer == "auto"
+    choice = choose_encoders(prefer, nvjpeg=probed and probe_nvjpeg(),
+                             nvenc=probed and probe_nvenc())
+    with _active_lock:
+        _active = choice
+    return choice
+
+
+def active_encoders() -> EncoderChoice:
+    """The encoders in use (OpenCV JPEG and libx264 until :func:`select_encoders`)."""
+    return _active
+
+
+def encoders_info() -> EncodersInfo:
+    """The active choice as ``welcome.encoders``."""
+    return EncodersInfo(**active_encoders().as_dict())
+
+
+def frame_rgb(rgb: Any, codec: str, alpha: bool) -> Any:
+    """The picture as the encoder of ``codec`` takes it, from a float tensor [H, W, 3]: a
+    uint8 CUDA tensor where nvJPEG encodes it (no host copy of the image), else uint8 numpy."""
+    from avatar_core.render.types import to_uint8
+
+    if (codec == "jpeg" and not alpha and rgb.is_cuda
+            and active_encoders().jpeg == JPEG_GPU):
+        return (rgb.clamp(0, 1) * 255).round().byte()
+    return to_uint8(rgb)
+
+
+def _encode_jpeg_gpu(rgb: Any, quality: int) -> bytes:
+    """uint8 CUDA tensor [H, W, 3] -> JPEG bytes, encoded by nvJPEG."""
+    import torchvision.io
+
+    data = torchvision.io.encode_jpeg(rgb.permute(2, 0, 1).contiguous(), quality=int(quality))
+    return data.cpu().numpy().tobytes()
+
+
+def encode_jpeg(rgb: Any, quality: int) -> bytes:
+    """uint8 RGB [H, W, 3]: numpy (OpenCV) or a CUDA tensor from :func:`frame_rgb` (nvJPEG)."""
+    if not isinstance(rgb, np.ndarray):
+        return _encode_jpeg_gpu(rgb, quality)
     ok, buf = cv2.imencode(".jpg", rgb[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
     if not ok:
         raise EncodeError("JPEG encoding failed")
@@ -61,19 +179,27 @@ class H264Encoder:
     """
 
     def __init__(self, width: int, height: int, *, fps: float = 30.0, gop: int = 60,
-                 crf: int = 28) -> None:
+                 crf: int = 28, codec: str | None = None) -> None:
         if width % 2 or height % 2:
             raise EncodeError(f"H.264 needs even frame sizes, got {width}x{height}")
         self.width, self.height, self.gop = width, height, gop
-        self._ctx = av.CodecContext.create("libx264", "w")
+        self.codec = active_encoders().h264 if codec is None else codec
+        if self.codec not in (H264_CPU, H264_GPU):
+            raise EncodeError(f"unknown H.264 encoder {self.codec!r}")
+        self._ctx = av.CodecContext.create(self.codec, "w")
         self._ctx.width, self._ctx.height = width, height
         self._ctx.pix_fmt = "yuv420p"
         self._ctx.time_base = Fraction(1, 1000)
         self._ctx.framerate = Fraction(round(fps * 1000), 1000)
         self._ctx.gop_size = gop
         self._ctx.max_b_frames = 0
-        self._ctx.options = {"preset": "ultrafast", "tune": "zerolatency", "crf": str(crf),
-                             "repeat-headers": "1"}  # SPS/PPS on every keyframe
+        if self.codec == H264_CPU:
+            self._ctx.options = {"preset": "ultrafast", "tune": "zerolatency", "crf": str(crf),
+                                 "repeat-headers": "1"}  # SPS/PPS on every keyframe
+        else:  # NVENC: lowest latency, no lookahead; forced keyframes are IDR (with SPS/PPS)
+            self._ctx.options = {"preset": "p1", "tune": "ull", "zerolatency": "1",
+                                 "delay": "0", "forced-idr": "1", "rc": "constqp",
+                                 "qp": str(crf)}
         self._ctx.open()
         self._count = 0
         self._force = True

@@ -23,7 +23,7 @@ from avatar_core.render.types import RenderRequest, to_uint8
 from protocol import Request, Timings, View
 
 from .drive import DriveState, drive_shapes
-from .encoders import H264Encoder, encode_depth_png, encode_jpeg, encode_png
+from .encoders import H264Encoder, encode_depth_png, encode_jpeg, encode_png, frame_rgb
 
 
 @dataclass(frozen=True)
@@ -138,7 +138,7 @@ class SessionRenderer:
             out = rasterize(posed.gaussians, cam, RenderRequest(
                 outputs=outputs, background=tuple(req.background), sh_degree=req.sh_degree,
                 budget=budget, backend=self.backend))
-            rgb = to_uint8(out.rgb)  # [H, W, 3]
+            rgb = frame_rgb(out.rgb, req.codec, "alpha" in req.outputs)  # [H, W, 3] uint8
             alpha = None if out.alpha is None else to_uint8(out.alpha)  # [H, W]
             depth = None if out.depth is None else out.depth.cpu().numpy()  # [H, W] metres
         t2 = time.perf_counter()

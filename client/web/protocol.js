@@ -590,6 +590,34 @@ export const SCHEMA_DEFS = Object.freeze({
     "title": "Drive",
     "type": "object"
   },
+  "EncodersInfo": {
+    "additionalProperties": false,
+    "description": "The server's encoders: on a GPU server nvJPEG and NVENC, else the CPU ones.",
+    "properties": {
+      "h264": {
+        "enum": [
+          "h264_nvenc",
+          "libx264"
+        ],
+        "title": "H264",
+        "type": "string"
+      },
+      "jpeg": {
+        "enum": [
+          "nvjpeg",
+          "opencv"
+        ],
+        "title": "Jpeg",
+        "type": "string"
+      }
+    },
+    "required": [
+      "jpeg",
+      "h264"
+    ],
+    "title": "EncodersInfo",
+    "type": "object"
+  },
   "Error": {
     "additionalProperties": false,
     "properties": {
@@ -1472,6 +1500,17 @@ export const SCHEMA_DEFS = Object.freeze({
         },
         "title": "Codecs",
         "type": "array"
+      },
+      "encoders": {
+        "anyOf": [
+          {
+            "$ref": "#/$defs/EncodersInfo"
+          },
+          {
+            "type": "null"
+          }
+        ],
+        "default": null
       },
       "limits": {
         "$ref": "#/$defs/Limits"

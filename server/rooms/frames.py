@@ -37,6 +37,7 @@ from avatar_core.rotations import matrix_to_quaternion, quaternion_multiply
 from protocol import Timings
 
 from ..drive import DriveState, drive_shapes
+from ..encoders import frame_rgb
 from ..renderer import FrameJob, H264Stream, RenderedFrame, encode_outputs, view_camera
 from ..scheduler import RenderScheduler
 from ..view_batch import ViewBatches, batch_views
@@ -214,7 +215,7 @@ class RoomFrames:
                 sh_degree=min(req.sh_degree, gaussians.sh_degree), budget=budget,
                 backend=self.backend))
             c.renders += 1
-            rgb = to_uint8(out.rgb)
+            rgb = frame_rgb(out.rgb, req.codec, "alpha" in req.outputs)
             alpha = None if out.alpha is None else to_uint8(out.alpha)
             depth = None if out.depth is None else out.depth.cpu().numpy()
         t2 = time.perf_counter()
@@ -254,7 +255,9 @@ class RoomFrames:
                 backend=self.backend))
             c.renders += 1
             c.batched += len(jobs) if len(jobs) > 1 else 0
-            images = [(to_uint8(o.rgb), None if o.alpha is None else to_uint8(o.alpha),
+            alpha_asked = "alpha" in req.outputs
+            images = [(frame_rgb(o.rgb, req.codec, alpha_asked),
+                       None if o.alpha is None else to_uint8(o.alpha),
                        None if o.depth is None else o.depth.cpu().numpy()) for o in outs]
         t2 = time.perf_counter()
         frames = []

@@ -23,6 +23,7 @@ from protocol.messages import CODECS, Orbit
 
 from ..auth import Principal
 from ..context import ServerContext
+from ..encoders import encoders_info
 from ..handshake import (
     CLOSE_BUSY,
     CLOSE_FORBIDDEN,
@@ -181,7 +182,7 @@ async def _serve(ws: WebSocket, ctx: ServerContext, room: Room, role: str, seat:
                           metadata=record.metadata)
         await ws.send_bytes(encode(Welcome(
             session=participant.id, minor=PROTOCOL_MINOR, avatar=info, limits=s.limits,
-            codecs=list(CODECS), request=request,
+            codecs=list(CODECS), request=request, encoders=encoders_info(),
             room=RoomWelcome(id=room.id, name=room.name, role=role,
                              seat=seat if role == "perform" else None))))
         live.broadcast(live.presence("join", participant))

@@ -31,6 +31,7 @@ from protocol.messages import Orbit
 from ..auth import Principal
 from ..context import ServerContext
 from ..dependencies import Context, StreamPrincipal
+from ..encoders import encoders_info
 from ..handshake import (
     CLOSE_BUSY,
     CLOSE_FORBIDDEN,
@@ -152,7 +153,8 @@ async def _serve(ws: WebSocket, ctx: ServerContext, record: AvatarRecord) -> Non
     info = AvatarInfo(id=record.id, name=record.name, num_gaussians=record.num_gaussians,
                       sh_degree=record.sh_degree, owner=record.owner, metadata=record.metadata)
     await ws.send_bytes(encode(Welcome(session=session.id, avatar=info, limits=s.limits,
-                                       codecs=list(CODECS), request=request)))
+                                       codecs=list(CODECS), request=request,
+                                       encoders=encoders_info())))
     ctx.sessions[session.id] = session
     try:
         await session.run()
