@@ -17,6 +17,7 @@ import pytest
 
 from avatar_core.body.model_paths import BODY_MODELS_ENV
 from avatar_core.cli import build_parser
+from server.config import load_settings
 
 ROOT = Path(__file__).resolve().parent.parent
 DOCKER = ROOT / "docker"
@@ -152,6 +153,10 @@ def test_the_default_command_serves_with_health_check_and_volumes(path):
     assert _data_dir(args, df.env) in df.volumes
     assert df.env.get(BODY_MODELS_ENV) in df.volumes, \
         f"{BODY_MODELS_ENV} must point at a VOLUME (the body-model folder)"
+    settings = load_settings(environ=df.env)  # the image's TELESPLAT_* settings are valid
+    assert str(settings.body_models) == df.env[BODY_MODELS_ENV]
+    if path.name == "Dockerfile.cuda":
+        assert settings.backend == "gsplat"
 
 
 def _compose(path: Path) -> dict:
