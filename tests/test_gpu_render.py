@@ -78,6 +78,7 @@ def test_batched_gsplat_arguments_mask_each_camera():
     assert not masks[0, 1] and masks[1, 1]
     row = int(masks.any(0)[:1].sum())  # Gaussian 1's row in the union
     assert kw["opacities"][0, row] == 0 and kw["opacities"][1, row] > 0
+    assert torch.allclose(kw["means"][0, row], torch.tensor(front.center, dtype=torch.float32))
     # each entry keeps exactly what the single-camera mapping keeps
     from avatar_core.render.rasterize_gsplat import _apply_budget
 
@@ -89,6 +90,24 @@ def test_batched_gsplat_arguments_mask_each_camera():
         assert torch.equal(kw["means"][c][kept], one["means"])
         assert torch.equal(kw["colors"][c][kept], one["colors"])
         assert torch.equal(kw["viewmats"][c, 0], one["viewmats"][0])
+
+
+def test_masked_culling_keeps_the_picture():
+    """The training path's no-round-trip subset (culled Gaussians at the camera centre,
+    opacity 0) renders what the Gaussians themselves render."""
+    from avatar_core.render.rasterize_gsplat import _mask_culled
+
+    gs = random_scene(60, 5)
+    gs.means[:5, 2] = 3.0  # behind the camera
+    gs.scales[5] = 5.5e34  # a veil: culled
+    cam = look_at((0.0, 0.0, 2.5), (0.0, 0.0, 0.0), width=40, height=32, fov_y_deg=40.0)
+    masked, n = _mask_culled(gs, cam, RenderRequest())
+    ref = rasterize(gs, cam, RenderRequest(backend="torch", outputs=ALL))
+    assert int(n) == ref.stats["n_rendered"] and masked.means.shape == gs.means.shape
+    assert torch.isfinite(masked.scales).all() and (masked.opacities[:6] == 0).all()
+    out = rasterize(masked, cam, RenderRequest(backend="torch", outputs=ALL))
+    for name in ALL:
+        assert torch.allclose(getattr(out, name), getattr(ref, name), atol=1e-6), name
 
 
 def test_batched_gsplat_budget_is_per_camera():

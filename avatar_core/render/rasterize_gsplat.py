@@ -19,8 +19,9 @@ opacity-aware, per-axis radius. Pictures agree closely, not to float rounding.
 Several cameras (:func:`rasterize_gsplat_views`, behind ``render_views``): one gsplat call
 with one batch entry per camera (``viewmats [C, 1, 4, 4]``, ``Ks [C, 1, 3, 3]``) over the
 union of the Gaussians any camera keeps; a Gaussian that camera ``c`` does not keep (culled
-by our projection or dropped by the budget) gets opacity 0 in entry ``c``, which gsplat culls
-before binning it, so each picture is the single-camera one. Costs ``C`` copies of that union
+by our projection or dropped by the budget) sits at camera ``c``'s centre with opacity 0 in
+entry ``c``, which gsplat's near-plane test culls first, so each picture is the single-camera
+one. Costs ``C`` copies of that union
 on the device (gsplat makes the broadcast contiguous). All cameras must share one size.
 
 Pinned: the ``cuda`` extra's ``gsplat==1.5.3`` (batch dimensions on every argument).
@@ -105,17 +106,43 @@ def _apply_budget(gaussians: GaussianSet, camera: Camera,
     return sub, int(sel.numel())
 
 
+def _mask_culled(gaussians: GaussianSet, camera: Camera,
+                 request: RenderRequest) -> tuple[GaussianSet, torch.Tensor]:
+    """Every Gaussian, those our projection culls moved to the camera centre with opacity 0
+    (gsplat's first test, the near plane, drops them before any covariance arithmetic), and
+    the kept count as a 0-d device tensor: no ``nonzero``, no gather, no host round trip
+    (the training step on CUDA). Without a budget this keeps what :func:`_apply_budget`
+    keeps."""
+    device, dtype = gaussians.means.device, gaussians.means.dtype
+    viewmat, K = camera.to_torch(device, dtype)
+    with torch.no_grad():
+        p = project_gaussians(gaussians.means, gaussians.quats, gaussians.scales,
+                              gaussians.opacities, viewmat, K, camera.width, camera.height,
+                              antialiased=request.antialiased, validate=False)
+    keep = p.valid[:, None]  # [N, 1]
+    centre = torch.as_tensor(camera.center, dtype=dtype, device=device)
+    return GaussianSet(
+        torch.where(keep, gaussians.means, centre), gaussians.quats,
+        torch.where(keep, gaussians.scales, torch.ones_like(gaussians.scales)),
+        gaussians.opacities * p.valid.to(dtype), gaussians.sh), p.valid.sum()
+
+
 def rasterize_gsplat(gaussians: GaussianSet, camera: Camera, request: RenderRequest,
                      sh_degree: int, t_start: float) -> RenderOutput:
-    """Render with gsplat (called by :func:`avatar_core.render.rasterize`)."""
+    """Render with gsplat (called by :func:`avatar_core.render.rasterize`). Without a budget
+    no host round trip: ``stats["n_rendered"]`` is then a 0-d device tensor (``int()`` it)."""
     from gsplat import rasterization
 
     stats: dict = {"backend": "gsplat", "n_gaussians": gaussians.num}
     # always through our projection: gsplat never sees a Gaussian that it culls
-    gaussians, stats["n_rendered"] = _apply_budget(gaussians, camera, request)
-    if stats["n_rendered"] == 0:
-        return background_output(request, camera.width, camera.height, gaussians.means.dtype,
-                                 gaussians.means.device, stats, t_start)
+    if request.budget is None:
+        gaussians, stats["n_rendered"] = _mask_culled(gaussians, camera, request)
+    else:
+        gaussians, stats["n_rendered"] = _apply_budget(gaussians, camera, request)
+        if stats["n_rendered"] == 0:
+            return background_output(request, camera.width, camera.height,
+                                     gaussians.means.dtype, gaussians.means.device, stats,
+                                     t_start)
     outputs = set(request.outputs)
     t0 = time.perf_counter()
     colors, alphas, _ = rasterization(**gsplat_arguments(gaussians, camera, request,
@@ -166,11 +193,17 @@ def gsplat_views_arguments(gaussians: GaussianSet, cameras: Sequence[Camera],
                     g.sh[union]), cameras[0], request, sh_degree)
     device, dtype = g.means.device, g.means.dtype
     views = [cam.to_torch(device, dtype) for cam in cameras]
+    keep = masks[:, union]  # [C, M]
+    # what camera c does not keep sits at its centre: culled at gsplat's near-plane test,
+    # before any arithmetic on it (see _mask_culled)
+    centres = torch.stack([torch.as_tensor(cam.center, dtype=dtype, device=device)
+                           for cam in cameras])[:, None]  # [C, 1, 3]
     kw = dict(single)
     kw.update(
-        means=single["means"].expand(C, M, 3), quats=single["quats"].expand(C, M, 4),
-        scales=single["scales"].expand(C, M, 3),
-        opacities=single["opacities"] * masks[:, union].to(dtype),  # [C, M]
+        means=torch.where(keep[..., None], single["means"], centres),  # [C, M, 3]
+        quats=single["quats"].expand(C, M, 4),
+        scales=torch.where(keep[..., None], single["scales"], 1.0),  # [C, M, 3]
+        opacities=single["opacities"] * keep.to(dtype),  # [C, M]
         colors=single["colors"].expand(C, *single["colors"].shape),  # [C, M, K, 3]
         viewmats=torch.stack([v for v, _ in views])[:, None],  # [C, 1, 4, 4]
         Ks=torch.stack([k for _, k in views])[:, None],  # [C, 1, 3, 3]
