@@ -31,8 +31,9 @@ from ...body.skeleton import JOINT, LEFT_HAND_JOINTS, RIGHT_HAND_JOINTS, SMPLX_J
 from . import correspondence as cor
 from .camera import MIN_DEPTH_M, WebcamCamera, project_points
 from .keypoints import BodyKeypoints
-from .kinematics import KeypointKinematics
+from .kinematics import KeypointKinematics, rodrigues_and_left_jacobian
 from .observations import Observations
+from .palm import PALM_JOINTS, PALM_LANDMARKS, axis_angle, palm_rotation, rotation_angle_deg
 
 # Body joints the fit moves (the rest of body_pose, i.e. the legs, stays 0).
 FREE_BODY_JOINTS = ("spine1", "spine2", "spine3", "neck", "left_collar", "right_collar", "head",
@@ -103,6 +104,12 @@ class FitConfig:
     # The same for the face's static landmarks against the nose tip: it pins the head's
     # pitch, which the 2D landmarks leave loose (docs/tracking.md: head 7.8 -> 4.8 deg).
     face_depth_weight: float = 0.3
+    # A fitted wrist farther than this (deg) from the palm's own rotation (`palm.py`: Kabsch
+    # of the palm landmarks with their z) is fitted again from that rotation, and the lower
+    # cost kept: it undoes palm / back flips the local steps cannot leave (docs/tracking.md).
+    # 180 or more: off.
+    palm_retry_deg: float = 60.0
+    palm_retry_iterations: int = 8  # Levenberg-Marquardt iterations of such a retry
     dtype: torch.dtype = torch.float64
 
 
@@ -191,6 +198,15 @@ class FrameFitter:
         temporal = np.full(n, self.config.temporal_weight)
         temporal[lay["transl"][0]] *= 100.0  # 1 cm weighs as 0.1 rad
         self.temporal_sqrt = np.sqrt(temporal)
+        # Per hand: (its rows, its wrist's body-variable columns, its hand-pose columns, the
+        # wrist's joint, the rest palm [5, 3] for `palm_rotation`).
+        self.palm_hands = []
+        for side, sl in (("left", cor.LEFT_HAND_SLICE), ("right", cor.RIGHT_HAND_SLICE)):
+            wrist_col = lay["body"][0].start + 3 * FREE_BODY_JOINTS.index(f"{side}_wrist")
+            rest = self.kinematics.j_shape[[JOINT[f"{side}_{n}"] for n in PALM_JOINTS]]
+            self.palm_hands.append((sl, np.arange(wrist_col, wrist_col + 3),
+                                    np.arange(n)[lay[f"{side}_hand_pose"][0]],
+                                    JOINT[f"{side}_wrist"], rest))
 
     # -- parameters <-> the free-variable vector ----------------------------------------------
 
@@ -396,10 +412,66 @@ class FrameFitter:
             x, np.ones(x.size, dtype=bool),
             self.config.warm_iterations if warm else self.config.cold_iterations,
             problem, weight, stats)
+        if self.config.palm_retry_deg < 180.0 and obs.depth is not None:
+            x = self._palm_retry(x, obs, problem, weight, stats)
         terms, proj = self._terms(x, problem, np.sqrt(weight), False)
         return FitResult(self.to_params(x), reprojection_errors(proj, obs),
                          sum(float(t.residuals @ t.residuals) for t in terms),
                          (time.perf_counter() - t0) * 1e3, stats)
+
+    def world_rotation(self, x: np.ndarray, joint: int) -> np.ndarray:
+        """[3, 3] world rotation of `joint` at the free variables x (its chain only)."""
+        pose = self.full_pose(x)
+        chain = []
+        while joint >= 0:
+            chain.append(joint)
+            joint = int(self.kinematics.parents[joint])
+        rot, _ = rodrigues_and_left_jacobian(pose[chain[::-1]])
+        out = np.eye(3)
+        for r in rot:
+            out = out @ r
+        return out
+
+    def robust_cost(self, x: np.ndarray, problem: _Problem, weight: np.ndarray) -> float:
+        """The objective at x with the pseudo-Huber weights taken at x itself."""
+        proj = self._data(x, problem.camera, False).pixels
+        err2 = ((np.nan_to_num(proj) - problem.target) ** 2).sum(-1)
+        sqrt_w = np.sqrt(weight / np.sqrt(1 + err2 / HUBER_PX ** 2))
+        terms, _ = self._terms(x, problem, sqrt_w, False)
+        return sum(float(t.residuals @ t.residuals) for t in terms)
+
+    def _palm_retry(self, x: np.ndarray, obs: Observations, problem: _Problem,
+                    weight: np.ndarray, stats: dict) -> np.ndarray:
+        """For each hand whose fitted wrist is more than `palm_retry_deg` from the palm's own
+        rotation (`palm_rotation`): fit again from that wrist rotation and the mean hand, and
+        keep whichever fit costs less."""
+        cost = None
+        for sl, wrist_cols, hand_cols, wrist, rest in self.palm_hands:
+            rows = sl.start + np.array(PALM_LANDMARKS)
+            if (weight[rows] <= 0).any():
+                continue
+            hand = np.concatenate([obs.pixels[sl], obs.depth[sl, None]], axis=1)
+            target = palm_rotation(hand, rest, HAND_Z_SCALE, problem.camera.focal,
+                                   problem.camera.center)
+            if target is None:
+                continue
+            if rotation_angle_deg(self.world_rotation(x, wrist), target) \
+                    <= self.config.palm_retry_deg:
+                continue
+            parent = self.world_rotation(x, int(self.kinematics.parents[wrist]))
+            trial = x.copy()
+            trial[wrist_cols] = axis_angle(parent.T @ target)
+            trial[hand_cols] = 0.0  # the fingers bent to fit the other side start over
+            trial = self._levenberg_marquardt(trial, np.ones(x.size, dtype=bool),
+                                              self.config.palm_retry_iterations, problem,
+                                              weight, stats)
+            cost = self.robust_cost(x, problem, weight) if cost is None else cost
+            trial_cost = self.robust_cost(trial, problem, weight)
+            stats["palm_retries"] = stats.get("palm_retries", 0) + 1
+            if trial_cost < cost:
+                x, cost = trial, trial_cost
+                stats["palm_kept"] = stats.get("palm_kept", 0) + 1
+        return x
 
     def _depth_pairs(self, obs: Observations, weight: np.ndarray):
         """(keypoint, reference, target, sqrt weight) rows of the relative-depth term: each
