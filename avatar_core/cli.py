@@ -62,6 +62,7 @@ def _render(args: argparse.Namespace) -> int:
 
 def _capture(args: argparse.Namespace) -> int:
     from .synth.capture import CaptureSpec, capture, count_views, parse_sequences
+    from .synth.trackers import parse_tracker_noise
 
     cross = args.cross_identity
     if cross is None:
@@ -73,7 +74,7 @@ def _capture(args: argparse.Namespace) -> int:
         holdout_cameras=tuple(args.holdout_cameras.split(",")) if args.holdout_cameras else None,
         holdout_sequences=args.holdout_sequences, cross_identity=cross,
         supersample=args.supersample, workers=args.workers, seed=args.seed,
-        trackers=args.trackers)
+        trackers=args.trackers, tracker_noise=parse_tracker_noise(args.tracker_noise))
     with tqdm(total=count_views(spec), desc="capturing", unit="view") as bar:
         out = capture(args.out, spec, model_dir=args.models,
                       progress=lambda i, n: bar.update(i - bar.n))
@@ -99,6 +100,18 @@ def _motion_strip(args: argparse.Namespace) -> int:
 def _eval(args: argparse.Namespace) -> int:
     from .metrics.evaluate import evaluate
     from .metrics.report import result_markdown
+
+    if args.protocol == "webcam":
+        from .metrics.webcam import evaluate_webcam, webcam_markdown
+
+        with tqdm(desc="evaluating webcam", unit="frame") as bar:
+            result = evaluate_webcam(
+                args.avatar, args.dataset, max_frames=args.max_views,
+                frame_stride=args.frame_stride, size=args.size, out_dir=args.out,
+                model_dir=args.body_models,
+                progress=lambda i, n: (setattr(bar, "total", n), bar.update(i - bar.n)))
+        print(webcam_markdown(result).split("\n## ")[0].rstrip())
+        return 0
 
     with tqdm(desc=f"evaluating {args.protocol}", unit="view") as bar:
         def progress(i: int, n: int) -> None:
@@ -338,6 +351,10 @@ def build_parser() -> argparse.ArgumentParser:
     cap.add_argument("--trackers", choices=["simulated", "exact"], default="simulated",
                      help="simulated: body-tracker SMPL-X + exact FLAME/MANO (as a real "
                           "studio); exact: the true SMPL-X only")
+    cap.add_argument("--tracker-noise", default="",
+                     help="tracker errors that survive fusion: 'studio' (the noisy-tracker "
+                          "benchmark's), NAME=VALUE,... (TrackerNoise fields) or both: "
+                          "'studio,hand_swap_frames=0'; default none")
     cap.add_argument("--supersample", type=int, default=2)
     cap.add_argument("--workers", type=int, default=2)
     cap.add_argument("--seed", type=int, default=0)
@@ -392,7 +409,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("avatar", help="avatar package (folder or .zip) or synthetic[:IDENTITY]")
     ev.add_argument("dataset", type=Path, help="dataset folder")
     ev.add_argument("--protocol", required=True,
-                    choices=["self-reenactment", "novel-view", "cross-identity"])
+                    choices=["self-reenactment", "novel-view", "cross-identity", "webcam"])
     ev.add_argument("--out", type=Path, default=None,
                     help="folder for metrics.json, metrics.md and images/")
     ev.add_argument("--no-fusion", action="store_true",

@@ -247,6 +247,8 @@ class _Run:
     lpips_fn: Callable[..., torch.Tensor] | None
     fusion_models: FusionModels       # the avatar's body model and its MANO models
     warnings: list[str]
+    drive: Mapping[str, Mapping[str, np.ndarray]] | None = None  # per sequence, [T, ...]
+    truth: Mapping[str, Mapping[str, np.ndarray]] | None = None
 
     @property
     def avatar_betas(self) -> np.ndarray:
@@ -271,9 +273,17 @@ def _sequence_data(run: _Run, seq: str, frames: list[int]) -> _SequenceData:
     _check_betas(run, seq, raw)
     model = run.loaded.animator.body_model
     n = run.src.sequences[seq]
-    truth_all, fused = fuse_sequence(raw, n, run.fusion_models, strict=True)
+    fused_all, fused = fuse_sequence(raw, n, run.fusion_models, strict=True)
+    truth_all = fused_all
+    if run.truth is not None and seq in run.truth:
+        truth_all = fuse_sequence(run.truth[seq], n, None)[0]
     truth = _rows(truth_all, frames)
-    driven = truth if run.fusion else _rows(fuse_sequence(raw, n, None)[0], frames)
+    if run.drive is not None and seq in run.drive:
+        driven = _rows(fuse_sequence(run.drive[seq], n, None)[0], frames)
+    elif run.fusion:
+        driven = truth if truth_all is fused_all else _rows(fused_all, frames)
+    else:
+        driven = _rows(fuse_sequence(raw, n, None)[0], frames)
     if run.cross:  # this avatar's body, the driver's motion
         betas = np.repeat(run.avatar_betas[None], len(frames), axis=0)  # [F, B]
         driven = {**driven, "betas": betas}
@@ -333,14 +343,19 @@ def evaluate(avatar: str | Path | LoadedAvatar, dataset: str | Path | Dataset, p
              *, fusion: bool = True, max_views: int | None = None, frame_stride: int = 1,
              out_dir: str | Path | None = None, size: int | None = None,
              progress: Progress | None = None, model_dir: Path | None = None,
-             max_images: int = 12, budget: int | float | None = None) -> EvalResult:
+             max_images: int = 12, budget: int | float | None = None,
+             drive: Mapping[str, Mapping[str, np.ndarray]] | None = None,
+             truth: Mapping[str, Mapping[str, np.ndarray]] | None = None) -> EvalResult:
     """Evaluate an avatar (package path, ``synthetic[:I]`` or a LoadedAvatar) on the split of
     ``protocol`` (see the module docstring). Views are the split's in dataset order (sequence,
     frame, camera), every ``frame_stride``-th frame, the first ``max_views`` of them; images
     are rendered at width ``size`` (None: the dataset's). With ``out_dir``, writes
     ``metrics.json``, ``metrics.md`` and ``images/*.png`` (at most ``max_images``).
     ``budget``: render only the K (or that fraction of the visible) most important Gaussians
-    (:class:`RenderRequest`), for accuracy-against-render-time curves."""
+    (:class:`RenderRequest`), for accuracy-against-render-time curves. ``drive`` / ``truth``:
+    per-sequence SMPL-X arrays [T, ...] that drive the avatar (e.g. the fine-tuned ones) /
+    are the true body for AKD (e.g. a noisy-tracker capture's truth), instead of the
+    dataset's (fused) parameters, for the sequences they name."""
     if frame_stride < 1 or (max_views is not None and max_views < 1) or max_images < 0:
         raise ValueError("frame_stride and max_views must be at least 1, max_images >= 0")
     protocol_split(protocol)  # the cheap checks first: before anything is loaded
@@ -362,7 +377,8 @@ def evaluate(avatar: str | Path | LoadedAvatar, dataset: str | Path | Dataset, p
     run = _Run(loaded, src, cross, fusion, frame_stride, size,
                RenderRequest(background=estimate_background(first), budget=budget),
                None if cross or lpips_reason else lpips_metric(),
-               FusionModels(loaded.animator.body_model, mano_models(loaded)), [])
+               FusionModels(loaded.animator.body_model, mano_models(loaded)), [], drive,
+               truth)
     mismatch = _seed_mismatch(ds.meta["body_model"].get("source", ""), loaded.package.body.model)
     if mismatch:
         _warn(mismatch, run.warnings)

@@ -33,6 +33,7 @@ from ..body.skeleton import SMPLX_PART_NAMES, UPPER_BODY_PARTS
 from ..dataset.format import CameraSpec
 from ..dataset.imageio import write_atomic
 from ..dataset.writer import DatasetWriter
+from ..metrics.webcam import true_params_path
 from ..motion.library import motion_sequence
 from ..motion.rig import model_rig
 from .actor import Actor, ActorView
@@ -42,7 +43,6 @@ from .trackers import TrackerNoise, simulate_trackers
 
 __all__ = ["CaptureSpec", "capture", "parse_sequences", "true_params_path"]
 
-TRUE_PARAMS_NPZ = "true_params.npz"
 
 Progress = Callable[[int, int], None]
 
@@ -92,11 +92,6 @@ def parse_sequences(text: str) -> tuple[tuple[str, ...], ...]:
     if not out:
         raise ValueError("no motions given")
     return out
-
-
-def true_params_path(dataset_root: str | Path, sequence: str) -> Path:
-    """Where a noisy-tracker capture keeps a sequence's true SMPL-X parameters."""
-    return Path(dataset_root) / "sequences" / sequence / TRUE_PARAMS_NPZ
 
 
 def sequence_name(motions: Sequence[str]) -> str:

@@ -87,13 +87,15 @@ class TrackerNoise:
         renders (docs/tracking.md, nine clips: head 4.8 deg, jaw 4.3 deg, elbow flexion 18 deg,
         wrists 44 deg) is what one camera gives; a studio fits with many cameras, so the
         per-frame figures here are about half of those for the face (jaw 2 deg, expression
-        0.1 of the library's range) and a fifth for the body (3 deg per axis on the joints
-        fusion keeps, 1 frame of lag: a 30 fps tracker with temporal smoothing). Handedness
+        0.1 of the library's range) and less for the body: 1 deg per axis on each of the nine
+        joints fusion keeps, which the chain from spine to elbow adds up to ~3 cm at the
+        hands (the order of multi-view markerless body trackers' joint errors), and 1 frame
+        of lag (a 30 fps tracker with temporal smoothing). Handedness
         swaps and lost hands are what MediaPipe-style hand trackers do on crossing or
         occluded hands (2 swapped and 3 lost frames a take); the calibration error (0.5 deg,
         5 mm) is the order a checkerboard calibration leaves on a studio rig. These are
         chosen figures of that order, not a fit to any one published evaluation."""
-        return cls(expression_std=0.1, jaw_deg=2.0, body_deg=3.0, body_lag_frames=1,
+        return cls(expression_std=0.1, jaw_deg=2.0, body_deg=1.0, body_lag_frames=1,
                    hand_swap_frames=2, hand_lost_frames=3, calibration_deg=0.5,
                    calibration_mm=5.0)
 

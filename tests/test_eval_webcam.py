@@ -1,0 +1,123 @@
+"""The webcam protocol (`telesplat eval --protocol webcam`) end to end on a tiny avatar and a
+tiny noisy-tracker capture: the live tracker and fit on the front camera's frames, scored at a
+second camera beside the true parameters and the simulated trackers + fusion."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from avatar_core.body.model_paths import BodyModelFiles
+from avatar_core.cli import main
+from avatar_core.dataset import load_dataset
+from avatar_core.gaussians.animate import AvatarAnimator, synthetic_package
+from avatar_core.gaussians.loading import LoadedAvatar
+from avatar_core.gaussians.package import save_package
+from avatar_core.metrics.webcam import (
+    DRIVES,
+    METRICS,
+    STAGES,
+    evaluate_webcam,
+    webcam_cameras,
+)
+from avatar_core.synth.capture import CaptureSpec, capture
+from avatar_core.synth.trackers import TrackerNoise
+
+FRAMES, CAMERAS, SIZE = 3, 5, 96
+
+
+def models_available() -> bool:
+    try:
+        from avatar_core.track.models import MODELS, model_path
+
+        for name in MODELS:
+            model_path(name)
+    except Exception:  # noqa: BLE001 - any reason means: skip
+        return False
+    return True
+
+
+needs_models = pytest.mark.skipif(not models_available(),
+                                  reason="MediaPipe ONNX models not fetched "
+                                         "(telesplat track fetch-models)")
+
+
+@pytest.fixture(scope="module")
+def dataset_dir(tmp_path_factory, synthetic_files):
+    out = tmp_path_factory.mktemp("webcam") / "ds"
+    spec = CaptureSpec(sequences=(("smile",), ("thumbs_up",)), num_cameras=CAMERAS,
+                       resolution=SIZE, max_frames=FRAMES, supersample=1,
+                       tracker_noise=TrackerNoise(jaw_deg=8.0, body_deg=4.0))
+    return capture(out, spec, model_dir=synthetic_files.root)
+
+
+@pytest.fixture(scope="module")
+def avatar(synthetic_files):
+    package, model = synthetic_package(synthetic_files.root, 0)
+    animator = AvatarAnimator(model, package.avatar, betas=np.asarray(package.body.betas))
+    return LoadedAvatar(package, animator, BodyModelFiles(synthetic_files.root))
+
+
+@pytest.fixture(scope="module")
+def result(avatar, dataset_dir, tmp_path_factory):
+    out = tmp_path_factory.mktemp("webcam_out")
+    return evaluate_webcam(avatar, dataset_dir, out_dir=out, max_images=2), out
+
+
+@needs_models
+def test_the_table_has_three_finite_drives(result):
+    r, out = result
+    assert list(r.drives) == list(DRIVES)
+    for drive, row in r.drives.items():
+        assert set(row) == set(METRICS)
+        for key in METRICS:
+            assert row[key] is not None and math.isfinite(row[key]), (drive, key)
+        assert 0 < row["ssim"] <= 1 and row["psnr"] > 5
+    # AKD is against the true body: zero for it, not for the noisy trackers' parameters
+    assert r.drives["true"]["akd_torso"] == 0.0
+    assert r.drives["trackers"]["akd_torso"] > 0.0
+    assert r.truth == "true_params.npz" and r.num_frames == FRAMES
+    assert r.sequences == ["thumbs_up"]  # the held-out take
+
+
+@needs_models
+def test_latency_budget_and_files(result):
+    r, out = result
+    assert set(STAGES) <= set(r.latency_ms) and "live path" in r.latency_ms
+    for stage, v in r.latency_ms.items():
+        assert math.isfinite(v["median"]) and v["p95"] >= v["median"] >= 0, stage
+    assert set(r.seen) == {"face", "left_hand", "right_hand", "pose"}
+    assert all(0 <= v <= 1 for v in r.seen.values())
+    doc = json.loads((out / "webcam.json").read_text())
+    assert doc["webcam_camera"] == r.webcam_camera != r.score_camera
+    md = (out / "webcam.md").read_text()
+    assert "| webcam tracking (live config) |" in md and "| live path |" in md
+    assert len(r.images) == 2 and all((out / p).is_file() for p in r.images)
+
+
+@needs_models
+def test_cli_runs_the_webcam_protocol(avatar, dataset_dir, synthetic_files, tmp_path, capsys):
+    pkg = save_package(avatar.package, tmp_path / "avatar")
+    out = tmp_path / "eval"
+    assert main(["eval", str(pkg), str(dataset_dir), "--protocol", "webcam", "--out", str(out),
+                 "--body-models", str(synthetic_files.root), "--max-views", "2"]) == 0
+    assert json.loads((out / "webcam.json").read_text())["num_frames"] == 2
+    assert "| true parameters |" in capsys.readouterr().out
+
+
+def test_cameras_default_and_refusals(dataset_dir):
+    ds = load_dataset(dataset_dir)
+    webcam, score = webcam_cameras(ds)
+    assert webcam != score and ds.cameras[webcam].role == "front"
+    assert webcam_cameras(ds, score="cam00")[1] == "cam00"
+    with pytest.raises(ValueError, match="unknown camera"):
+        webcam_cameras(ds, webcam="nope")
+    with pytest.raises(ValueError, match="differ"):
+        webcam_cameras(ds, webcam="cam01", score="cam01")
+
+
+def test_bad_arguments_fail_before_any_work(avatar, dataset_dir):
+    for kw in ({"frame_stride": 0}, {"max_frames": 0}, {"max_images": -1}):
+        with pytest.raises(ValueError, match="at least 1"):
+            evaluate_webcam(avatar, dataset_dir, **kw)
