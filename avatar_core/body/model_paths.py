@@ -121,21 +121,21 @@ class BodyModelFiles:
 
 # (file name, what it is for, needed for the upper body) in the order a user should read them
 OFFICIAL_FILES = (
-    ("SMPLX_NEUTRAL.npz", "the SMPL-X model (smplx package layout)", True),
-    ("smplx_vert_segmentation.json", "SMPL-X part name -> vertex ids (Meshcapade)", True),
-    ("MANO_LEFT.pkl, MANO_RIGHT.pkl", "MANO hands, for fusing MANO parameters", False),
+    ("SMPLX_NEUTRAL.npz", "the SMPL-X model, smplx package layout", True),
+    ("smplx_vert_segmentation.json", "SMPL-X part name -> vertex ids, Meshcapade's", True),
+    ("MANO_LEFT.pkl, MANO_RIGHT.pkl", "MANO hands, to fuse MANO parameters", False),
     ("MANO_SMPLX_vertex_ids.pkl", "MANO -> SMPL-X vertex correspondence", False),
-    ("FLAME_NEUTRAL.pkl", "FLAME head, for fusing FLAME parameters", False),
+    ("FLAME_NEUTRAL.pkl", "FLAME head, to fuse FLAME parameters", False),
     ("SMPL-X__FLAME_vertex_ids.npy", "FLAME -> SMPL-X vertex correspondence", False),
 )
 
 
 def official_files_note() -> str:
     """Which official files go into the body-model folder, and how to name the folder."""
-    needed = ", ".join(f"{name} ({what})" for name, what, req in OFFICIAL_FILES if req)
-    optional = ", ".join(f"{name} ({what})" for name, what, req in OFFICIAL_FILES if not req)
-    return (f"put {needed} in one folder (optionally {optional}) and name it with "
-            f"{HOW_TO_GIVE}")
+    needed = " and ".join(f"{name} ({what})" for name, what, req in OFFICIAL_FILES if req)
+    optional = "; ".join(f"{name} ({what})" for name, what, req in OFFICIAL_FILES if not req)
+    return (f"put {needed} in one folder, optionally also {optional}; and name the folder "
+            f"with {HOW_TO_GIVE}")
 
 
 def resolve_body_models(folder: str | Path | None = None, *, setting: str | Path | None = None,
