@@ -67,3 +67,34 @@ def test_schedule_round_trips_through_a_config_file_dict():
     assert config_from_dict(config_to_dict(cfg)) == cfg
     with pytest.raises(ValueError, match="frames and iterations"):
         cfg.finetune.lrs_at(1, 100, 0)
+
+
+def test_the_trainer_follows_the_budget_schedule(synthetic_files, tmp_path):
+    """Rates zero while the Gaussians settle, then the schedule's; the deltas then move by
+    about the rate per update (Adam), and only from then."""
+    import dataclasses
+
+    import torch
+
+    from avatar_core.synth.capture import CaptureSpec, capture
+    from avatar_core.train.config import preset
+    from avatar_core.train.trainer import Trainer
+
+    spec = CaptureSpec(sequences=(("smile",),), num_cameras=3, resolution=32, max_frames=2,
+                       supersample=1, cross_identity=None)
+    data = capture(tmp_path / "d", spec, model_dir=synthetic_files.root)
+    base = preset("test")
+    cfg = dataclasses.replace(base, iterations=20, densify=dataclasses.replace(
+        base.densify, enabled=False), finetune=FineTuneConfig(schedule="budget", start=0.5))
+    trainer = Trainer(data, cfg, tmp_path / "out", body_model=synthetic_files.root)
+    assert trainer.num_frames == 2
+    trainer.train(stop_at=10)
+    moved = [float(d.detach().abs().max()) for s in trainer.deltas.values() for d in s.values()]
+    assert max(moved) == 0.0  # nothing moves during the first half
+    trainer.train(stop_at=11)
+    want = cfg.finetune.lrs_at(11, 20, 2)
+    got = {g["name"].rsplit("/", 1)[1]: g["lr"] for g in trainer.param_optimizer.param_groups}
+    assert got == want and want["body_pose"] > 0
+    pose = trainer.deltas["smile"]["body_pose"]
+    assert 0 < float(pose.detach().abs().max()) <= 1.5 * want["body_pose"]
+    assert torch.isfinite(pose).all()
