@@ -28,14 +28,22 @@ from pathlib import Path
 from typing import Any
 
 from avatar_core.body.cache import StageCache
-from avatar_core.body.model_paths import BodyModelsMissing
+from avatar_core.body.errors import ModelFileError
+from avatar_core.body.model_paths import BodyModelsMissing, models_for_reference
 from avatar_core.bounded_npz import NpzLimits
 from avatar_core.gaussians.animate import AvatarAnimator
-from avatar_core.gaussians.loading import BodyModelMismatch, LoadedAvatar, load_avatar
+from avatar_core.gaussians.loading import (
+    BodyModelMismatch,
+    LoadedAvatar,
+    check_binding,
+    load_avatar,
+    upper_body_faces,
+)
 from avatar_core.gaussians.package import (
     GAUSSIANS,
     MANIFEST,
     MAX_PACKAGE_BYTES,
+    AvatarPackage,
     PackageError,
     load_package,
     save_package,
@@ -174,6 +182,7 @@ class AvatarRegistry:
         src = Path(src)
         package = load_package(src, max_bytes=self.max_package_bytes,
                                npz_limits=self.npz_limits, ranges=self.ranges)  # PackageError
+        self._check_body(package)
         avatar_id = avatar_id or secrets.token_hex(8)
         if not ID_PATTERN.match(avatar_id):
             raise ValueError(f"bad avatar id {avatar_id!r}")
@@ -209,6 +218,21 @@ class AvatarRegistry:
             return rec
         finally:
             shutil.rmtree(staging, ignore_errors=True)
+
+    def _check_body(self, package: AvatarPackage) -> None:
+        """PackageError unless this server's body models are the ones the package is bound to
+        (checked again when it is opened: the setting may change between restarts). The full
+        reason, which names server folders, goes to the log only."""
+        try:
+            files = models_for_reference(package.body.model, setting=self.body_models)
+            check_binding(package.body, files, upper_body_faces(files), "the package")
+        except BodyModelMismatch as exc:
+            log.warning("avatar package refused: %s", exc)
+            raise BodyModelMismatch(exc.public) from None
+        except ModelFileError as exc:  # no folder set, or it lacks a file
+            log.warning("avatar package refused: %s", exc)
+            raise PackageError(f"it is bound to body model {package.body.model!r}, which this "
+                               "server does not have") from None
 
     def _remove_dir(self, path: Path) -> None:
         # Rename first so the id is free at once; then delete at leisure.

@@ -25,7 +25,7 @@ from avatar_core.body.model_paths import (
 )
 from avatar_core.cli import main as telesplat
 from avatar_core.gaussians.loading import BodyModelMismatch, load_avatar
-from avatar_core.gaussians.package import faces_fingerprint, load_package
+from avatar_core.gaussians.package import PackageError, faces_fingerprint, load_package
 from protocol import Drive, Image, encode
 from server.config import load_settings
 from server.jobs.store import NewJob, SQLiteJobStore
@@ -176,16 +176,40 @@ def test_other_model_files_are_refused_naming_both(trained, official, tmp_path):
     assert str(other.root) in message and "fingerprint" in message.split("give")[1]
     assert str(trained) in message
     assert str(other.root) not in err.value.public  # what a server's client is told
+    with pytest.raises(BodyModelMismatch) as err:  # an upload to a server with those files
+        AvatarRegistry(tmp_path / "avatars", body_models=other.root).add_package(trained, "bob")
+    assert bound.faces_sha256[:16] in str(err.value) and str(tmp_path) not in str(err.value)
 
 
-def test_the_registry_opens_it_only_with_the_setting(trained, official, tmp_path):
-    bare = AvatarRegistry(tmp_path / "bare")
-    rec = bare.add_package(trained, "alice")
-    with pytest.raises(BodyModelsMissing) as err:
-        bare.open(rec.id)
+def test_the_registry_takes_it_only_with_the_setting(trained, official, tmp_path):
+    with pytest.raises(PackageError, match="bound to body model 'SMPLX_NEUTRAL.npz', which "
+                                           "this server does not have") as err:
+        AvatarRegistry(tmp_path / "bare").add_package(trained, "alice")  # an upload: 422
     assert str(tmp_path) not in str(err.value)  # no server folder reaches a client
     served = AvatarRegistry(tmp_path / "served", body_models=official.root)
-    assert served.open(served.add_package(trained, "alice").id).files.root == official.root
+    rec = served.add_package(trained, "alice")
+    assert served.open(rec.id).files.root == official.root
+    restarted = AvatarRegistry(tmp_path / "served")  # the setting gone after a restart
+    with pytest.raises(BodyModelsMissing) as err:
+        restarted.open(rec.id)
+    assert rec.id in str(err.value) and str(tmp_path) not in str(err.value)
+
+
+def test_render_and_eval_take_the_folder(trained, official, tmp_path, capsys):
+    out = tmp_path / "frames"
+    base = ["render", str(trained), "--frames", "1", "--size", "32", "--out", str(out)]
+    assert telesplat([*base, "--motion", "rest"]) == 2  # no setting: the files it needs
+    assert "bound to body model 'SMPLX_NEUTRAL.npz'" in capsys.readouterr().err
+    assert telesplat([*base, "--motion", "rest", "--body-models", str(official.root)]) == 0
+    assert len(list(out.glob("frame_*.png"))) == 1
+    # the demo clip poses named expressions, which official files do not name
+    assert telesplat([*base, "--body-models", str(official.root)]) == 2
+    assert "use --motion rest or a parameter file" in capsys.readouterr().err
+    data = trained.parent.parent / "data"
+    assert telesplat(["eval", str(trained), str(data), "--protocol", "novel-view",
+                      "--max-views", "1", "--out", str(tmp_path / "eval"),
+                      "--body-models", str(official.root)]) == 0
+    assert (tmp_path / "eval" / "metrics.json").is_file()
 
 
 @needs_models

@@ -9,6 +9,7 @@ package's fingerprint of the triangles it is bound to must match them.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -27,7 +28,8 @@ from ..body.upper_body import UpperBodyModel
 from .animate import AvatarAnimator, synthetic_package
 from .package import AvatarPackage, BodyReference, PackageError, faces_fingerprint, load_package
 
-__all__ = ["BodyModelMismatch", "LoadedAvatar", "check_binding", "load_avatar", "mano_models"]
+__all__ = ["BodyModelMismatch", "LoadedAvatar", "check_binding", "load_avatar", "mano_models",
+           "upper_body_faces"]
 
 
 class BodyModelMismatch(PackageError):
@@ -60,16 +62,15 @@ def load_avatar(spec: str, body_models: str | Path | None = None, *,
         package = load_package(spec, **package_limits)
         files = models_for_reference(package.body.model, body_models, setting=setting)
         model = UpperBodyModel.load(files.smplx_npz, files.segmentation)
-        check_binding(package.body, files, model, spec)
+        check_binding(package.body, files, model.faces.cpu().numpy(), spec)
     animator = AvatarAnimator(model, package.avatar, betas=np.asarray(package.body.betas))
     return LoadedAvatar(package, animator, files)
 
 
-def check_binding(body: BodyReference, files: BodyModelFiles, model: UpperBodyModel,
+def check_binding(body: BodyReference, files: BodyModelFiles, faces: np.ndarray,
                   name: str = "the avatar") -> None:
-    """BodyModelMismatch, naming both sides, unless ``model`` (loaded from ``files``) has the
-    very triangles the package's Gaussians are bound to."""
-    faces = model.faces.cpu().numpy()
+    """BodyModelMismatch, naming both sides, unless ``faces`` [F, 3] (the upper body cut from
+    ``files``) are the very triangles the package's Gaussians are bound to."""
     found = faces_fingerprint(faces)
     if len(faces) == body.num_faces and found == body.faces_sha256:
         return
@@ -81,6 +82,22 @@ def check_binding(body: BodyReference, files: BodyModelFiles, model: UpperBodyMo
         f"({files.smplx_npz.name}), {given}: name the folder it was trained with "
         f"({HOW_TO_GIVE})",
         public=f"the avatar {bound}; this server's body models {given}")
+
+
+def upper_body_faces(files: BodyModelFiles) -> np.ndarray:
+    """[F, 3] triangles of the upper body cut from ``files``, cached while the files are
+    unchanged (checking a package's binding need not load the model each time)."""
+    files.require()
+    stamp = tuple(p.stat().st_mtime_ns for p in (files.smplx_npz, files.segmentation))
+    return _faces(str(files.root.resolve()), stamp)
+
+
+@functools.lru_cache(maxsize=8)  # a server sees its folder and a synthetic family or two
+def _faces(root: str, stamp: tuple[int, ...]) -> np.ndarray:
+    files = BodyModelFiles(Path(root))
+    faces = UpperBodyModel.load(files.smplx_npz, files.segmentation).faces.cpu().numpy()
+    faces.flags.writeable = False  # shared by every caller
+    return faces
 
 
 def mano_models(loaded: LoadedAvatar) -> dict[str, MANOModel]:

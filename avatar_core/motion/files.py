@@ -31,7 +31,12 @@ def motion_frames(spec: str, files: BodyModelFiles, model: UpperBodyModel, fps: 
         n = frames or max(1, int(round(clip.duration * fps)))
         out = []
         for i in range(n):
-            p = clip.sample(clip.duration * i / max(n - 1, 1), rig)
+            try:
+                p = clip.sample(clip.duration * i / max(n - 1, 1), rig)
+            except KeyError as exc:  # official model files name no expressions or gestures
+                raise ValueError(f"the demo clip names what the body model in {files.root} "
+                                 f"does not ({exc.args[0]}): use --motion rest or a "
+                                 "parameter file") from None
             p.pop("betas")
             out.append(p)
         return out
