@@ -229,7 +229,7 @@ class AvatarRegistry:
         except BodyModelMismatch as exc:
             log.warning("avatar package refused: %s", exc)
             raise BodyModelMismatch(exc.public) from None
-        except ModelFileError as exc:  # no folder set, or it lacks a file
+        except ModelFileError as exc:  # no folder set, it lacks a file, or one is unreadable
             log.warning("avatar package refused: %s", exc)
             raise PackageError(f"it is bound to body model {package.body.model!r}, which this "
                                "server does not have") from None
@@ -307,8 +307,7 @@ class AvatarRegistry:
                     raise BodyModelMismatch(f"avatar {avatar_id}: {exc.public}") from None
                 except BodyModelsMissing as exc:
                     log.error("avatar %s: %s", avatar_id, exc)
-                    raise BodyModelsMissing(f"avatar {avatar_id} is bound to body-model files "
-                                            "this server does not have (see its log)") from None
+                    raise BodyModelsMissing(f"avatar {avatar_id}: {exc.public}") from None
                 with self._lock:
                     if avatar_id in self._records:
                         self._loaded[avatar_id] = loaded

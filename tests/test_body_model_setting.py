@@ -28,6 +28,7 @@ from avatar_core.gaussians.loading import BodyModelMismatch, load_avatar
 from avatar_core.gaussians.package import PackageError, faces_fingerprint, load_package
 from protocol import Drive, Image, encode
 from server.config import load_settings
+from server.jobs.service import JobService, SubmitError
 from server.jobs.store import NewJob, SQLiteJobStore
 from server.jobs.worker import Worker, WorkerConfig
 from server.registry import AvatarRegistry
@@ -135,6 +136,20 @@ def test_the_jobs_worker_passes_the_setting_to_the_training_process(tmp_path):
     cmd = worker._command(job)
     assert cmd[cmd.index("--body-models") + 1] == str(tmp_path / "models")
     assert "--body-models" not in Worker(store, tmp_path, lambda j, p: "")._command(job)
+
+
+def test_a_job_server_without_the_files_refuses_the_dataset_at_submission(official, tmp_path):
+    half = tmp_path / "models"
+    half.mkdir()
+    shutil.copyfile(official.smplx_npz, half / "SMPLX_NEUTRAL.npz")
+    service = JobService(tmp_path / "data", lambda job, package: "unused",
+                         worker=WorkerConfig(body_models=str(half)))  # not started
+    write_tiny_dataset(service.datasets_dir / "mine", num_cameras=2, frames=2)
+    with pytest.raises(SubmitError) as err:
+        service.submit_named("alice", "mine")
+    assert err.value.status == 400 and "lacks smplx_vert_segmentation.json" in str(err.value)
+    assert str(half) not in str(err.value)  # the client is not told the server's folders
+    assert service.store.list() == []
 
 
 # -- one avatar, trained on the folder and checked against another -------------------------

@@ -36,7 +36,12 @@ HOW_TO_GIVE = ("--body-models DIR, the environment variable TELESPLAT_BODY_MODEL
 
 
 class BodyModelsMissing(ModelFileError):
-    """No body-model folder was given where real models are needed, or it lacks a file."""
+    """No body-model folder was given where real models are needed, or it lacks a file.
+    ``public``: the message without the folder, for a client of the server."""
+
+    def __init__(self, message: str, *, public: str = "") -> None:
+        super().__init__(message)
+        self.public = public or message
 
 
 @dataclass(frozen=True)
@@ -115,8 +120,9 @@ class BodyModelFiles:
         missing = [p.name for p in paths or (self.smplx_npz, self.segmentation)
                    if not p.is_file()]
         if missing:
-            raise BodyModelsMissing(f"the body-model folder {self.root} lacks "
-                                    f"{', '.join(missing)}; {official_files_note()}")
+            lacks = f"lacks {', '.join(missing)}; {official_files_note()}"
+            raise BodyModelsMissing(f"the body-model folder {self.root} {lacks}",
+                                    public=f"the server's body-model folder {lacks}")
 
 
 # (file name, what it is for, needed for the upper body) in the order a user should read them

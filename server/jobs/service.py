@@ -121,8 +121,9 @@ def _validated(root: Path, body_models: str | None, npz_limits: NpzLimits) -> No
         # the trainer would fail without the model files (posing.resolve_body): say so now
         try:
             models_for_source(source, setting=body_models)
-        except BodyModelsMissing as exc:
-            raise SubmitError(f"this server cannot train on the dataset: {exc}") from exc
+        except BodyModelsMissing as exc:  # (the public message names no server folder)
+            raise SubmitError(f"this server cannot train on the dataset: {exc.public}") \
+                from None
 
 
 class JobService:
