@@ -154,8 +154,13 @@ def variant_configs():
     def fit(**kw):
         return replace(base, fit=replace(base.fit, **kw))
 
-    return {"base": fit(palm_retry_deg=180.0), "palm60": fit(palm_retry_deg=60.0),
-            "palm45": fit(palm_retry_deg=45.0), "palm90": fit(palm_retry_deg=90.0)}, replace
+    return {"base": fit(palm_retry_deg=180.0, finger_hinge_weight=0.0),
+            "hinge": fit(palm_retry_deg=180.0),
+            "palm60_nohinge": fit(finger_hinge_weight=0.0),
+            "depth02": fit(hand_depth_weight=0.02), "depth0": fit(hand_depth_weight=0.0),
+            "prior01": fit(hand_prior=0.1), "prior1": fit(hand_prior=1.0),
+            "hinge30": fit(finger_hinge_weight=30.0), "palm60": fit(palm_retry_deg=60.0),
+            "palm45": fit(palm_retry_deg=45.0), "palm30": fit(palm_retry_deg=30.0)}, replace
 
 
 def main() -> None:

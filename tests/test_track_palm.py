@@ -163,3 +163,92 @@ def test_fit_with_degenerate_hand_landmarks_stays_finite(model_and_betas):
                              pose_visibility=mp["pose_visibility"])
         fit = fitter.fit(obs, CAMERA, start=truth)
         assert all(np.isfinite(v).all() for v in fit.params.values())
+
+
+# -- the fingers' hinge prior (`fit/hand_prior.py`) ------------------------------------------
+
+
+def test_hinge_rows_are_the_complement_of_the_flexion_axis(fitter):
+    from avatar_core.track.fit.hand_prior import BASES, HINGES, hinge_rows
+
+    kin = fitter.kinematics
+    for side in ("left", "right"):
+        rows = hinge_rows(kin.j_shape, kin.parents, side)
+        assert len(rows) == len(HINGES) + len(BASES)
+        j = kin.j_shape
+        wrist = j[JOINT[f"{side}_wrist"]]
+        normal = np.cross(j[JOINT[f"{side}_index1"]] - wrist, j[JOINT[f"{side}_pinky1"]] - wrist)
+        for name in HINGES:
+            k = JOINT[f"{side}_{name}"]
+            dirs = rows[k]
+            np.testing.assert_allclose(dirs @ dirs.T, np.eye(2), atol=1e-12)
+            children = np.flatnonzero(kin.parents == k)  # end joints: the bone from the parent
+            bone = j[children[0]] - j[k] if len(children) else j[k] - j[kin.parents[k]]
+            bone /= np.linalg.norm(bone)
+            axis = np.cross(bone, normal)
+            axis /= np.linalg.norm(axis)
+            np.testing.assert_allclose(dirs @ axis, 0.0, atol=1e-12)
+            # A bend about the axis costs nothing; a twist of 0.3 rad shows as 0.3.
+            assert np.abs(dirs @ (0.9 * axis)).max() < 1e-12
+            assert np.isclose(np.linalg.norm(dirs @ (0.9 * axis + 0.3 * bone)), 0.3)
+        for name in BASES:
+            assert rows[JOINT[f"{side}_{name}"]].shape == (1, 3)
+
+
+def test_hinge_rows_of_a_degenerate_hand_are_empty_not_nan(fitter):
+    from avatar_core.track.fit.hand_prior import hinge_matrix, hinge_rows
+
+    collapsed = np.ones_like(fitter.kinematics.j_shape)
+    assert hinge_rows(collapsed, fitter.kinematics.parents, "right") == {}
+    assert hinge_matrix({}, {}, 7).shape == (0, 7)
+
+
+def test_library_gestures_bend_about_the_hinges(model_and_betas, fitter):
+    """The synthetic rig's gestures (fist, claw, peace...) bend the finger joints about
+    these axes to within ~6 deg: off-axis at most ~10% of the bend."""
+    from avatar_core.motion.rig import model_rig
+    from avatar_core.track.fit.hand_prior import hinge_rows
+
+    model, _ = model_and_betas
+    rig = model_rig(ensure_models(), model)
+    rows = hinge_rows(fitter.kinematics.j_shape, fitter.kinematics.parents, "right")
+    for name, pose in rig.gestures.items():
+        p = neutral_params(model)
+        p["right_hand_pose"] = pose - rig.hand_mean["right"]
+        full = fitter.full_pose(fitter.pack(p))
+        for k, dirs in rows.items():
+            bend = np.linalg.norm(full[k])
+            assert np.linalg.norm(dirs @ full[k]) <= 0.1 * bend + 0.01, (name, k)
+    # The fitter's residual is the same map on the full pose (mean hand included), weighted.
+    x = fitter.pack(neutral_params(model))
+    residual = fitter.hinge_jacobian @ x + fitter.hinge_offset
+    full = fitter.full_pose(x)
+    left = hinge_rows(fitter.kinematics.j_shape, fitter.kinematics.parents, "left")
+    want = np.concatenate([d @ full[k] for k, d in (*left.items(), *rows.items())])
+    np.testing.assert_allclose(residual, np.sqrt(fitter.config.finger_hinge_weight) * want,
+                               atol=1e-12)
+
+
+def test_hinge_prior_keeps_noiseless_fingers(model_and_betas):
+    """On the model's own landmarks a fist and a peace sign are recovered as well with the
+    prior as without (the true poses satisfy it)."""
+    from avatar_core.motion.rig import model_rig
+    from avatar_core.track.fit.synthetic import synthetic_observations as observe
+
+    model, betas = model_and_betas
+    rig = model_rig(ensure_models(), model)
+    truth = _posed(model, np.array([0.2, -0.3, 0.1]))
+    truth["right_hand_pose"] = rig.gestures["peace"] - rig.hand_mean["right"]
+    errors = {}
+    for weight in (0.0, 10.0):
+        fitter = FrameFitter(model, betas, FitConfig(finger_hinge_weight=weight))
+        obs, _ = observe(fitter, truth, CAMERA, 0.5, np.random.default_rng(5))
+        fit = fitter.fit(obs, CAMERA, start=truth)
+        fit = fitter.fit(obs, CAMERA, start=fit.params)
+        got = fitter.full_pose(fitter.pack(fit.params))
+        want = fitter.full_pose(fitter.pack(truth))
+        rows = list(range(40, 55))  # the right hand's joints
+        errors[weight] = np.mean([rotation_angle_deg(Rotation.from_rotvec(got[k]).as_matrix(),
+                                                     Rotation.from_rotvec(want[k]).as_matrix())
+                                  for k in rows])
+    assert errors[10.0] < errors[0.0] + 1.0 and errors[10.0] < 8.0, errors

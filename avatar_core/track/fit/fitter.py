@@ -30,6 +30,7 @@ from ...body.models import SMPLXModel
 from ...body.skeleton import JOINT, LEFT_HAND_JOINTS, RIGHT_HAND_JOINTS, SMPLX_JOINT_NAMES
 from . import correspondence as cor
 from .camera import MIN_DEPTH_M, WebcamCamera, project_points
+from .hand_prior import hinge_matrix, hinge_rows
 from .keypoints import BodyKeypoints
 from .kinematics import KeypointKinematics, rodrigues_and_left_jacobian
 from .observations import Observations
@@ -110,6 +111,10 @@ class FitConfig:
     # 180 or more: off.
     palm_retry_deg: float = 60.0
     palm_retry_iterations: int = 8  # Levenberg-Marquardt iterations of such a retry
+    # Finger joints' rotation off their hinge axis (and the finger bases' twist), per rad^2
+    # (`hand_prior.py`; 0: off): the landmarks pin a finger's bend far better than its
+    # twist, which the fit otherwise bends to meet MediaPipe's offset finger points.
+    finger_hinge_weight: float = 10.0
     dtype: torch.dtype = torch.float64
 
 
@@ -198,6 +203,17 @@ class FrameFitter:
         temporal = np.full(n, self.config.temporal_weight)
         temporal[lay["transl"][0]] *= 100.0  # 1 cm weighs as 0.1 rad
         self.temporal_sqrt = np.sqrt(temporal)
+        # The hinge prior: sqrt weight x the map to the fingers' off-axis components, and the
+        # mean hand's part (the hand variables are relative to it).
+        hand_cols = np.arange(n)[lay["left_hand_pose"][0].start:lay["right_hand_pose"][0].stop]
+        joint_columns = dict(zip(HAND_JOINT_ROWS, hand_cols.reshape(-1, 3), strict=True))
+        rows = {**hinge_rows(self.kinematics.j_shape, self.kinematics.parents, "left"),
+                **hinge_rows(self.kinematics.j_shape, self.kinematics.parents, "right")}
+        hinge = math.sqrt(max(self.config.finger_hinge_weight, 0.0)) * hinge_matrix(
+            rows if self.config.finger_hinge_weight > 0 else {}, joint_columns, n)
+        mean = np.zeros(n)
+        mean[hand_cols] = self.hand_mean.reshape(-1)
+        self.hinge_jacobian, self.hinge_offset = hinge, hinge @ mean
         # Per hand: (its rows, its wrist's body-variable columns, its hand-pose columns, the
         # wrist's joint, the rest palm [5, 3] for `palm_rotation`).
         self.palm_hands = []
@@ -302,6 +318,9 @@ class FrameFitter:
         if problem.previous is not None:
             terms.append(_Term(self.temporal_sqrt * (x - problem.previous), None,
                                self.temporal_sqrt))
+        if self.hinge_jacobian.size:
+            terms.append(_Term(self.hinge_jacobian @ x + self.hinge_offset,
+                               self.hinge_jacobian if jacobian else None))
         hinges = self._hinge_term(x, jacobian)
         if hinges is not None:
             terms.append(hinges)
@@ -388,8 +407,11 @@ class FrameFitter:
         return np.array([centre[0] - m[:, 0].mean(), centre[1] - m[:, 1].mean(), -depth - mz])
 
     def fit(self, obs: Observations, camera: WebcamCamera,
-            start: dict[str, np.ndarray] | None = None) -> FitResult:
-        """Fit one frame. `start`: the previous frame's parameters (a warm start), or None."""
+            start: dict[str, np.ndarray] | None = None,
+            palm_targets: dict[str, np.ndarray] | None = None) -> FitResult:
+        """Fit one frame. `start`: the previous frame's parameters (a warm start), or None.
+        `palm_targets`: side -> the palm rotation a wrist is retried from (`_palm_retry`);
+        None: this frame's own (`palm_targets`), {}: no retry."""
         t0 = time.perf_counter()
         warm = start is not None
         start = dict(start) if warm else dict(self.neutral)
@@ -412,8 +434,9 @@ class FrameFitter:
             x, np.ones(x.size, dtype=bool),
             self.config.warm_iterations if warm else self.config.cold_iterations,
             problem, weight, stats)
-        if self.config.palm_retry_deg < 180.0 and obs.depth is not None:
-            x = self._palm_retry(x, obs, problem, weight, stats)
+        if self.config.palm_retry_deg < 180.0:
+            targets = self.palm_targets(obs, camera) if palm_targets is None else palm_targets
+            x = self._palm_retry(x, targets, problem, weight, stats)
         terms, proj = self._terms(x, problem, np.sqrt(weight), False)
         return FitResult(self.to_params(x), reprojection_errors(proj, obs),
                          sum(float(t.residuals @ t.residuals) for t in terms),
@@ -440,23 +463,33 @@ class FrameFitter:
         terms, _ = self._terms(x, problem, sqrt_w, False)
         return sum(float(t.residuals @ t.residuals) for t in terms)
 
-    def _palm_retry(self, x: np.ndarray, obs: Observations, problem: _Problem,
-                    weight: np.ndarray, stats: dict) -> np.ndarray:
-        """For each hand whose fitted wrist is more than `palm_retry_deg` from the palm's own
-        rotation (`palm_rotation`): fit again from that wrist rotation and the mean hand, and
-        keep whichever fit costs less."""
-        cost = None
-        for sl, wrist_cols, hand_cols, wrist, rest in self.palm_hands:
+    def palm_targets(self, obs: Observations, camera: WebcamCamera) -> dict[str, np.ndarray]:
+        """Each hand's palm rotation (`palm_rotation`), side -> [3, 3], for the hands whose
+        five palm landmarks and their z are usable."""
+        out = {}
+        if obs.depth is None:
+            return out
+        for side, (sl, _, _, _, rest) in zip(("left", "right"), self.palm_hands, strict=True):
             rows = sl.start + np.array(PALM_LANDMARKS)
-            if (weight[rows] <= 0).any():
+            if (obs.weights[rows] <= 0).any():
                 continue
             hand = np.concatenate([obs.pixels[sl], obs.depth[sl, None]], axis=1)
-            target = palm_rotation(hand, rest, HAND_Z_SCALE, problem.camera.focal,
-                                   problem.camera.center)
-            if target is None:
-                continue
-            if rotation_angle_deg(self.world_rotation(x, wrist), target) \
-                    <= self.config.palm_retry_deg:
+            target = palm_rotation(hand, rest, HAND_Z_SCALE, camera.focal, camera.center)
+            if target is not None:
+                out[side] = target
+        return out
+
+    def _palm_retry(self, x: np.ndarray, targets: dict[str, np.ndarray], problem: _Problem,
+                    weight: np.ndarray, stats: dict) -> np.ndarray:
+        """For each hand whose fitted wrist is more than `palm_retry_deg` from its palm
+        rotation in `targets`: fit again from that wrist rotation and the mean hand, and keep
+        whichever fit costs less."""
+        cost = None
+        for side, (sl, wrist_cols, hand_cols, wrist, _) in zip(("left", "right"),
+                                                                self.palm_hands, strict=True):
+            target = targets.get(side)
+            if target is None or weight[sl.start] <= 0 or rotation_angle_deg(
+                    self.world_rotation(x, wrist), target) <= self.config.palm_retry_deg:
                 continue
             parent = self.world_rotation(x, int(self.kinematics.parents[wrist]))
             trial = x.copy()

@@ -21,6 +21,7 @@ from .fitter import FitConfig, FitResult, FrameFitter
 from .gaze import gaze_solver
 from .observations import Observations
 from .one_euro import ParamSmoother
+from .palm import rotation_angle_deg
 
 # Parameter -> owning group; body_pose rows listed separately (rows = joint index - 1).
 GROUP_OF_PARAM = {"expression": "face", "jaw_pose": "face", "leye_pose": "face",
@@ -40,6 +41,11 @@ class SequenceFitConfig:
     gaze: bool = True        # turn the eyes onto the iris centres, when the tracker reads them
     min_cutoff: float = 1.5  # One Euro: Hz at rest
     beta: float = 0.3        # cutoff gain per unit/s of speed
+    # A hand's palm rotation (`palm.py`) is trusted for the fitter's palm retry only when it
+    # is within this (deg) of the same hand's in the previous frame, at most `palm_gap_s`
+    # before: a single frame's palm flips (a hand entering or leaving the view) are not.
+    palm_stable_deg: float = 30.0
+    palm_gap_s: float = 0.1
     fit: FitConfig = field(default_factory=FitConfig)
 
 
@@ -79,6 +85,7 @@ class SequenceFit:
         self.held: dict[str, dict[str, np.ndarray]] = {}  # group -> its last fitted values
         self.last_seen: dict[str, float] = {}
         self.smoother.reset()
+        self.palm_previous: dict[str, tuple[np.ndarray, float]] = {}  # side -> (rotation, t)
 
     def _group_values(self, params: dict[str, np.ndarray], group: str) -> dict[str, np.ndarray]:
         out = {k: np.array(v) for k, v in params.items() if GROUP_OF_PARAM.get(k) == group}
@@ -109,6 +116,22 @@ class SequenceFit:
             out["transl"] = np.array(fitted["transl"], dtype=np.float64)
         return out
 
+    def _stable_palms(self, obs: Observations, camera: WebcamCamera, t: float
+                      ) -> dict[str, np.ndarray]:
+        """This frame's palm rotations that agree with the previous frame's (side -> [3, 3])."""
+        cfg = self.config
+        if cfg.fit.palm_retry_deg >= 180.0:
+            return {}
+        now = self.fitter.palm_targets(obs, camera)
+        stable = {}
+        for side, rot in now.items():
+            prev = self.palm_previous.get(side)
+            if prev is not None and 0 < t - prev[1] <= cfg.palm_gap_s + 1e-9 and \
+                    rotation_angle_deg(prev[0], rot) <= cfg.palm_stable_deg:
+                stable[side] = rot
+            self.palm_previous[side] = (rot, t)
+        return stable
+
     def step(self, obs: Observations, t: float) -> FrameParams:
         camera = WebcamCamera(*obs.image_size, fov_x_deg=self.config.fov_x_deg)
         seen = {g: bool(obs.seen.get(g)) for g in GROUPS}
@@ -116,7 +139,7 @@ class SequenceFit:
         if any(seen.values()):
             stale = not self.last_seen or t - max(self.last_seen.values()) > self.config.hold_s
             start = None if self.current is None or stale else self.current
-            fit = self.fitter.fit(obs, camera, start)
+            fit = self.fitter.fit(obs, camera, start, self._stable_palms(obs, camera, t))
             if self.gaze is not None and obs.iris is not None and seen["face"]:
                 eyes = self.gaze.fit(fit.params, obs.iris, camera, self.fitter.betas[0].numpy())
                 fit.params.update(eyes.params)
