@@ -67,5 +67,29 @@ lint: $(VENV)/.installed-dev
 bench: $(VENV)/.installed-dev
 	$(PY) bench/body.py
 
+# The GPU check (docs/gpu.md): on a CUDA machine, its own virtualenv with the cuda extra (pip
+# takes torch's CUDA build from PyPI's default index there; onnxruntime-gpu replaces
+# onnxruntime, which installs the same module), the tests marked gpu, then the targets measured
+# into docs/gpu.md. Without an NVIDIA GPU it stops at once.
+GPU_VENV ?= .venv-gpu
+GPU_PY := $(GPU_VENV)/bin/python
+ONNXRUNTIME_GPU ?= onnxruntime-gpu>=1.20,<2
+
+.PHONY: gpu-check
+gpu-check:
+	@nvidia-smi -L 2>/dev/null | grep -q "^GPU" || { \
+	  echo "gpu-check: no CUDA device (nvidia-smi lists no GPU); run it on a CUDA machine" >&2; \
+	  exit 1; }
+	test -x $(GPU_PY) || $(PYTHON) -m venv $(GPU_VENV)
+	$(GPU_PY) -m pip install -q --upgrade pip
+	$(GPU_PY) -m pip install -q -e ".[dev,cuda]"
+	$(GPU_PY) -m pip uninstall -q -y onnxruntime
+	$(GPU_PY) -m pip install -q --force-reinstall --no-deps "$(ONNXRUNTIME_GPU)"
+	@$(GPU_PY) -c "import sys, torch; sys.exit(0 if torch.cuda.is_available() else \
+	  'gpu-check: no CUDA device visible to torch (' + torch.__version__ + ')')"
+	$(GPU_VENV)/bin/telesplat track fetch-models || echo "tracking models unavailable: their gpu test skips"
+	$(GPU_PY) -m pytest -q -p no:xdist -m gpu -rs
+	$(GPU_PY) bench/gpu_check.py --out docs/gpu.md
+
 clean:
 	rm -rf $(VENV) $(OUT) .pytest_cache

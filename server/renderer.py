@@ -24,6 +24,7 @@ from protocol import Request, Timings, View
 
 from .drive import DriveState, drive_shapes
 from .encoders import H264Encoder, encode_depth_png, encode_jpeg, encode_png, frame_rgb
+from .view_batch import DeviceCopies, render_device
 
 
 @dataclass(frozen=True)
@@ -116,6 +117,7 @@ class SessionRenderer:
         self._posed: PosedAvatar | None = None  # of the drive state version below
         self._posed_version = -1
         self._h264 = H264Stream()
+        self._on_device = DeviceCopies(render_device(backend), keep=1)  # CUDA: one upload
         self._last_codec: str | None = None
         self._closed = threading.Event()
 
@@ -135,7 +137,8 @@ class SessionRenderer:
             cam = self.camera(job.view, req.width, req.height)
             outputs = tuple(dict.fromkeys(("rgb", *req.outputs)))  # rgb always: frame.data
             budget = None if req.quality >= 1.0 else float(req.quality)
-            out = rasterize(posed.gaussians, cam, RenderRequest(
+            gaussians = self._on_device.get(self._posed_version, posed.gaussians)
+            out = rasterize(gaussians, cam, RenderRequest(
                 outputs=outputs, background=tuple(req.background), sh_degree=req.sh_degree,
                 budget=budget, backend=self.backend))
             rgb = frame_rgb(out.rgb, req.codec, "alpha" in req.outputs)  # [H, W, 3] uint8

@@ -18,7 +18,10 @@ from collections.abc import Callable, Hashable
 from dataclasses import dataclass, field
 from typing import Any, Generic, TypeVar
 
-from avatar_core.render.rasterize import resolve_backend
+import torch
+
+from avatar_core.render.rasterize import available_backends, resolve_backend
+from avatar_core.render.types import GaussianSet
 
 from .scheduler import RenderScheduler
 
@@ -35,6 +38,38 @@ def batch_views(setting: int | None, backend: str, device: Any) -> int:
     if setting is not None:
         return setting
     return DEFAULT_BATCH_VIEWS if resolve_backend(backend, device) == "gsplat" else 1
+
+
+def render_device(backend: str) -> torch.device | None:
+    """Where the server renders: CUDA when the backend is gsplat (or auto, with gsplat and a
+    CUDA device here); None: where the avatar is posed (the CPU, numba)."""
+    if backend == "gsplat" or (backend == "auto" and "gsplat" in available_backends()):
+        return torch.device("cuda")
+    return None
+
+
+class DeviceCopies:
+    """The newest posed states on the render device: one upload per state (posing stays on
+    the CPU, where the numba binding is fast), shared by every view rendered of it."""
+
+    def __init__(self, device: torch.device | None, keep: int = 2) -> None:
+        self.device, self.keep = device, keep
+        self._lock = threading.Lock()
+        self._copies: dict[Hashable, GaussianSet] = {}
+
+    def get(self, key: Hashable, gaussians: GaussianSet) -> GaussianSet:
+        if self.device is None or gaussians.means.device == self.device:
+            return gaussians
+        with self._lock:
+            copy = self._copies.get(key)
+            if copy is None:
+                copy = GaussianSet(*(t.to(self.device, non_blocking=True) for t in (
+                    gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities,
+                    gaussians.sh)))
+                self._copies[key] = copy
+                while len(self._copies) > self.keep:
+                    self._copies.pop(next(iter(self._copies)))
+            return copy
 
 
 @dataclass

@@ -172,3 +172,23 @@ def test_viewers_of_distinct_views_stream_with_batching_on(srv):
     assert all(f.width == SIZE and f.data for f in got)
     c = live(srv, room["id"]).frames.counters
     assert c.renders >= 1 and c.encodes >= c.renders
+
+
+def test_render_device_and_one_upload_per_state():
+    from server.view_batch import DeviceCopies, render_device
+
+    assert render_device("cpu") is None and render_device("torch") is None
+    assert render_device("gsplat") == torch.device("cuda")
+    if not torch.cuda.is_available():
+        assert render_device("auto") is None  # posed and rendered on the CPU, as before
+    from avatar_core.render.scenes import random_scene
+
+    g = random_scene(5, 0)
+    assert DeviceCopies(None).get(1, g) is g
+    copies = DeviceCopies(torch.device("meta"), keep=2)  # a device any machine has
+    a = copies.get((1,), g)
+    assert a.means.device.type == "meta" and a.sh.shape == g.sh.shape
+    assert copies.get((1,), g) is a  # one upload per state, shared by its views
+    copies.get((2,), g)
+    copies.get((3,), g)
+    assert copies.get((1,), g) is not a  # the oldest went

@@ -40,7 +40,7 @@ from ..drive import DriveState, drive_shapes
 from ..encoders import frame_rgb
 from ..renderer import FrameJob, H264Stream, RenderedFrame, encode_outputs, view_camera
 from ..scheduler import RenderScheduler
-from ..view_batch import ViewBatches, batch_views
+from ..view_batch import DeviceCopies, ViewBatches, batch_views, render_device
 from .registry import Placement
 
 
@@ -154,6 +154,7 @@ class RoomFrames:
         self._inflight: dict[Hashable, concurrent.futures.Future] = {}  # group -> render
         views = batch_views(batch_max_views, backend, posers[0].animator.body_model.device)
         self._batches = ViewBatches(self._render_views, views) if views > 1 else None
+        self._on_device = DeviceCopies(render_device(backend))  # CUDA: one upload a state
 
     @property
     def chest(self) -> np.ndarray:
@@ -204,8 +205,9 @@ class RoomFrames:
         req, c = job.request, self.counters
         t0 = time.perf_counter()
         with torch.no_grad():
-            gaussians = union([poser.world(drive, c)
-                               for poser, drive in zip(self.posers, job.seats, strict=True)])
+            gaussians = self._on_device.get(job_versions(job), union([
+                poser.world(drive, c) for poser, drive in zip(self.posers, job.seats,
+                                                              strict=True)]))
             t1 = time.perf_counter()
             cam = view_camera(job.view, req.width, req.height, self.chest)
             outputs = tuple(dict.fromkeys(("rgb", *req.outputs)))
@@ -243,8 +245,9 @@ class RoomFrames:
         req = jobs[0].request
         t0 = time.perf_counter()
         with torch.no_grad():
-            gaussians = union([poser.world(drive, c)
-                               for poser, drive in zip(self.posers, jobs[0].seats, strict=True)])
+            gaussians = self._on_device.get(job_versions(jobs[0]), union([
+                poser.world(drive, c) for poser, drive in zip(self.posers, jobs[0].seats,
+                                                              strict=True)]))
             t1 = time.perf_counter()
             cams = [view_camera(job.view, req.width, req.height, self.chest) for job in jobs]
             outputs = tuple(dict.fromkeys(("rgb", *req.outputs)))
@@ -281,6 +284,10 @@ class RoomFrames:
                 timings, seat_seqs=tuple(d.seq for d in job.seats),
                 versions=tuple(d.version for d in job.seats)))
         return frames
+
+
+def job_versions(job: RoomFrameJob) -> tuple[int, ...]:
+    return tuple(d.version for d in job.seats)
 
 
 def _failed(future: concurrent.futures.Future) -> bool:
