@@ -71,7 +71,8 @@ class DensityStats:
     def num(self) -> int:
         return self.grad_accum.shape[0]
 
-    def update(self, grad_norm: Tensor, visible: Tensor, radii: Tensor | None = None) -> None:
+    def update(self, grad_norm: Tensor, visible: Tensor, radii: Tensor | None = None,
+               *, check: bool = True) -> None:
         """Add one view: ``grad_norm`` [N] (NDC units), ``visible`` [N] bool, ``radii`` [N]
         px (optional, for the screen-size prune). Non-finite gradients are refused: they
         would poison the averages for the rest of the interval."""
@@ -82,7 +83,9 @@ class DensityStats:
         if visible.dtype != torch.bool:
             raise ValueError(f"visible must be a bool mask, got {visible.dtype}")
         g = grad_norm.detach().to(self.grad_accum)
-        if not bool(torch.isfinite(g).all()):
+        # check=False (the CUDA trainer, no host read): its caller masks non-finite rows out
+        # of ``visible``, and where() never lets a masked NaN through
+        if check and not bool(torch.isfinite(g).all()):
             raise ValueError("grad_norm contains NaN or Inf")
         vis = visible.to(self.grad_accum.device)
         self.grad_accum = self.grad_accum + torch.where(vis, g, torch.zeros_like(g))
@@ -138,7 +141,8 @@ def screen_grad_norm(means: Tensor, means_grad: Tensor, camera: Camera, *,
 
 
 def screen_visibility(gaussians: GaussianSet, camera: Camera, *,
-                      antialiased: bool = False) -> tuple[Tensor, Tensor]:
+                      antialiased: bool = False, validate: bool = True
+                      ) -> tuple[Tensor, Tensor]:
     """(visible [N] bool, radii [N] px) of the shared projection (no grad): the
     ``visibility_filter`` and ``radii`` 3DGS's renderer returns. Pass the camera as
     rendered (after any resize of the request)."""
@@ -146,7 +150,7 @@ def screen_visibility(gaussians: GaussianSet, camera: Camera, *,
         viewmat, K = camera.to_torch(gaussians.means.device, gaussians.means.dtype)
         proj = project_gaussians(gaussians.means, gaussians.quats, gaussians.scales,
                                  gaussians.opacities, viewmat, K, camera.width,
-                                 camera.height, NEAR_PLANE, antialiased)
+                                 camera.height, NEAR_PLANE, antialiased, validate=validate)
     return proj.valid, proj.radii.to(gaussians.means.dtype)
 
 

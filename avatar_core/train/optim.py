@@ -134,8 +134,11 @@ def _check_leaf(name: str, t: Tensor) -> None:
 
 
 def make_optimizer(avatar_params: Mapping[str, Tensor],
-                   lr: GaussianLR = GaussianLR()) -> torch.optim.Adam:  # noqa: B008
+                   lr: GaussianLR = GaussianLR(),  # noqa: B008
+                   *, fused: bool = False) -> torch.optim.Adam:
     """Adam with one named group per Gaussian tensor (``group["name"]`` = its key).
+    ``fused``: torch's fused kernel (the CUDA trainer: it takes a device-side ``found_inf``
+    flag, so a step is skipped without reading anything back to the host).
 
     ``avatar_params`` holds exactly :data:`GAUSSIAN_KEYS` (and optionally ``parents``, which
     is skipped); anything else is refused, so no tensor silently trains at a wrong rate.
@@ -151,7 +154,7 @@ def make_optimizer(avatar_params: Mapping[str, Tensor],
     for name in GAUSSIAN_KEYS:
         _check_leaf(name, avatar_params[name])
         groups.append({"params": [avatar_params[name]], "lr": rates[name], "name": name})
-    return torch.optim.Adam(groups, lr=0.0, eps=ADAM_EPS)
+    return torch.optim.Adam(groups, lr=0.0, eps=ADAM_EPS, fused=fused or None)
 
 
 def set_position_lr(optimizer: torch.optim.Optimizer, lr: GaussianLR, step: int) -> float:
@@ -167,7 +170,7 @@ def set_position_lr(optimizer: torch.optim.Optimizer, lr: GaussianLR, step: int)
 
 def make_param_optimizer(params: Mapping[str, Tensor],
                          lrs: Mapping[str, float] | None = None, *,
-                         enabled: bool = True) -> torch.optim.Adam | None:
+                         enabled: bool = True, fused: bool = False) -> torch.optim.Adam | None:
     """Adam over the SMPL-X parameters being fine-tuned, one named group per tensor.
 
     ``lrs`` overrides :data:`DEFAULT_PARAM_LRS` per name; every tensor of ``params`` needs a
@@ -193,4 +196,4 @@ def make_param_optimizer(params: Mapping[str, Tensor],
         if not (math.isfinite(rate) and rate >= 0):
             raise ValueError(f"learning rate of {name!r} must be finite and >= 0, got {rate}")
         groups.append({"params": [t.requires_grad_(True)], "lr": rate, "name": name})
-    return torch.optim.Adam(groups, lr=0.0, eps=ADAM_EPS)
+    return torch.optim.Adam(groups, lr=0.0, eps=ADAM_EPS, fused=fused or None)

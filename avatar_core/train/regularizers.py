@@ -44,14 +44,14 @@ def _norm(x: Tensor) -> Tensor:
     return torch.linalg.vector_norm(x, dim=-1)
 
 
-def _check(name: str, t: Tensor) -> None:
+def _check(name: str, t: Tensor, finite: bool = True) -> None:
     if t.ndim != 2 or t.shape[1] != 3:
         raise ValueError(f"{name} must be [N, 3], got {list(t.shape)}")
-    if not bool(torch.isfinite(t.detach()).all()):
+    if finite and not bool(torch.isfinite(t.detach()).all()):
         raise ValueError(f"{name} contains NaN or Inf")
 
 
-def _weighted_mean(per_gaussian: Tensor, weight: Tensor | None) -> Tensor:
+def _weighted_mean(per_gaussian: Tensor, weight: Tensor | None, check: bool = True) -> Tensor:
     """Mean of per_gaussian [N], weighted by ``weight`` [N] (bool or >= 0); 0 when nothing
     is selected (or N = 0), with the graph kept so backward still works."""
     if weight is None:
@@ -62,33 +62,36 @@ def _weighted_mean(per_gaussian: Tensor, weight: Tensor | None) -> Tensor:
         raise ValueError(f"weight must have shape {list(per_gaussian.shape)}, got "
                          f"{list(weight.shape)}")
     w = weight.detach().to(per_gaussian)
-    if not bool(torch.isfinite(w).all()) or bool((w < 0).any()):
+    if check and (not bool(torch.isfinite(w).all()) or bool((w < 0).any())):
         raise ValueError("weight must be finite and >= 0")
     total, norm = (w * per_gaussian).sum(), w.sum()
     return torch.where(norm > 0, total / torch.where(norm > 0, norm, 1.0), total * 0.0)
 
 
 def position_loss(local_means: Tensor, eps: float = 1.0,
-                  weight: Tensor | None = None) -> Tensor:
-    """``mean(relu(||local_mean|| - eps))``; zero inside the eps ball. [N, 3] -> []."""
-    _check("local_means", local_means)
-    return _weighted_mean(torch.relu(_norm(local_means) - eps), weight)
+                  weight: Tensor | None = None, *, check: bool = True) -> Tensor:
+    """``mean(relu(||local_mean|| - eps))``; zero inside the eps ball. [N, 3] -> [].
+    ``check=False`` skips the NaN/Inf scans (host round trips on CUDA)."""
+    _check("local_means", local_means, check)
+    return _weighted_mean(torch.relu(_norm(local_means) - eps), weight, check)
 
 
 def scaling_loss(log_scales: Tensor, eps: float = 0.6,
-                 weight: Tensor | None = None) -> Tensor:
+                 weight: Tensor | None = None, *, check: bool = True) -> Tensor:
     """``mean(||relu(exp(log_scale) - eps)||)``; zero when every axis is <= eps. [N, 3] ->
     []."""
-    _check("log_scales", log_scales)
-    return _weighted_mean(_norm(torch.relu(torch.exp(log_scales) - eps)), weight)
+    _check("log_scales", log_scales, check)
+    return _weighted_mean(_norm(torch.relu(torch.exp(log_scales) - eps)), weight, check)
 
 
 def avatar_regularizers(local_means: Tensor, log_scales: Tensor, weight: Tensor | None = None,
-                        config: RegularizerWeights = RegularizerWeights()  # noqa: B008
-                        ) -> dict[str, Tensor]:
+                        config: RegularizerWeights = RegularizerWeights(),  # noqa: B008
+                        *, check: bool = True) -> dict[str, Tensor]:
     """The weighted terms to add to the loss: ``{"pos": lambda_pos L_pos, "scale":
     lambda_scale L_scale}`` (GaussianAvatars' ``losses['xyz']`` and ``losses['scale']``)."""
     return {
-        "pos": config.lambda_pos * position_loss(local_means, config.eps_pos, weight),
-        "scale": config.lambda_scale * scaling_loss(log_scales, config.eps_scale, weight),
+        "pos": config.lambda_pos * position_loss(local_means, config.eps_pos, weight,
+                                                 check=check),
+        "scale": config.lambda_scale * scaling_loss(log_scales, config.eps_scale, weight,
+                                                    check=check),
     }

@@ -69,6 +69,7 @@ from .density import (
     screen_grad_norm,
     screen_visibility,
 )
+from .device_step import DeviceTally, fit_on_device
 from .optim import (
     GAUSSIAN_KEYS,
     avatar_state,
@@ -170,7 +171,7 @@ class Trainer:
     def __init__(self, dataset: Dataset | str | Path, config: TrainConfig,
                  out_dir: str | Path, body_model: str | Path | None = None,
                  progress: Progress | None = None, *, checkpoint: dict[str, Any] | None = None,
-                 profile: bool = False) -> None:
+                 profile: bool = False, device_resident: bool | None = None) -> None:
         self.dataset = dataset if isinstance(dataset, Dataset) else load_dataset(dataset)
         self.config = config
         self.out_dir = Path(out_dir)
@@ -192,6 +193,10 @@ class Trainer:
             lambda_scale=config.loss.lambda_scale, eps_scale=config.loss.eps_scale)
         self.lpips = self._setup_lpips()
         self.phases = _Phases(profile, self.device)
+        # CUDA: the iteration without host reads (device_step; None: on CUDA only)
+        if device_resident is None:
+            device_resident = self.device.type == "cuda"
+        self.tally = DeviceTally(self.device) if device_resident else None
         self._frame_cache: OrderedDict[tuple[str, int], FaceFrames] = OrderedDict()
         self._posed_k: Tensor | None = None
         self._last: tuple[Tensor, TrainView] | None = None
@@ -247,7 +252,7 @@ class Trainer:
             avatar.sh[:, 0] = rgb_to_sh0(torch.as_tensor(self._projected_colors(),
                                                          dtype=avatar.sh.dtype))
         self.state = avatar_state(avatar.to(self.device))
-        self.optimizer = make_optimizer(self.state, cfg.lr)
+        self.optimizer = make_optimizer(self.state, cfg.lr, fused=self.tally is not None)
         self.deltas: dict[str, dict[str, Tensor]] = {}
         if cfg.finetune.enabled:
             self.deltas = {s: fine_tune_deltas(self.dataset.sequences[s], self.body.model,
@@ -265,7 +270,7 @@ class Trainer:
         named = {f"{s}/{k}": t for s, d in self.deltas.items() for k, t in d.items()}
         rates = self.config.finetune.lrs()
         return make_param_optimizer(named, {n: rates[n.rsplit("/", 1)[1]] for n in named},
-                                    enabled=bool(named))
+                                    enabled=bool(named), fused=self.tally is not None)
 
     def _set_finetune_lrs(self, it: int) -> None:
         """The fine-tuning rates of this iteration (FineTuneConfig.lrs_at)."""
@@ -294,6 +299,7 @@ class Trainer:
     # -- checkpoints ---------------------------------------------------------------------
 
     def _payload(self) -> dict[str, Any]:
+        self._flush_tally()  # the skip count, read back before it is saved
         return {
             "iteration": self.iteration,
             "config": config_to_dict(self.config),
@@ -322,7 +328,8 @@ class Trainer:
                       for k, v in ckpt["state"].items()}
         if int(self.state["parents"].max()) >= self.faces.shape[0]:
             raise ValueError("the checkpoint's Gaussians are bound to another mesh")
-        self.optimizer = make_optimizer(self.state, self.config.lr)
+        self.optimizer = make_optimizer(self.state, self.config.lr,
+                                        fused=self.tally is not None)
         self.optimizer.load_state_dict(ckpt["optimizer"])
         self.deltas = {s: {k: t.to(dev) for k, t in d.items()}
                        for s, d in ckpt["deltas"].items()}
@@ -429,7 +436,8 @@ class Trainer:
         view = self.views.get(self._next_view())
         self._posed_k = None
         ph.mark("data")
-        result = self._fit(view, it)
+        result = (self._fit(view, it) if self.tally is None
+                  else fit_on_device(self, view, it))
         self._densify(it, view)  # on schedule even when the view was skipped
         ph.mark("densify")
         return result
@@ -496,7 +504,23 @@ class Trainer:
 
     # -- the run -------------------------------------------------------------------------
 
+    def _flush_tally(self) -> None:
+        """The device path's tally into the host-side window and skip count."""
+        if self.tally is None:
+            return
+        loss_sum, steps, skipped = self.tally.take()
+        window = self._window
+        window["loss_sum"] = window.get("loss_sum", 0.0) + loss_sum
+        window["steps"] = window.get("steps", 0) + steps
+        if steps:
+            self._last_loss = loss_sum / steps
+        if skipped:
+            self.skipped += skipped
+            log.warning("%d view(s) skipped before iteration %d: non-finite loss or gradients",
+                        skipped, self.iteration)
+
     def _emit(self, kind: str, **extra: Any) -> None:
+        self._flush_tally()
         if self.progress is None:
             return
         psnr_value = None
@@ -509,15 +533,20 @@ class Trainer:
         now = time.perf_counter()
         its = self.iteration - window["iteration"]
         losses = window["losses"]
+        if window.get("steps"):
+            mean_loss: float | None = window["loss_sum"] / window["steps"]
+        else:
+            mean_loss = float(np.mean(losses)) if losses else self._last_loss
         event = {"type": kind, "iteration": self.iteration, "total": self.config.iterations,
-                 "loss": float(np.mean(losses)) if losses else self._last_loss,
+                 "loss": mean_loss,
                  "psnr": psnr_value,
                  "num_gaussians": self.num_gaussians,
                  "elapsed_s": round(self.train_time_s + now - window["session_start"], 3),
                  "its_per_s": round(its / (now - window["time"]), 3) if its > 0 else None,
                  **extra}
         if kind == "progress":
-            window.update(iteration=self.iteration, time=now, losses=[])
+            window.update(iteration=self.iteration, time=now, losses=[], loss_sum=0.0,
+                          steps=0)
         self.progress(event)
 
     def train(self, stop_at: int | None = None) -> Path | None:
