@@ -108,7 +108,9 @@ class AvatarRegistry:
                  ranges: GaussianRanges | None = None,
                  body_models: str | Path | None = None) -> None:
         self.root = private_dir(root)
-        self.body_models = body_models  # the setting: resolve_body_models' server setting
+        # the setting body_models, which already ranks file < TELESPLAT_BODY_MODELS < flag, so
+        # it goes to the resolver as the explicit folder (None: the resolver's own order)
+        self.body_models = body_models
         self.ranges = ranges  # None: GaussianRanges' defaults
         self.max_package_bytes = max_package_bytes
         self.npz_limits = npz_limits  # None: load_package's, from max_package_bytes
@@ -224,7 +226,7 @@ class AvatarRegistry:
         (checked again when it is opened: the setting may change between restarts). The full
         reason, which names server folders, goes to the log only."""
         try:
-            files = models_for_reference(package.body.model, setting=self.body_models)
+            files = models_for_reference(package.body.model, self.body_models)
             check_binding(package.body, files, upper_body_faces(files), "the package")
         except BodyModelMismatch as exc:
             log.warning("avatar package refused: %s", exc)
@@ -270,7 +272,7 @@ class AvatarRegistry:
         if existing is not None and existing.source == f"demo:{spec}" and spec != "trained":
             return existing
         if spec == "synthetic" or spec.startswith("synthetic:"):
-            loaded = load_avatar(spec, setting=self.body_models)
+            loaded = load_avatar(spec, self.body_models)
             with tempfile.TemporaryDirectory(dir=self.root, prefix=".incoming-") as tmp:
                 src = save_package(loaded.package, Path(tmp) / "pkg")
                 return self.add_package(src, PUBLIC_OWNER, avatar_id=DEMO_ID,
@@ -299,7 +301,7 @@ class AvatarRegistry:
                 # the limits it was accepted under: a package that was added also opens
                 try:
                     loaded = load_avatar(str(self.package_dir(avatar_id)),
-                                         setting=self.body_models,
+                                         body_models=self.body_models,
                                          max_bytes=self.max_package_bytes,
                                          npz_limits=self.npz_limits, ranges=self.ranges)
                 except BodyModelMismatch as exc:  # the full message names server folders

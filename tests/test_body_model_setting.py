@@ -196,7 +196,7 @@ def test_other_model_files_are_refused_naming_both(trained, official, tmp_path):
     assert bound.faces_sha256[:16] in str(err.value) and str(tmp_path) not in str(err.value)
 
 
-def test_the_registry_takes_it_only_with_the_setting(trained, official, tmp_path):
+def test_the_registry_takes_it_only_with_the_setting(trained, official, tmp_path, monkeypatch):
     with pytest.raises(PackageError, match="bound to body model 'SMPLX_NEUTRAL.npz', which "
                                            "this server does not have") as err:
         AvatarRegistry(tmp_path / "bare").add_package(trained, "alice")  # an upload: 422
@@ -204,6 +204,10 @@ def test_the_registry_takes_it_only_with_the_setting(trained, official, tmp_path
     served = AvatarRegistry(tmp_path / "served", body_models=official.root)
     rec = served.add_package(trained, "alice")
     assert served.open(rec.id).files.root == official.root
+    monkeypatch.setenv(BODY_MODELS_ENV, str(tmp_path / "elsewhere"))
+    flag = AvatarRegistry(tmp_path / "flag", body_models=official.root)  # `serve --body-models`
+    assert flag.open(flag.add_package(trained, "alice").id).files.root == official.root
+    monkeypatch.delenv(BODY_MODELS_ENV)
     restarted = AvatarRegistry(tmp_path / "served")  # the setting gone after a restart
     with pytest.raises(BodyModelsMissing) as err:
         restarted.open(rec.id)

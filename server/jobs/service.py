@@ -120,7 +120,7 @@ def _validated(root: Path, body_models: str | None, npz_limits: NpzLimits) -> No
     if synthetic_seed_of(source, SYNTHETIC_SOURCE) is None:  # (a synthetic one is generated)
         # the trainer would fail without the model files (posing.resolve_body): say so now
         try:
-            models_for_source(source, setting=body_models)
+            models_for_source(source, body_models)
         except BodyModelsMissing as exc:  # (the public message names no server folder)
             raise SubmitError(f"this server cannot train on the dataset: {exc.public}") \
                 from None
