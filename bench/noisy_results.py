@@ -67,7 +67,8 @@ def fine_tuned(model_dir: Path) -> dict[str, dict[str, np.ndarray]] | None:
     return {p.stem: dict(np.load(p)) for p in sorted(folder.glob("*.npz"))}
 
 
-def evaluate_model(model_dir: Path, data, truth, size: int | None, stride: int) -> dict:
+def evaluate_model(model_dir: Path, data, truth, size: int | None, stride: int,
+                   sr_stride: int) -> dict:
     avatar = model_dir / "avatar_final"
     fusion = FUSION.get(model_dir.name, True)
     drives = {"novel-view": {"tracked": None, "true": truth},
@@ -79,9 +80,11 @@ def evaluate_model(model_dir: Path, data, truth, size: int | None, stride: int) 
     for protocol, by_drive in drives.items():
         for drive, params in by_drive.items():
             t0 = time.perf_counter()
-            res = evaluate(avatar, data, protocol, fusion=fusion, frame_stride=stride,
+            res = evaluate(avatar, data, protocol, fusion=fusion,
+                           frame_stride=stride if protocol == "novel-view" else sr_stride,
                            size=size, drive=params, truth=truth)
             row[f"{protocol}/{drive}"] = {k: res.metrics.get(k) for k in KEYS}
+            row[f"{protocol}/{drive}"]["views"] = res.num_views
             print(f"[{model_dir.parent.name}/{model_dir.name}] {protocol} {drive}: "
                   f"{row[f'{protocol}/{drive}']} ({time.perf_counter() - t0:.0f} s)", flush=True)
     return row
@@ -117,7 +120,9 @@ def main() -> None:
     ap.add_argument("--models", default="full,no_finetune,no_fusion,finetune_fixed")
     ap.add_argument("--out", type=Path, default=Path("docs/results/noisy"))
     ap.add_argument("--size", type=int, default=None, help="score width (default: dataset's)")
-    ap.add_argument("--stride", type=int, default=2, help="every K-th frame")
+    ap.add_argument("--stride", type=int, default=2, help="novel view: every K-th frame")
+    ap.add_argument("--sr-stride", type=int, default=5,
+                    help="self-reenactment (all cameras): every K-th frame")
     ap.add_argument("--webcam-model", default="full")
     ap.add_argument("--webcam-only", action="store_true")
     ap.add_argument("--skip-webcam", action="store_true")
@@ -128,13 +133,13 @@ def main() -> None:
     js_path = args.out / "noisy.json"
     doc = json.loads(js_path.read_text()) if js_path.is_file() else {}
     if not args.webcam_only:
-        results = {}
+        results = doc.setdefault("ablation", {})  # runs evaluated earlier are kept
         for work in args.work:
             for model in args.models.split(","):
                 if (work / model / "avatar_final").is_dir():
                     results[f"{work.name}/{model}"] = evaluate_model(
-                        work / model, data, truth, args.size, args.stride)
-        doc["ablation"] = results
+                        work / model, data, truth, args.size, args.stride, args.sr_stride)
+                    js_path.write_text(json.dumps(doc, indent=2) + "\n")
         (args.out / "ablation.md").write_text(table(results))
         print(table(results))
     if not args.skip_webcam:
@@ -143,7 +148,8 @@ def main() -> None:
                               max_images=3)
         doc["webcam"] = res.to_dict()
         print(webcam_markdown(res))
-    doc["settings"] = {"size": args.size, "stride": args.stride, "dataset": str(args.dataset)}
+    doc["settings"] = {"size": args.size, "stride": args.stride, "sr_stride": args.sr_stride,
+                       "dataset": str(args.dataset)}
     js_path.write_text(json.dumps(doc, indent=2) + "\n")
 
 
