@@ -26,6 +26,7 @@ from avatar_core.body.model_paths import (
 from avatar_core.cli import main as telesplat
 from avatar_core.gaussians.loading import BodyModelMismatch, load_avatar
 from avatar_core.gaussians.package import PackageError, faces_fingerprint, load_package
+from client.cli import main as client_main
 from protocol import Drive, Image, encode
 from server.config import load_settings
 from server.jobs.service import JobService, SubmitError
@@ -34,7 +35,12 @@ from server.jobs.worker import Worker, WorkerConfig
 from server.registry import AvatarRegistry
 from tests.dataset_fixtures import write_tiny_dataset
 from tests.server_fixtures import is_type, recv_until, run_server, stream
-from tests.test_track_drive import astronaut_jpeg, models_available, needs_models
+from tests.test_track_drive import (
+    _astronaut_video,
+    astronaut_jpeg,
+    models_available,
+    needs_models,
+)
 
 STUDIO_ONLY = ("manifest.json", "gestures.npz", "identities")  # not in an official download
 TINY_CONFIG = ('preset = "test"\ncheckpoint_interval = 1000\n[finetune]\nenabled = false\n'
@@ -246,6 +252,7 @@ def test_track_cli_fits_with_the_folder_from_the_environment(official, tmp_path,
     assert len(frames) == 1 and np.isfinite(np.asarray(frames[0]["body_pose"])).all()
 
 
+@pytest.mark.slow  # ~20 s alone plus the shared training; still part of `make test`
 def test_served_with_the_setting_streams_and_tracks(trained, official, tmp_path):
     """The trained package as the server's demo avatar, its models from the setting alone."""
     with run_server(tmp_path / "server", demo_avatar=str(trained),
@@ -265,3 +272,11 @@ def test_served_with_the_setting_streams_and_tracks(trained, official, tmp_path)
         asyncio.run(run())
         loaded = srv.ctx.registry.open("demo")
         assert loaded.files.root == official.root
+        if models_available():  # the remote tracker fits here, on the same files
+            video = tmp_path / "clip.avi"
+            _astronaut_video(video, frames=1)
+            assert client_main(["drive", "--server", srv.url, "--token", srv.token,
+                                "--avatar", "demo", "--video", str(video), "--quiet",
+                                "--out", str(tmp_path / "driven"),
+                                "--body-models", str(official.root)]) == 0
+            assert len(list((tmp_path / "driven").iterdir())) == 1
