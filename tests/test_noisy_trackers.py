@@ -167,3 +167,12 @@ def test_capture_writes_the_truth_beside_noisy_trackers(tmp_path, synthetic_file
     with pytest.raises(ValueError, match="simulated"):
         CaptureSpec(sequences=(("smile",),), trackers="exact",
                     tracker_noise=TrackerNoise(jaw_deg=1.0))
+
+
+def test_capture_cli_refuses_a_bad_noise_setting(tmp_path, capsys):
+    from avatar_core.cli import main
+
+    assert main(["synth", "capture", "--out", str(tmp_path / "d"), "--motions", "smile",
+                 "--tracker-noise", "studio,jaw=1"]) == 2
+    assert "tracker noise 'jaw=1'" in capsys.readouterr().err
+    assert not (tmp_path / "d").exists()
