@@ -77,7 +77,6 @@ class _Batch(Generic[Item, Result]):
     key: Hashable
     items: list[Item] = field(default_factory=list)
     futures: list[concurrent.futures.Future] = field(default_factory=list)
-    started: bool = False
 
 
 @dataclass
@@ -114,13 +113,18 @@ class ViewBatches(Generic[Item, Result]):
             if len(batch.items) >= self.max_views:
                 del self._open[key]  # full: the next render of this key opens another
         if new:
-            job = scheduler.submit(self._run, batch, key=share_key)
+            try:
+                job = scheduler.submit(self._run, batch, key=share_key)
+            except BaseException:  # shut down: no later render may join a batch never run
+                with self._lock:
+                    if self._open.get(key) is batch:
+                        del self._open[key]
+                raise
             job.add_done_callback(lambda done: _fail_unfinished(done, batch.futures))
         return future
 
     def _run(self, batch: _Batch) -> None:
-        with self._lock:
-            batch.started = True
+        with self._lock:  # started: later renders open a new batch
             if self._open.get(batch.key) is batch:
                 del self._open[batch.key]
         live = [(item, fut) for item, fut in zip(batch.items, batch.futures, strict=True)

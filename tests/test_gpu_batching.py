@@ -93,6 +93,16 @@ def test_a_failing_batch_fails_each_item_and_a_shut_down_one_cancels_them():
         queued.result(TIMEOUT_S)
 
 
+def test_a_shut_down_scheduler_refuses_and_leaves_no_open_batch():
+    batches = ViewBatches(lambda items: list(items), max_views=4)
+    scheduler = RenderScheduler(render_threads=1)
+    scheduler.shutdown()
+    for _ in range(2):  # the second would join a batch that never runs, were it kept
+        with pytest.raises(RuntimeError, match="shut down"):
+            batches.submit(scheduler, "k", 1)
+    assert batches._open == {}
+
+
 def test_batch_size_setting():
     cpu = torch.device("cpu")
     assert batch_views(None, "auto", cpu) == 1  # cpu kernels: no batching
