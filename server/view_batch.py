@@ -16,11 +16,11 @@ import concurrent.futures
 import threading
 from collections.abc import Callable, Hashable
 from dataclasses import dataclass, field
-from typing import Any, Generic, TypeVar
+from typing import Generic, TypeVar
 
 import torch
 
-from avatar_core.render.rasterize import available_backends, resolve_backend
+from avatar_core.render.rasterize import available_backends
 from avatar_core.render.types import GaussianSet
 
 from .scheduler import RenderScheduler
@@ -31,13 +31,14 @@ Result = TypeVar("Result")
 DEFAULT_BATCH_VIEWS = 32  # views per batch where batching pays (gsplat)
 
 
-def batch_views(setting: int | None, backend: str, device: Any) -> int:
+def batch_views(setting: int | None, backend: str) -> int:
     """Views per batch: the setting, or with None (auto) ``DEFAULT_BATCH_VIEWS`` when renders
-    go to gsplat and 1 (no batching: the cpu kernels gain nothing from it and would lose the
-    parallel render threads) otherwise."""
+    go to gsplat (:func:`render_device`: the avatar is posed on the CPU, rendered on CUDA) and
+    1 (no batching: the cpu kernels gain nothing from it and would lose the parallel render
+    threads) otherwise."""
     if setting is not None:
         return setting
-    return DEFAULT_BATCH_VIEWS if resolve_backend(backend, device) == "gsplat" else 1
+    return DEFAULT_BATCH_VIEWS if render_device(backend) is not None else 1
 
 
 def render_device(backend: str) -> torch.device | None:

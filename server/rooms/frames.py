@@ -152,7 +152,7 @@ class RoomFrames:
         self._frames: collections.OrderedDict[Hashable, concurrent.futures.Future] = (
             collections.OrderedDict())
         self._inflight: dict[Hashable, concurrent.futures.Future] = {}  # group -> render
-        views = batch_views(batch_max_views, backend, posers[0].animator.body_model.device)
+        views = batch_views(batch_max_views, backend)
         self._batches = ViewBatches(self._render_views, views) if views > 1 else None
         self._on_device = DeviceCopies(render_device(backend))  # CUDA: one upload a state
 
