@@ -65,11 +65,10 @@ class DeviceTally:
         return loss_sum, int(steps), int(skipped)
 
 
-def fit_on_device(tr: Trainer, view: TrainView, it: int) -> StepResult:
-    """:meth:`Trainer._fit` without a host read (see the module docstring). The returned
-    :class:`StepResult` has no loss: it is in ``tr.tally`` until the next report."""
-    from .trainer import StepResult
-
+def fit_on_device(tr: Trainer, view: TrainView, it: int) -> StepResult | None:
+    """:meth:`Trainer._fit` without a host read (see the module docstring): the skip's result
+    when the view has nothing to learn from, else None (stepped or skipped on the device; the
+    loss is in ``tr.tally`` until the next report)."""
     cfg = tr.config
     if view.weight_sum <= 0:  # a host float of the prepared view: no device read
         return tr._skip("empty loss mask (only masked-out pixels)", view)
@@ -105,4 +104,4 @@ def fit_on_device(tr: Trainer, view: TrainView, it: int) -> StepResult:
     tr._drop_grads()
     tr._last = (pred.detach(), view)
     tr.tally.add(loss, ok)
-    return StepResult(it, None)
+    return None

@@ -436,8 +436,10 @@ class Trainer:
         view = self.views.get(self._next_view())
         self._posed_k = None
         ph.mark("data")
-        result = (self._fit(view, it) if self.tally is None
-                  else fit_on_device(self, view, it))
+        if self.tally is None:
+            result = self._fit(view, it)
+        else:  # no loss on the host: it is read at the next report
+            result = fit_on_device(self, view, it) or StepResult(it, None)
         self._densify(it, view)  # on schedule even when the view was skipped
         ph.mark("densify")
         return result
