@@ -64,7 +64,7 @@ class DeviceCopies:
         with self._lock:
             copy = self._copies.get(key)
             if copy is None:
-                copy = GaussianSet(*(t.to(self.device, non_blocking=True) for t in (
+                copy = GaussianSet(*(t.to(self.device) for t in (
                     gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities,
                     gaussians.sh)))
                 self._copies[key] = copy
