@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import statistics
 import sys
 import time
 from dataclasses import replace
@@ -123,6 +124,38 @@ def replay_clip(scene, data, name: str, sequence_fit, fps: float) -> dict[str, f
     return m
 
 
+def timing(scene, data, model, betas, configs, names, clips, fps, rounds, log) -> None:
+    """`SequenceFit.step` per frame, the variants interleaved clip by clip for `rounds`
+    rounds (the machine's load shifts evenly on all): median and p90 ms, the ratio to the
+    first variant, and how many frames ran a palm retry."""
+    from avatar_core.track.fit.sequence import SequenceFit
+
+    size = (scene.camera.width, scene.camera.height)
+    fits = {v: SequenceFit(model, betas, configs[v]) for v in names}
+    times = {v: [] for v in names}
+    retried = {v: 0 for v in names}
+    for _ in range(rounds):
+        for c in clips:
+            n = len(data[f"{c}/seen"])
+            for v in names:
+                fits[v].reset()
+                for i in range(n):
+                    obs = _observations(data, c, i, size)
+                    t0 = time.perf_counter()
+                    out = fits[v].step(obs, i / fps)
+                    times[v].append((time.perf_counter() - t0) * 1e3)
+                    retried[v] += bool(out.fit is not None and out.fit.stats.get("palm_retries"))
+    first = statistics.median(times[names[0]])
+    print("\n| variant | fit ms / frame (median) | p90 | vs first | frames with a palm retry |")
+    print("|---|---:|---:|---:|---:|")
+    for v in names:
+        med = statistics.median(times[v])
+        p90 = float(np.percentile(times[v], 90))
+        print(f"| {v} | {med:.1f} | {p90:.1f} | {med / first:.2f}x | "
+              f"{100 * retried[v] / len(times[v]):.1f}% |")
+    log(f"timing: {rounds} rounds, {len(times[names[0]])} frames per variant")
+
+
 def _weighted(per_clip: dict[str, dict[str, float]], key: str, weight: str) -> float:
     num = den = 0.0
     for m in per_clip.values():
@@ -154,13 +187,17 @@ def variant_configs():
     def fit(**kw):
         return replace(base, fit=replace(base.fit, **kw))
 
-    return {"base": fit(palm_retry_deg=180.0, finger_hinge_weight=0.0),
-            "hinge": fit(palm_retry_deg=180.0),
-            "palm60_nohinge": fit(finger_hinge_weight=0.0),
-            "depth02": fit(hand_depth_weight=0.02), "depth0": fit(hand_depth_weight=0.0),
-            "prior01": fit(hand_prior=0.1), "prior1": fit(hand_prior=1.0),
-            "hinge30": fit(finger_hinge_weight=30.0), "palm60": fit(palm_retry_deg=60.0),
-            "palm45": fit(palm_retry_deg=45.0), "palm30": fit(palm_retry_deg=30.0)}, replace
+    # "base": the fit before issue 18 (no palm retry, no hinge prior, hand prior 0.3);
+    # "default": today's FitConfig; the rest change one thing against one of them.
+    return {"base": fit(palm_retry_deg=180.0, finger_hinge_weight=0.0, hand_prior=0.3),
+            "hinge": fit(palm_retry_deg=180.0, hand_prior=0.3),
+            "palm": fit(finger_hinge_weight=0.0, hand_prior=0.3),
+            "palm+hinge": fit(hand_prior=0.3),
+            "default": fit(),
+            "default, palm 45": fit(palm_retry_deg=45.0),
+            "default, hinge 3": fit(finger_hinge_weight=3.0),
+            "default, prior 0.6": fit(hand_prior=0.6),
+            "default, depth 0.02": fit(hand_depth_weight=0.02)}, replace
 
 
 def main() -> None:
@@ -169,8 +206,11 @@ def main() -> None:
     parser.add_argument("--replay", type=Path)
     parser.add_argument("--clips", default=",".join(HAND_CLIPS))
     parser.add_argument("--fps", type=float, default=30.0)
-    parser.add_argument("--variants", default=None, help="comma-separated (default: all)")
+    parser.add_argument("--variants", default=None,
+                        help="separated by ; (default: all)")
     parser.add_argument("--json", type=Path, default=None)
+    parser.add_argument("--timing-rounds", type=int, default=0,
+                        help="instead of the metrics: per-frame fit time, variants interleaved")
     args = parser.parse_args()
     torch.set_num_threads(1)
     log = lambda msg: print(msg, file=sys.stderr, flush=True)  # noqa: E731
@@ -188,7 +228,11 @@ def main() -> None:
     scene = make_scene("noise")
     package, model = synthetic_package(scene.model_dir, 0)
     configs, _ = variant_configs()
-    names = list(configs) if args.variants is None else args.variants.split(",")
+    names = list(configs) if args.variants is None else args.variants.split(";")
+    if args.timing_rounds > 0:
+        timing(scene, data, model, np.asarray(package.body.betas), configs, names, clips, fps,
+               args.timing_rounds, log)
+        return
     results = {}
     print("| variant | AKD L / R hand px | wrist deg | fingers deg | AKD torso px | "
           "TJE raw / One Euro px | fit ms (median) |")

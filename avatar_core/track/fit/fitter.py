@@ -99,9 +99,9 @@ class FitConfig:
     hand_depth_weight: float = 0.05
     # Finger joints toward the mean hand, per rad^2: on renders MediaPipe's finger points sit
     # ~11 px from this model's joints, and a firmer prior keeps the fingers nearer the truth
-    # (docs/tracking.md: 0.05 -> 0.3, finger error 36 -> 30 deg) at a small cost on exact
-    # landmarks.
-    hand_prior: float = 0.3
+    # (docs/tracking.md: 0.05 -> 0.3 -> 1.0 with the palm retry and the hinge prior, finger
+    # error 36 -> 30 -> 23 deg) at a small cost on exact landmarks.
+    hand_prior: float = 1.0
     # The same for the face's static landmarks against the nose tip: it pins the head's
     # pitch, which the 2D landmarks leave loose (docs/tracking.md: head 7.8 -> 4.8 deg).
     face_depth_weight: float = 0.3
