@@ -224,6 +224,8 @@ def main() -> None:
                     help="train at this longest image side (px)")
     ap.add_argument("--finetune-schedule", choices=["fixed", "budget"], default=None,
                     help="fine-tuning rates: fixed (MVFGA's) or scaled to the iterations")
+    ap.add_argument("--finetune-reach", default=None, metavar="DEG,EXPR,M",
+                    help="budget schedule reach: body pose deg, expression, translation m")
     ap.add_argument("--train-only", action="store_true",
                     help="export the avatars (and fine-tuned parameters) under --work; "
                          "evaluate later (bench/noisy_results.py)")
@@ -250,6 +252,10 @@ def main() -> None:
         base = replace(base, data=replace(base.data, target_size=args.target_size))
     if args.finetune_schedule:
         base = replace(base, finetune=replace(base.finetune, schedule=args.finetune_schedule))
+    if args.finetune_reach:
+        deg, expr, metres = (float(v) for v in args.finetune_reach.split(","))
+        base = replace(base, finetune=replace(base.finetune, reach_body_pose_deg=deg,
+                                              reach_expression=expr, reach_transl=metres))
     args.out.mkdir(parents=True, exist_ok=True)
     curves, results = {}, {}
     chosen = variants(base)
