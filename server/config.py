@@ -206,6 +206,9 @@ class Settings(BaseModel):
     ray_job_num_gpus: float | None = Field(
         None, ge=0, description="GPUs a training job asks the Ray cluster for (default: the "
                                 "job config's num_gpus, else 0).")
+    ray_job_max_concurrent: int = Field(
+        16, ge=1, description="job_backend ray: training jobs running at once at most (each "
+                              "also waits for the cluster to have room for its request).")
     render_actors: int = Field(2, ge=1, le=1024,
                                description="render_backend ray: render-worker actors started.")
     render_actor_num_cpus: float = Field(1.0, gt=0, description="CPUs per render-worker actor.")

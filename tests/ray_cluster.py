@@ -34,6 +34,7 @@ from pathlib import Path
 
 import pytest
 
+from server import cluster
 from server.cluster import available
 
 REPO = Path(__file__).resolve().parents[1]
@@ -144,6 +145,7 @@ def ray_cluster(num_cpus: int = 4, num_gpus: int = 0,
             time.sleep(0.25)
         yield head
     finally:
+        cluster.shutdown()  # this process's connection to it, if a test made one
         _stop(proc)
         log.close()
         shutil.rmtree(temp_dir, ignore_errors=True)

@@ -1,0 +1,228 @@
+"""Training jobs on a real local Ray cluster (job_backend "ray"), through the REST API of a
+real server (uvicorn on 127.0.0.1): a job trains on a Ray actor to completion, streams its
+events and its avatar streams; jobs run side by side while the cluster has room and the rest
+wait queued; cancel ends the actor's process; a killed Ray worker process resumes from its
+last checkpoint (or fails with the reason when no attempts are left); a restarted server
+resumes a job from its checkpoint on Ray. The same REST-level checks run on the local backend
+(the ``backend`` parameter), so both backends pass the same job tests."""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import os
+import shutil
+import signal
+from pathlib import Path
+
+import pytest
+
+from protocol import Frame
+
+from . import test_jobs_support as support
+from .ray_cluster import ray_cluster, requires_ray
+from .server_fixtures import is_type, recv_until, run_server, stream
+from .test_jobs_api import _client, _sse, _upload
+from .test_jobs_support import FAST, LONG, wait_for, zip_dataset
+
+pytestmark = requires_ray
+
+capture_dir = support.capture_dir  # the shared session fixture
+KILLABLE = {**FAST, "iterations": 40}  # the kill lands after the first checkpoint (10)
+RAY_DIED = "the Ray worker process died"
+CLUSTER_CPUS = 2  # room for two 1-CPU jobs at once
+
+
+@pytest.fixture(scope="module")
+def ray_head():
+    with ray_cluster(num_cpus=CLUSTER_CPUS) as head:
+        yield head
+
+
+def _serve(data_dir: Path, backend: str, head=None, **overrides):
+    extra = {"job_backend": "ray", "cluster_address": head.address} if backend == "ray" else {}
+    return run_server(data_dir, **extra, **overrides)
+
+
+def _tune(server, capture_dir) -> None:
+    jobs = server.app.state.ctx.jobs
+    # full speed in tests (the default lowers the training process's priority)
+    jobs.worker.config = dataclasses.replace(jobs.worker.config, nice=0, poll_s=0.05)
+    if not (jobs.datasets_dir / "take").exists():
+        shutil.copytree(capture_dir, jobs.datasets_dir / "take")
+
+
+@pytest.fixture(scope="module", params=["ray", "local"])
+def srv(request, tmp_path_factory, capture_dir):
+    backend = request.param
+    head = request.getfixturevalue("ray_head") if backend == "ray" else None
+    with _serve(tmp_path_factory.mktemp(f"cluster-jobs-{backend}"), backend, head) as server:
+        _tune(server, capture_dir)
+        server.backend = backend
+        server.alice = server.issue("alice", ("train", "stream"))
+        yield server
+
+
+def _states(events) -> list[str]:
+    return [e["data"]["state"] for e in events if e["event"] == "state"]
+
+
+def _alive(pid: int) -> bool:
+    """A live (not zombie) process with this pid."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat.rsplit(")", 1)[1].split()[0] != "Z"
+
+
+def _first_checkpoint(jobs, job_id: str) -> int:
+    return wait_for(lambda: next((e.data["iteration"] for e in jobs.store.events(job_id)
+                                  if e.type == "checkpoint"), None), 120,
+                    what="the first checkpoint")
+
+
+def _pid(jobs, job_id: str) -> int:
+    return wait_for(lambda: jobs.worker.process_id(job_id), 120, what="the job's process")
+
+
+def test_a_job_trains_streams_events_and_its_avatar_streams(srv, capture_dir):
+    alice = _client(srv, srv.alice)
+    r = _upload(alice, zip_dataset(capture_dir), FAST, name="Remote")
+    assert r.status_code == 201, r.text
+    job = r.json()
+    events = _sse(alice, job["id"])
+    log = alice.get(f"/v1/jobs/{job['id']}/logs").text
+    assert events[-1]["data"]["state"] == "succeeded", log
+    assert _states(events) == ["queued", "running", "succeeded"]
+    kinds = [e["event"] for e in events]
+    assert kinds.count("progress") == 4 and "checkpoint" in kinds and "done" in kinds
+    ids = [int(e["id"]) for e in events[:-1]]
+    assert ids == list(range(1, len(ids) + 1))  # the actor's events, in order, no gaps
+    assert all("path" not in e["data"] for e in events)
+
+    status = alice.get(f"/v1/jobs/{job['id']}").json()
+    assert (status["iteration"], status["attempts"]) == (20, 1) and status["loss"] is not None
+    record = srv.ctx.registry.get(status["avatar_id"])
+    assert (record.owner, record.name) == ("alice", "Remote")
+    assert "attempt 1" in log and "trained" in log
+    if srv.backend == "ray":
+        assert "on Ray" in log and "Ray worker process" in log
+    folder = srv.ctx.jobs.worker.job_dir(job["id"])  # the upload and checkpoints freed
+    assert not (folder / "dataset").exists() and not (folder / "out" / "checkpoints").exists()
+
+    async def one_frame():
+        async with stream(srv, avatar=status["avatar_id"], token=srv.alice) as ws:
+            return await recv_until(ws, is_type("frame"), timeout=60)
+
+    assert isinstance(asyncio.run(one_frame()), Frame)
+
+
+def test_cancel_ends_the_jobs_process(srv):
+    jobs, alice = srv.ctx.jobs, _client(srv, srv.alice)
+    job = alice.post("/v1/jobs", json={"dataset": "take", "config": LONG}).json()
+    wait_for(lambda: jobs.store.get(job["id"]).iteration > 0, 120, what="training")
+    pid = _pid(jobs, job["id"])
+    assert _alive(pid)
+    r = alice.post(f"/v1/jobs/{job['id']}/cancel")
+    assert r.status_code == 202, r.text
+    events = _sse(alice, job["id"])
+    assert _states(events) == ["queued", "running", "cancelled"]
+    assert alice.get(f"/v1/jobs/{job['id']}").json()["state"] == "cancelled"
+    wait_for(lambda: not _alive(pid), 30, what=f"process {pid} to end")
+
+
+def test_a_killed_worker_process_resumes_from_its_checkpoint(srv):
+    jobs, alice = srv.ctx.jobs, _client(srv, srv.alice)
+    job = alice.post("/v1/jobs", json={"dataset": "take", "config": KILLABLE}).json()
+    checkpointed = _first_checkpoint(jobs, job["id"])
+    pid = _pid(jobs, job["id"])
+    os.kill(pid, signal.SIGKILL)
+
+    events = _sse(alice, job["id"])
+    assert _states(events) == ["queued", "running", "queued", "running", "succeeded"], \
+        alice.get(f"/v1/jobs/{job['id']}/logs").text
+    requeue = [e["data"] for e in events if e["event"] == "state"][2]
+    end = requeue["attempt_end"]
+    assert end["outcome"] == "requeued" and end["resume_iteration"] >= checkpointed
+    assert end["resume_from"] == f"iter_{end['resume_iteration']:06d}.pt"
+    if srv.backend == "ray":
+        assert requeue["reason"].startswith(RAY_DIED) and end["exit_code"] is None
+    kinds = [e["event"] for e in events]
+    resumed = events[kinds.index("resumed")]["data"]
+    assert resumed["iteration"] == end["resume_iteration"]  # no checkpoint lost
+    after = [e["data"]["iteration"] for e in events[kinds.index("resumed"):]
+             if e["event"] == "progress"]
+    assert after and min(after) > resumed["iteration"]  # it went on from there
+    status = alice.get(f"/v1/jobs/{job['id']}").json()
+    assert (status["state"], status["attempts"], status["iteration"]) == (
+        "succeeded", 2, KILLABLE["iterations"])
+
+
+def test_no_attempts_left_fails_with_the_reason(srv):
+    jobs, alice = srv.ctx.jobs, _client(srv, srv.alice)
+    config = jobs.worker.config
+    jobs.worker.config = dataclasses.replace(config, max_attempts=1)
+    try:
+        job = alice.post("/v1/jobs", json={"dataset": "take", "config": LONG}).json()
+    finally:
+        jobs.worker.config = config
+    checkpointed = _first_checkpoint(jobs, job["id"])
+    os.kill(_pid(jobs, job["id"]), signal.SIGKILL)
+    events = _sse(alice, job["id"])
+    assert _states(events) == ["queued", "running", "failed"]
+    failed = alice.get(f"/v1/jobs/{job['id']}").json()
+    assert "no attempts left" in failed["error"]
+    (end,) = failed["attempt_log"]
+    assert end["outcome"] == "failed" and end["resume_iteration"] >= checkpointed
+    checkpoint = jobs.worker.job_dir(job["id"]) / "out" / "checkpoints" / end["resume_from"]
+    assert checkpoint.is_file()  # kept for a resume
+    if srv.backend == "ray":
+        assert RAY_DIED in failed["error"]
+
+
+def test_jobs_run_side_by_side_while_there_is_room(srv):
+    jobs, alice = srv.ctx.jobs, _client(srv, srv.alice)
+    if srv.backend == "local":
+        jobs.worker.config = dataclasses.replace(jobs.worker.config,
+                                                 max_concurrent=CLUSTER_CPUS)
+    ids = [alice.post("/v1/jobs", json={"dataset": "take", "config": LONG}).json()["id"]
+           for _ in range(CLUSTER_CPUS + 1)]
+    try:
+        first = ids[:CLUSTER_CPUS]
+        wait_for(lambda: all(jobs.store.get(j).iteration > 0 for j in first), 120,
+                 what="two jobs training at once")
+        # both placed, every CPU of the cluster held: the third waits in the queue
+        assert jobs.store.get(ids[-1]).state == "queued"
+        assert alice.post(f"/v1/jobs/{first[0]}/cancel").status_code == 202
+        wait_for(lambda: jobs.store.get(ids[-1]).iteration > 0, 120,
+                 what="the queued job to start in the room freed")
+    finally:
+        for job_id in ids:
+            if not jobs.store.get(job_id).done:
+                jobs.cancel(job_id)
+        wait_for(lambda: all(jobs.store.get(j).done for j in ids), 60, what="the cancels")
+        jobs.worker.config = dataclasses.replace(jobs.worker.config, max_concurrent=1) \
+            if srv.backend == "local" else jobs.worker.config
+
+
+@pytest.mark.parametrize("backend", ["ray"])
+def test_a_restarted_server_resumes_the_job_from_its_checkpoint(backend, ray_head,
+                                                                 tmp_path, capture_dir):
+    data_dir = tmp_path / "data"
+    with _serve(data_dir, backend, ray_head) as first:
+        _tune(first, capture_dir)
+        token = first.issue("alice", ("train",))
+        job = _client(first, token).post(
+            "/v1/jobs", json={"dataset": "take", "config": KILLABLE}).json()
+        checkpointed = _first_checkpoint(first.ctx.jobs, job["id"])
+        pid = _pid(first.ctx.jobs, job["id"])
+    wait_for(lambda: not _alive(pid), 30, what="the first server's actor to end")
+    with _serve(data_dir, backend, ray_head) as second:
+        _tune(second, capture_dir)
+        events = _sse(_client(second, token), job["id"])
+        assert _states(events) == ["queued", "running", "queued", "running", "succeeded"]
+        requeue = [e["data"] for e in events if e["event"] == "state"][2]
+        assert requeue["reason"] == "the server stopped"
+        resumed = next(e["data"] for e in events if e["event"] == "resumed")
+        assert resumed["iteration"] >= checkpointed
