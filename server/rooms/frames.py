@@ -170,13 +170,18 @@ class RoomFrames:
             if shared is not None and not _failed(shared):
                 self.counters.shared += 1
             else:
-                shared = scheduler.submit(self._render, job, h264, last_codec,
-                                          key=self.share_key)
+                shared = self.dispatch(scheduler, job, h264, last_codec)
                 self._frames[key] = self._inflight[group] = shared
                 self._evict(versions)
         if owner is not None:
             return shared  # a participant's own H.264 frame: nobody else waits on it
         return _relay(shared)
+
+    def dispatch(self, scheduler: RenderScheduler, job: RoomFrameJob,
+                 h264: H264Stream | None, last_codec: str | None) -> concurrent.futures.Future:
+        """Where the frame is made: on this server's render threads (render_backend ray makes
+        it on a render worker: server/cluster_render/)."""
+        return scheduler.submit(self._render, job, h264, last_codec, key=self.share_key)
 
     def _evict(self, versions: tuple[int, ...]) -> None:
         """Finished frames of older drive states go (nobody asks for them again), and the
