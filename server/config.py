@@ -201,11 +201,11 @@ class Settings(BaseModel):
         256 * 2**20, ge=78 * 2**20, description="Object store of the local Ray that "
                                                 "cluster_address 'auto' starts, bytes.")
     ray_job_num_cpus: float | None = Field(
-        None, gt=0, description="CPUs a training job asks the Ray cluster for (default: the "
-                                "job config's num_cpus, else 1).")
+        None, gt=0, description="CPUs a training job asks the Ray cluster for (default: its "
+                                "torch threads, 1).")
     ray_job_num_gpus: float | None = Field(
-        None, ge=0, description="GPUs a training job asks the Ray cluster for (default: the "
-                                "job config's num_gpus, else 0).")
+        None, ge=0, description="GPUs a training job asks the Ray cluster for (default: 1 "
+                                "when the job's config device is cuda, else 0).")
     ray_job_max_concurrent: int = Field(
         16, ge=1, description="job_backend ray: training jobs running at once at most (each "
                               "also waits for the cluster to have room for its request).")

@@ -1,10 +1,10 @@
 """Training jobs on a real local Ray cluster (job_backend "ray"), through the REST API of a
 real server (uvicorn on 127.0.0.1): a job trains on a Ray actor to completion, streams its
-events and its avatar streams; jobs run side by side while the cluster has room and the rest
-wait queued; cancel ends the actor's process; a killed Ray worker process resumes from its
-last checkpoint (or fails with the reason when no attempts are left); a restarted server
-resumes a job from its checkpoint on Ray. The same REST-level checks run on the local backend
-(the ``backend`` parameter), so both backends pass the same job tests."""
+events and its avatar streams (the same test on the local backend too); jobs run side by
+side while the cluster has room and the rest wait queued; cancel ends the actor's process; a
+killed Ray worker process resumes from its last checkpoint (or fails with the reason when no
+attempts are left); a restarted server resumes a job from its checkpoint on Ray. The local
+backend's faults are tested in test_jobs_retry.py, with the same assertions."""
 
 from __future__ import annotations
 
@@ -13,14 +13,18 @@ import dataclasses
 import os
 import shutil
 import signal
+import subprocess
+import sys
+import threading
 from pathlib import Path
 
+import httpx
 import pytest
 
 from protocol import Frame
 
 from . import test_jobs_support as support
-from .ray_cluster import ray_cluster, requires_ray
+from .ray_cluster import REPO, ray_cluster, requires_ray
 from .server_fixtures import is_type, recv_until, run_server, stream
 from .test_jobs_api import _client, _sse, _upload
 from .test_jobs_support import FAST, LONG, wait_for, zip_dataset
@@ -41,7 +45,8 @@ def ray_head():
 
 def _serve(data_dir: Path, backend: str, head=None, **overrides):
     extra = {"job_backend": "ray", "cluster_address": head.address} if backend == "ray" else {}
-    return run_server(data_dir, **extra, **overrides)
+    # no warm-up render: the numba kernels are cached on disk, and the jobs are the point
+    return run_server(data_dir, warmup=False, **extra, **overrides)
 
 
 def _tune(server, capture_dir) -> None:
@@ -52,15 +57,27 @@ def _tune(server, capture_dir) -> None:
         shutil.copytree(capture_dir, jobs.datasets_dir / "take")
 
 
-@pytest.fixture(scope="module", params=["ray", "local"])
-def srv(request, tmp_path_factory, capture_dir):
-    backend = request.param
+def _server(request, tmp_path_factory, capture_dir, backend: str):
     head = request.getfixturevalue("ray_head") if backend == "ray" else None
     with _serve(tmp_path_factory.mktemp(f"cluster-jobs-{backend}"), backend, head) as server:
         _tune(server, capture_dir)
         server.backend = backend
         server.alice = server.issue("alice", ("train", "stream"))
         yield server
+
+
+@pytest.fixture(scope="module")
+def ray_srv(request, tmp_path_factory, capture_dir):
+    yield from _server(request, tmp_path_factory, capture_dir, "ray")
+
+
+@pytest.fixture(params=["ray", "local"])
+def srv(request, tmp_path_factory, capture_dir):
+    """The Ray server of the module, or a server on the local backend."""
+    if request.param == "ray":
+        yield request.getfixturevalue("ray_srv")
+    else:
+        yield from _server(request, tmp_path_factory, capture_dir, "local")
 
 
 def _states(events) -> list[str]:
@@ -118,21 +135,8 @@ def test_a_job_trains_streams_events_and_its_avatar_streams(srv, capture_dir):
     assert isinstance(asyncio.run(one_frame()), Frame)
 
 
-def test_cancel_ends_the_jobs_process(srv):
-    jobs, alice = srv.ctx.jobs, _client(srv, srv.alice)
-    job = alice.post("/v1/jobs", json={"dataset": "take", "config": LONG}).json()
-    wait_for(lambda: jobs.store.get(job["id"]).iteration > 0, 120, what="training")
-    pid = _pid(jobs, job["id"])
-    assert _alive(pid)
-    r = alice.post(f"/v1/jobs/{job['id']}/cancel")
-    assert r.status_code == 202, r.text
-    events = _sse(alice, job["id"])
-    assert _states(events) == ["queued", "running", "cancelled"]
-    assert alice.get(f"/v1/jobs/{job['id']}").json()["state"] == "cancelled"
-    wait_for(lambda: not _alive(pid), 30, what=f"process {pid} to end")
-
-
-def test_a_killed_worker_process_resumes_from_its_checkpoint(srv):
+def test_a_killed_worker_process_resumes_from_its_checkpoint(ray_srv):
+    srv = ray_srv
     jobs, alice = srv.ctx.jobs, _client(srv, srv.alice)
     job = alice.post("/v1/jobs", json={"dataset": "take", "config": KILLABLE}).json()
     checkpointed = _first_checkpoint(jobs, job["id"])
@@ -146,8 +150,7 @@ def test_a_killed_worker_process_resumes_from_its_checkpoint(srv):
     end = requeue["attempt_end"]
     assert end["outcome"] == "requeued" and end["resume_iteration"] >= checkpointed
     assert end["resume_from"] == f"iter_{end['resume_iteration']:06d}.pt"
-    if srv.backend == "ray":
-        assert requeue["reason"].startswith(RAY_DIED) and end["exit_code"] is None
+    assert requeue["reason"].startswith(RAY_DIED) and end["exit_code"] is None
     kinds = [e["event"] for e in events]
     resumed = events[kinds.index("resumed")]["data"]
     assert resumed["iteration"] == end["resume_iteration"]  # no checkpoint lost
@@ -159,8 +162,8 @@ def test_a_killed_worker_process_resumes_from_its_checkpoint(srv):
         "succeeded", 2, KILLABLE["iterations"])
 
 
-def test_no_attempts_left_fails_with_the_reason(srv):
-    jobs, alice = srv.ctx.jobs, _client(srv, srv.alice)
+def test_no_attempts_left_fails_with_the_reason(ray_srv):
+    jobs, alice = ray_srv.ctx.jobs, _client(ray_srv, ray_srv.alice)
     config = jobs.worker.config
     jobs.worker.config = dataclasses.replace(config, max_attempts=1)
     try:
@@ -176,41 +179,38 @@ def test_no_attempts_left_fails_with_the_reason(srv):
     (end,) = failed["attempt_log"]
     assert end["outcome"] == "failed" and end["resume_iteration"] >= checkpointed
     checkpoint = jobs.worker.job_dir(job["id"]) / "out" / "checkpoints" / end["resume_from"]
-    assert checkpoint.is_file()  # kept for a resume
-    if srv.backend == "ray":
-        assert RAY_DIED in failed["error"]
+    assert checkpoint.is_file() and RAY_DIED in failed["error"]  # kept for a resume
 
 
-def test_jobs_run_side_by_side_while_there_is_room(srv):
-    jobs, alice = srv.ctx.jobs, _client(srv, srv.alice)
-    if srv.backend == "local":
-        jobs.worker.config = dataclasses.replace(jobs.worker.config,
-                                                 max_concurrent=CLUSTER_CPUS)
+def test_jobs_share_the_cluster_and_cancel_ends_the_actor(ray_srv):
+    jobs, alice = ray_srv.ctx.jobs, _client(ray_srv, ray_srv.alice)
     ids = [alice.post("/v1/jobs", json={"dataset": "take", "config": LONG}).json()["id"]
            for _ in range(CLUSTER_CPUS + 1)]
+    first, last = ids[:CLUSTER_CPUS], ids[-1]
     try:
-        first = ids[:CLUSTER_CPUS]
         wait_for(lambda: all(jobs.store.get(j).iteration > 0 for j in first), 120,
                  what="two jobs training at once")
         # both placed, every CPU of the cluster held: the third waits in the queue
-        assert jobs.store.get(ids[-1]).state == "queued"
+        assert jobs.store.get(last).state == "queued"
+        pid = _pid(jobs, first[0])
+        assert _alive(pid)
         assert alice.post(f"/v1/jobs/{first[0]}/cancel").status_code == 202
-        wait_for(lambda: jobs.store.get(ids[-1]).iteration > 0, 120,
+        events = _sse(alice, first[0])
+        assert _states(events) == ["queued", "running", "cancelled"]
+        wait_for(lambda: not _alive(pid), 30, what=f"the actor's process {pid} to end")
+        wait_for(lambda: jobs.store.get(last).state == "running", 120,
                  what="the queued job to start in the room freed")
     finally:
         for job_id in ids:
             if not jobs.store.get(job_id).done:
                 jobs.cancel(job_id)
         wait_for(lambda: all(jobs.store.get(j).done for j in ids), 60, what="the cancels")
-        jobs.worker.config = dataclasses.replace(jobs.worker.config, max_concurrent=1) \
-            if srv.backend == "local" else jobs.worker.config
 
 
-@pytest.mark.parametrize("backend", ["ray"])
-def test_a_restarted_server_resumes_the_job_from_its_checkpoint(backend, ray_head,
-                                                                 tmp_path, capture_dir):
+def test_a_restarted_server_resumes_the_job_from_its_checkpoint(ray_head, tmp_path,
+                                                                 capture_dir):
     data_dir = tmp_path / "data"
-    with _serve(data_dir, backend, ray_head) as first:
+    with _serve(data_dir, "ray", ray_head) as first:
         _tune(first, capture_dir)
         token = first.issue("alice", ("train",))
         job = _client(first, token).post(
@@ -218,7 +218,7 @@ def test_a_restarted_server_resumes_the_job_from_its_checkpoint(backend, ray_hea
         checkpointed = _first_checkpoint(first.ctx.jobs, job["id"])
         pid = _pid(first.ctx.jobs, job["id"])
     wait_for(lambda: not _alive(pid), 30, what="the first server's actor to end")
-    with _serve(data_dir, backend, ray_head) as second:
+    with _serve(data_dir, "ray", ray_head) as second:
         _tune(second, capture_dir)
         events = _sse(_client(second, token), job["id"])
         assert _states(events) == ["queued", "running", "queued", "running", "succeeded"]
@@ -226,3 +226,44 @@ def test_a_restarted_server_resumes_the_job_from_its_checkpoint(backend, ray_hea
         assert requeue["reason"] == "the server stopped"
         resumed = next(e["data"] for e in events if e["event"] == "resumed")
         assert resumed["iteration"] >= checkpointed
+
+
+def test_telesplat_serve_cluster_joins_the_head(ray_head, tmp_path, capture_dir):
+    """``telesplat serve --cluster ADDRESS`` in a process of its own (token auth as Ray 2.60
+    sets it up by default) runs a job on the cluster."""
+    data_dir = tmp_path / "data"
+    shutil.copytree(capture_dir, data_dir / "datasets" / "take")
+    env = {**ray_head.env, "TELESPLAT_WARMUP": "false", "TELESPLAT_STARTUP_ROOM": "false",
+           "TELESPLAT_DEFAULT_WIDTH": "64", "TELESPLAT_DEFAULT_HEIGHT": "64",
+           # the render actors take little of the test cluster: the job needs one CPU
+           "TELESPLAT_RENDER_ACTORS": "1", "TELESPLAT_RENDER_ACTOR_NUM_CPUS": "0.5"}
+    cmd = [sys.executable, "-m", "server", "--cluster", ray_head.address, "--port", "0",
+           "--data-dir", str(data_dir), "--demo-avatar", "synthetic"]
+    proc = subprocess.Popen(cmd, env=env, cwd=REPO, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.extend(proc.stdout), daemon=True)
+    reader.start()
+    try:
+        banner = wait_for(lambda: next((line for line in lines if "serving at" in line),
+                                       None) or (proc.poll() is not None and "exited"),
+                          180, what="the server's banner")
+        assert banner != "exited", "".join(lines)
+        url, _, token = banner.split("serving at ", 1)[1].strip().partition("/#token=")
+        with httpx.Client(base_url=url, timeout=30,
+                          headers={"Authorization": f"Bearer {token}"}) as client:
+            job = client.post("/v1/jobs", json={"dataset": "take", "config": FAST}).json()
+            wait_for(lambda: client.get(f"/v1/jobs/{job['id']}").json()["state"] in (
+                "succeeded", "failed"), 180, what="the job")
+            status = client.get(f"/v1/jobs/{job['id']}").json()
+            log = client.get(f"/v1/jobs/{job['id']}/logs").text
+            assert status["state"] == "succeeded", log
+            assert "on Ray" in log and "Ray worker process" in log
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(10)
+        reader.join(10)
