@@ -59,7 +59,10 @@ def _tune(server, capture_dir) -> None:
 
 def _server(request, tmp_path_factory, capture_dir, backend: str):
     head = request.getfixturevalue("ray_head") if backend == "ray" else None
-    with _serve(tmp_path_factory.mktemp(f"cluster-jobs-{backend}"), backend, head) as server:
+    # on Ray, job folders and datasets live apart from data_dir: where every node reaches
+    shared = {"cluster_storage": tmp_path_factory.mktemp("shared")} if head else {}
+    with _serve(tmp_path_factory.mktemp(f"cluster-jobs-{backend}"), backend, head,
+                **shared) as server:
         _tune(server, capture_dir)
         server.backend = backend
         server.alice = server.issue("alice", ("train", "stream"))
@@ -123,9 +126,12 @@ def test_a_job_trains_streams_events_and_its_avatar_streams(srv, capture_dir):
     record = srv.ctx.registry.get(status["avatar_id"])
     assert (record.owner, record.name) == ("alice", "Remote")
     assert "attempt 1" in log and "trained" in log
+    folder = srv.ctx.jobs.worker.job_dir(job["id"])  # the upload and checkpoints freed
     if srv.backend == "ray":
         assert "on Ray" in log and "Ray worker process" in log
-    folder = srv.ctx.jobs.worker.job_dir(job["id"])  # the upload and checkpoints freed
+        assert folder.is_relative_to(srv.settings.cluster_storage)
+        assert (folder / "out" / "avatar").is_dir()  # the package, on the shared storage
+        assert (srv.settings.data_dir / "jobs" / "jobs.db").is_file()  # the store stays
     assert not (folder / "dataset").exists() and not (folder / "out" / "checkpoints").exists()
 
     async def one_frame():
@@ -207,6 +213,28 @@ def test_jobs_share_the_cluster_and_cancel_ends_the_actor(ray_srv):
         wait_for(lambda: all(jobs.store.get(j).done for j in ids), 60, what="the cancels")
 
 
+def test_a_job_the_cluster_can_never_hold_fails_with_the_reason(ray_srv):
+    jobs, alice = ray_srv.ctx.jobs, _client(ray_srv, ray_srv.alice)
+    jobs.worker.num_gpus = 1.0  # as ray_job_num_gpus = 1; the test cluster has no GPU
+    try:
+        job = alice.post("/v1/jobs", json={"dataset": "take", "config": FAST}).json()
+        failed = wait_for(lambda: (j := jobs.store.get(job["id"])).done and j, 60,
+                          what="the job to fail")
+    finally:
+        jobs.worker.num_gpus = None
+    assert failed.state == "failed" and failed.attempts == 1
+    assert "asks for CPU 1, GPU 1; the whole Ray cluster has CPU 2, GPU 0" in failed.error
+
+
+def test_the_ray_backends_need_a_cluster_address(tmp_path):
+    from server.config import Settings
+
+    for backend in ("job_backend", "render_backend"):
+        with pytest.raises(ValueError, match="needs cluster_address"):
+            Settings(data_dir=tmp_path, **{backend: "ray"})
+    assert Settings(data_dir=tmp_path).cluster_storage_dir == tmp_path
+
+
 def test_a_restarted_server_resumes_the_job_from_its_checkpoint(ray_head, tmp_path,
                                                                  capture_dir):
     data_dir = tmp_path / "data"
@@ -252,13 +280,16 @@ def test_telesplat_serve_cluster_joins_the_head(ray_head, tmp_path, capture_dir)
         url, _, token = banner.split("serving at ", 1)[1].strip().partition("/#token=")
         with httpx.Client(base_url=url, timeout=30,
                           headers={"Authorization": f"Bearer {token}"}) as client:
-            job = client.post("/v1/jobs", json={"dataset": "take", "config": FAST}).json()
-            wait_for(lambda: client.get(f"/v1/jobs/{job['id']}").json()["state"] in (
-                "succeeded", "failed"), 180, what="the job")
-            status = client.get(f"/v1/jobs/{job['id']}").json()
-            log = client.get(f"/v1/jobs/{job['id']}/logs").text
-            assert status["state"] == "succeeded", log
+            job = client.post("/v1/jobs", json={"dataset": "take", "config": LONG}).json()
+            url = f"/v1/jobs/{job['id']}"
+            status = wait_for(lambda: (j := client.get(url).json())["iteration"] > 0 and j
+                              or j["state"] == "failed" and j, 180, what="the job to train")
+            log = client.get(f"{url}/logs").text
+            assert status["state"] == "running", log
             assert "on Ray" in log and "Ray worker process" in log
+            assert client.post(f"{url}/cancel").status_code == 202
+            wait_for(lambda: client.get(url).json()["state"] == "cancelled", 60,
+                     what="the cancel")
     finally:
         proc.terminate()
         try:

@@ -327,8 +327,9 @@ class RayWorker(Worker):
         total = ray.cluster_resources()
         if not _fits(need, total):
             self.store.transition(job.id, "failed", error=(
-                f"the job asks {need.num_cpus:g} CPUs and {need.num_gpus:g} GPUs; the Ray "
-                f"cluster has {total.get('CPU', 0):g} and {total.get('GPU', 0):g}"))
+                f"the job asks for CPU {need.num_cpus:g}, GPU {need.num_gpus:g}; the whole "
+                f"Ray cluster has CPU {total.get('CPU', 0):g}, GPU {total.get('GPU', 0):g} "
+                "(settings ray_job_num_cpus, ray_job_num_gpus)"))
             return
         logf = open(folder / LOG_FILE, "ab")  # noqa: SIM115 - owned by the _Run
         logf.write(f"--- attempt {job.attempts} at {time.strftime('%Y-%m-%d %H:%M:%S')} "
