@@ -195,8 +195,7 @@ class RenderPool:
     async def open(self, scene: Scene) -> None:
         """Place the scene and load its avatars on its worker now (a broken package fails
         here, at the join, with the package's own error)."""
-        worker = await self._placed(scene, self._deadline())
-        await self._call(worker, worker.handle.open.remote(scene.id, scene.seats))
+        await self._on_worker(scene, lambda w: w.handle.open.remote(scene.id, scene.seats))
 
     def close(self, scene: Scene) -> None:
         """The scene is gone (its session ended): its worker frees it."""
@@ -222,25 +221,30 @@ class RenderPool:
 
     async def frame(self, scene: Scene, job: RoomFrameJob, owner: int | None,
                     last_codec: str | None) -> RoomFrame:
+        scene.used = time.monotonic()
+        self.scenes.setdefault(scene.id, scene)  # back after the idle sweep
+        worker, frame = await self._on_worker(scene, lambda w: w.handle.render.remote(
+            scene.id, scene.seats, job, owner, last_codec))
+        t = frame.timings
+        took = t.pose + t.render + t.encode
+        worker.frame_ms = (took if worker.frames == 0 else
+                           FRAME_MS_DECAY * worker.frame_ms + (1 - FRAME_MS_DECAY) * took)
+        worker.frames += 1
+        return frame
+
+    async def _on_worker(self, scene: Scene, call: Callable[[Worker], Any]) -> tuple[Worker, Any]:
+        """``call(worker)``'s result from the scene's worker; a worker lost meanwhile: the
+        call goes to another (within render_actor_restart_s of the loss)."""
         import ray
 
-        scene.used = time.monotonic()
-        deadline = None  # set at the first loss: how long this frame may wait for a worker
+        deadline = None  # set at the first loss: how long the call may wait for a worker
         while True:
             worker = await self._placed(scene, deadline or self._deadline())
-            ref = worker.handle.render.remote(scene.id, scene.seats, job, owner, last_codec)
             try:
-                frame = await self._call(worker, ref)
+                return worker, await self._call(worker, call(worker))
             except ray.exceptions.RayActorError:
                 await self._lose(worker, "died")
                 deadline = deadline or self._deadline()
-                continue
-            t = frame.timings
-            took = t.pose + t.render + t.encode
-            worker.frame_ms = (took if worker.frames == 0 else
-                               FRAME_MS_DECAY * worker.frame_ms + (1 - FRAME_MS_DECAY) * took)
-            worker.frames += 1
-            return frame
 
     async def _call(self, worker: Worker, ref) -> Any:
         return await asyncio.wrap_future(ref.future())
@@ -308,12 +312,12 @@ class RenderPool:
 
     async def _sweep(self) -> None:
         """Scenes asked nothing for IDLE_CLOSE_S are closed on their workers (a room left
-        empty); they are placed again at their next frame."""
+        empty, a session that never started); a room's is placed again at its next frame."""
         while True:
             await asyncio.sleep(SWEEP_S)
             now = time.monotonic()
             for scene in [s for s in self.scenes.values() if now - s.used >= IDLE_CLOSE_S]:
-                self._unplace(scene, close=True)
+                self.close(scene)
 
     # -- what an operator sees ----------------------------------------------------------------
 
