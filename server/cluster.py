@@ -20,8 +20,7 @@ if TYPE_CHECKING:
     from server.config import Settings
 
 NAMESPACE = "telesplat"
-LOCAL_ADDRESS = "auto"  # cluster_address that starts a local Ray on 127.0.0.1
-LOOPBACK = frozenset({"127.0.0.1", "localhost"})
+LOCAL_ADDRESS = "auto"  # cluster_address that starts a private Ray on this machine
 
 _lock = threading.Lock()
 _connected_to: str | None = None
@@ -56,14 +55,13 @@ def connect(settings: Settings) -> None:
                   "configure_logging": False, "ignore_reinit_error": True}
         _token_auth_if_token_available()
         if address == LOCAL_ADDRESS:
-            # A fresh single-machine cluster, owned by this process, reachable only locally.
-            ray.init(address="local", _node_ip_address="127.0.0.1", include_dashboard=False,
+            # A fresh single-machine cluster owned by this process. Ray listens on every
+            # interface (it advertises the machine's address even when asked for 127.0.0.1):
+            # its token auth, on by default, is what keeps others out.
+            ray.init(address="local", include_dashboard=False,
                      object_store_memory=settings.cluster_object_store_bytes, **common)
         else:
-            host = address.rsplit(":", 1)[0]
-            # A head on loopback has its node on 127.0.0.1: this driver must say it is there too.
-            local = {"_node_ip_address": "127.0.0.1"} if host in LOOPBACK else {}
-            ray.init(address=address, **local, **common)
+            ray.init(address=address, **common)
         _connected_to = address
 
 

@@ -192,7 +192,7 @@ class Settings(BaseModel):
                              "cluster_address, this server the gateway (docs/scale.md).")
     cluster_address: str | None = Field(
         None, description="Ray cluster address (host:port of the head), or 'auto': start a "
-                          "local Ray on 127.0.0.1. Needed when a backend is ray.")
+                          "private Ray on this machine. Needed when a backend is ray.")
     cluster_storage: Path | None = Field(
         None, description="Path every cluster node can reach (shared filesystem): job "
                           "datasets, checkpoints and finished packages. Default: data_dir "
