@@ -19,7 +19,7 @@ and measures on each:
   the time to the job's first ``progress`` event (its first iteration; progress_interval 1).
 
     nice -n 10 .venv/bin/python bench/cluster.py [--seconds 8] [--size 256] [--sessions 4]
-                                                 [--threads 1] [--avatar trained]
+                                                 [--threads 1] [--avatar trained] [--repeat 1]
 
 Prints Markdown tables. On a shared machine compare the rows of one run with each other only.
 """
@@ -60,7 +60,7 @@ class Run:
     latency_ms: list[float] = field(default_factory=list)
     stage_ms: list[float] = field(default_factory=list)   # pose + render + encode
     overhead_ms: list[float] = field(default_factory=list)
-    fps: float = float("nan")
+    fps: list[float] = field(default_factory=list)  # one per round
     job_start_s: float = float("nan")
     job_running_s: float = float("nan")
 
@@ -179,8 +179,7 @@ def environment(values: dict[str, str]):
                 os.environ[k] = v
 
 
-def measure(name: str, env: dict[str, str], args, archive: bytes | None) -> Run:
-    run = Run(name)
+def measure(run: Run, env: dict[str, str], args, archive: bytes | None) -> None:
     with tempfile.TemporaryDirectory(prefix="bench-cluster-") as tmp:
         with environment({**env, "TELESPLAT_TORCH_THREADS": str(args.threads)}):
             proc, url, token = start_server(Path(tmp), 1, max(8, args.sessions + 2),
@@ -191,13 +190,12 @@ def measure(name: str, env: dict[str, str], args, archive: bytes | None) -> Run:
             asyncio.run(sessions_at_once(url, token, 1, args.size, args.seconds, run))
             frames = asyncio.run(sessions_at_once(url, token, args.sessions, args.size,
                                                   args.seconds, None))
-            run.fps = frames / args.seconds
+            run.fps.append(frames / args.seconds)
             if archive is not None:
                 run.job_running_s, run.job_start_s = job_start(url, token, archive)
         finally:
             stop_server(proc)
-    print(f"  {name}: done", file=sys.stderr)
-    return run
+    print(f"  {run.name}: done", file=sys.stderr)
 
 
 def main() -> int:
@@ -210,21 +208,24 @@ def main() -> int:
                         help="torch threads of the local renderer / CPUs per render actor")
     parser.add_argument("--avatar", default="trained")
     parser.add_argument("--cpus", type=int, default=4, help="logical CPUs of the Ray head")
+    parser.add_argument("--repeat", type=int, default=1,
+                        help="rounds, the backends alternating (load drift shows as spread)")
     args = parser.parse_args()
 
     with tempfile.TemporaryDirectory(prefix="bench-cluster-data-") as tmp:
         archive = tiny_capture(Path(tmp))
-    runs = []
+    runs = [Run("local"), Run("ray x1"), Run("ray x2")]
     with ray_cluster(num_cpus=args.cpus) as head:
         cluster = {**{k: v for k, v in head.env.items() if k.startswith(("RAY_", "PYTHON"))},
                    "TELESPLAT_CLUSTER_ADDRESS": head.address,
                    "TELESPLAT_RENDER_ACTOR_NUM_CPUS": str(args.threads)}
-        runs.append(measure("local", {"TELESPLAT_RENDER_BACKEND": "local",
-                                      "TELESPLAT_JOB_BACKEND": "local"}, args, archive))
-        for actors in (1, 2):
-            runs.append(measure(f"ray x{actors}", {
-                **cluster, "TELESPLAT_RENDER_BACKEND": "ray", "TELESPLAT_JOB_BACKEND": "ray",
-                "TELESPLAT_RENDER_ACTORS": str(actors)}, args, archive if actors == 1 else None))
+        envs = [{"TELESPLAT_RENDER_BACKEND": "local", "TELESPLAT_JOB_BACKEND": "local"}] + [
+            {**cluster, "TELESPLAT_RENDER_BACKEND": "ray", "TELESPLAT_JOB_BACKEND": "ray",
+             "TELESPLAT_RENDER_ACTORS": str(actors)} for actors in (1, 2)]
+        for round_ in range(args.repeat):
+            for run, env in zip(runs, envs, strict=True):
+                jobs = round_ == 0 and run.name != "ray x2"  # a job backend each, once
+                measure(run, env, args, archive if jobs else None)
     report(runs, args)
     return 0
 
@@ -233,7 +234,7 @@ def report(runs: list[Run], args) -> None:
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     print(f"\n{platform.node()}: {os.cpu_count()} cores, load {load:.1f}; {args.size} px JPEG, "
           f"avatar {args.avatar}, {args.threads} thread(s) per renderer, "
-          f"{args.seconds:g} s per measurement\n")
+          f"{args.seconds:g} s per measurement, {args.repeat} round(s)\n")
     base = runs[0]
     print("| backend | frame ms (pose+render+encode, p50) | round trip p50 / p95 ms "
           "| gateway overhead p50 ms | % of frame | vs local |")
@@ -243,11 +244,14 @@ def report(runs: list[Run], args) -> None:
         extra = over - statistics.median(base.overhead_ms)
         print(f"| {r.name} | {stage:.1f} | {percentile(r.latency_ms, 50):.1f} / "
               f"{percentile(r.latency_ms, 95):.1f} | {over:.1f} | {100 * over / stage:.0f}% | "
-              f"{'-' if r is base else f'+{extra:.1f} ms'} |")
-    print(f"\n| backend | {args.sessions} sessions at once: frames/s in total | vs local |")
+              f"{'-' if r is base else f'{extra:+.1f} ms'} |")
+    print(f"\n| backend | {args.sessions} sessions at once: frames/s in total, median "
+          "(min-max over rounds) | vs local |")
     print("|---|---|---|")
     for r in runs:
-        print(f"| {r.name} | {r.fps:.1f} | {r.fps / base.fps:.2f} |")
+        fps = statistics.median(r.fps)
+        print(f"| {r.name} | {fps:.1f} ({min(r.fps):.1f}-{max(r.fps):.1f}) | "
+              f"{fps / statistics.median(base.fps):.2f} |")
     print("\n| job backend | submit -> running s | submit -> first iteration s |")
     print("|---|---|---|")
     for r in runs:

@@ -222,6 +222,10 @@ def test_sessions_spread_over_both_workers_and_a_killed_one_fails_over(ray_serve
     # Its slot gets a new worker; the scenes that moved stay where they went.
     wait_until(lambda: len(ready_workers(srv)) == 2, WORKERS_START_S, 0.2,
                "a replacement worker")
+    metrics = httpx.get(srv.url + "/metrics", timeout=30).text
+    assert "telesplat_render_workers_lost 1.0" in metrics
+    assert 'telesplat_render_workers{state="ready"} 2.0' in metrics
+    assert 'telesplat_errors_total{code="reconnecting"}' in metrics
 
 
 async def _until(predicate, timeout: float, what: str) -> None:

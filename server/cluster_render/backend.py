@@ -50,6 +50,9 @@ class LocalRenderBackend:
         return RoomFrames(posers, f"room:{room.id}", ctx.settings.backend,
                           max_frames=ctx.settings.max_participants_per_room)
 
+    def observe(self, metrics) -> None:
+        """No render workers here."""
+
     def placement(self, ctx: ServerContext) -> dict[str, Any]:
         s = ctx.settings
         return {"backend": "local", "render_threads": s.render_threads,
@@ -100,6 +103,13 @@ class RayRenderBackend:
 
     def placement(self, ctx: ServerContext) -> dict[str, Any]:
         return self.pool.placement()
+
+    def observe(self, metrics) -> None:
+        """The workers' states and losses, for /metrics."""
+        for state in ("starting", "ready"):
+            metrics.render_workers.labels(state).set(
+                sum(w.state == state for w in self.pool.workers))
+        metrics.render_workers_lost.set(self.pool.lost)
 
     async def _shapes(self, ctx: ServerContext, avatar_id: str) -> dict:
         """The parameter shapes drives are checked against here, before any frame is asked
