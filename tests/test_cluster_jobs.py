@@ -226,6 +226,21 @@ def test_a_job_the_cluster_can_never_hold_fails_with_the_reason(ray_srv):
     assert "asks for CPU 1, GPU 1; the whole Ray cluster has CPU 2, GPU 0" in failed.error
 
 
+def test_a_jobs_request_comes_from_the_settings_or_its_device(tmp_path):
+    from server.jobs.ray_backend import RayWorker, Request
+    from server.jobs.store import NewJob, SQLiteJobStore
+
+    store = SQLiteJobStore(tmp_path / "jobs.db")
+    worker = RayWorker(store, tmp_path, lambda job, package: "", connect=lambda: None)
+    job = store.create(NewJob(owner="alice", dataset="upload", dataset_path=str(tmp_path),
+                              config={"device": "cuda:0"}, total=10))
+    assert worker.request(job) == Request(num_cpus=1, num_gpus=1)
+    assert worker.request(dataclasses.replace(job, config={"device": "auto"})) == Request(1, 0)
+    worker.num_cpus, worker.num_gpus = 4, 0.5
+    assert worker.request(job) == Request(num_cpus=4, num_gpus=0.5)
+    store.close()
+
+
 def test_the_ray_backends_need_a_cluster_address(tmp_path):
     from server.config import Settings
 

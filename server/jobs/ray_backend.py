@@ -44,7 +44,8 @@ ACTOR_PREFIX = "telesplat-job-"
 ACTOR_CONCURRENCY = 4     # run() plus the server's events()/where()/interrupt() calls
 DRAIN_TIMEOUT_S = 30.0    # the last events of an attempt that returned
 EVICT_TIMEOUT_S = 30.0    # a straggler actor of a dead server, until its name is free
-DIED_EXIT = -signal.SIGKILL  # exit status recorded when the actor's process died
+DIED_EXIT = -signal.SIGKILL  # what poll() returns when the actor's process died
+ROOM_WARN_S = 30.0        # at most one "cluster unreachable" warning per this many seconds
 _EPS = 1e-6
 
 
@@ -267,6 +268,7 @@ class RayWorker(Worker):
         self.num_cpus = num_cpus
         self.num_gpus = num_gpus
         self._actor_class: Any = None
+        self._warned = -ROOM_WARN_S
 
     def start(self) -> None:
         if self._thread is None:
@@ -281,6 +283,16 @@ class RayWorker(Worker):
         return Request(num_cpus=cpus, num_gpus=gpus)
 
     def _has_room(self) -> bool:
+        try:
+            return self._room_for_next()
+        except Exception as exc:  # the cluster unreachable: jobs wait queued; log it rarely
+            now = time.monotonic()
+            if now - self._warned > ROOM_WARN_S:
+                self._warned = now
+                log.warning("cannot ask the Ray cluster for room (jobs stay queued): %s", exc)
+            return False
+
+    def _room_for_next(self) -> bool:
         import ray
 
         queued = self.store.list(state="queued", limit=1_000_000)  # bounded by the quotas
