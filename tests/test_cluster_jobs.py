@@ -3,8 +3,9 @@ real server (uvicorn on 127.0.0.1): a job trains on a Ray actor to completion, s
 events and its avatar streams (the same test on the local backend too); jobs run side by
 side while the cluster has room and the rest wait queued; cancel ends the actor's process; a
 killed Ray worker process resumes from its last checkpoint (or fails with the reason when no
-attempts are left); a restarted server resumes a job from its checkpoint on Ray. The local
-backend's faults are tested in test_jobs_retry.py, with the same assertions."""
+attempts are left); a server stopped, or a ``telesplat serve --cluster`` process killed,
+mid-job: the next server resumes the job from its checkpoint on Ray. The local backend's
+faults are tested in test_jobs_retry.py, with the same assertions."""
 
 from __future__ import annotations
 
@@ -271,9 +272,11 @@ def test_a_restarted_server_resumes_the_job_from_its_checkpoint(ray_head, tmp_pa
         assert resumed["iteration"] >= checkpointed
 
 
-def test_telesplat_serve_cluster_joins_the_head(ray_head, tmp_path, capture_dir):
+def test_serve_cluster_joins_the_head_and_a_crashed_gateways_job_resumes(ray_head, tmp_path,
+                                                                      capture_dir):
     """``telesplat serve --cluster ADDRESS`` in a process of its own (token auth as Ray 2.60
-    sets it up by default) runs a job on the cluster."""
+    sets it up by default) runs a job on the cluster; killed with SIGKILL mid-job, its actor
+    ends with it, and the next server resumes the job from its checkpoint."""
     data_dir = tmp_path / "data"
     shutil.copytree(capture_dir, data_dir / "datasets" / "take")
     env = {**ray_head.env, "TELESPLAT_WARMUP": "false", "TELESPLAT_STARTUP_ROOM": "false",
@@ -296,20 +299,28 @@ def test_telesplat_serve_cluster_joins_the_head(ray_head, tmp_path, capture_dir)
         with httpx.Client(base_url=url, timeout=30,
                           headers={"Authorization": f"Bearer {token}"}) as client:
             job = client.post("/v1/jobs", json={"dataset": "take", "config": LONG}).json()
-            url = f"/v1/jobs/{job['id']}"
-            status = wait_for(lambda: (j := client.get(url).json())["iteration"] > 0 and j
-                              or j["state"] == "failed" and j, 180, what="the job to train")
-            log = client.get(f"{url}/logs").text
-            assert status["state"] == "running", log
-            assert "on Ray" in log and "Ray worker process" in log
-            assert client.post(f"{url}/cancel").status_code == 202
-            wait_for(lambda: client.get(url).json()["state"] == "cancelled", 60,
-                     what="the cancel")
+            checkpoints = data_dir / "jobs" / job["id"] / "out" / "checkpoints"
+            wait_for(lambda: any(checkpoints.glob("iter_*.pt")), 180,
+                     what="the job's first checkpoint")
+            log = client.get(f"/v1/jobs/{job['id']}/logs").text
+        assert "on Ray" in log and "Ray worker process" in log
+        actor_pid = int(log.split("Ray worker process ", 1)[1].split()[0])
+        proc.kill()  # a crash: no clean stop, no checkpoint on the way out
+        proc.wait(30)
     finally:
-        proc.terminate()
-        try:
-            proc.wait(30)
-        except subprocess.TimeoutExpired:
+        if proc.poll() is None:
             proc.kill()
-            proc.wait(10)
+            proc.wait(30)
         reader.join(10)
+    wait_for(lambda: not _alive(actor_pid), 60, what="the dead gateway's actor to end")
+    with _serve(data_dir, "ray", ray_head) as second:
+        jobs = second.ctx.jobs
+        resumed = wait_for(lambda: next((e.data for e in jobs.store.events(job["id"])
+                                         if e.type == "resumed"), None), 180,
+                           what="the job to resume on the next server")
+        requeue = [e.data for e in jobs.store.events(job["id"])
+                   if e.type == "state" and e.data["state"] == "queued"][-1]
+        assert requeue["reason"] == "the server restarted"
+        assert resumed["iteration"] == requeue["attempt_end"]["resume_iteration"] >= 10
+        jobs.cancel(job["id"])
+        wait_for(lambda: jobs.store.get(job["id"]).state == "cancelled", 60, what="the cancel")
