@@ -30,7 +30,8 @@ from .server_fixtures import is_type, recv_until, run_server, stream
 from .test_jobs_api import _client, _sse, _upload
 from .test_jobs_support import FAST, LONG, wait_for, zip_dataset
 
-pytestmark = requires_ray
+# one Ray cluster for the module: under pytest -n 2 --dist loadgroup, all on one worker
+pytestmark = [requires_ray, pytest.mark.xdist_group("cluster_jobs")]
 
 capture_dir = support.capture_dir  # the shared session fixture
 KILLABLE = {**FAST, "iterations": 40}  # the kill lands after the first checkpoint (10)
