@@ -90,6 +90,7 @@ class RenderPool:
         self._generation = 0
         self._actor_class = None
         self._actor_options: dict[str, Any] = {}
+        self._stopped = False
 
     # -- lifetime ----------------------------------------------------------------------------
 
@@ -114,6 +115,7 @@ class RenderPool:
         self._background(self._sweep(), "render-pool:sweep")
 
     async def stop(self) -> None:
+        self._stopped = True
         for task in list(self._tasks):
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
@@ -255,6 +257,8 @@ class RenderPool:
     async def _placed(self, scene: Scene, deadline: float) -> Worker:
         """The scene's worker, placing it on the least loaded ready one (waiting for one
         until ``deadline``); RenderUnavailable when none came."""
+        if self._stopped:
+            raise RenderUnavailable("the server is stopping")
         async with self._changed:
             while True:
                 if scene.worker is not None and scene.worker.state == "ready":
