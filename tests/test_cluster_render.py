@@ -27,7 +27,8 @@ from tests.server_fixtures import (
     wait_until,
 )
 
-pytestmark = requires_ray
+# One worker runs the module under `make test` (-n 2 --dist loadgroup): one cluster, one gateway.
+pytestmark = [requires_ray, pytest.mark.xdist_group("cluster_render")]
 
 RECOVERY_S = 5.0  # the bound: a moved session's frames again within this
 WORKERS_START_S = 120.0
