@@ -43,7 +43,9 @@ def _disconnect_at_the_end():
 
 @pytest.fixture(scope="module")
 def ray_server(ray_head, tmp_path_factory):
+    # Workers load packages from cluster_storage (a folder of its own, as a shared mount is).
     with run_server(tmp_path_factory.mktemp("ray-gateway"), render_backend="ray",
+                    cluster_storage=tmp_path_factory.mktemp("shared"),
                     cluster_address=ray_head.address, render_actors=2,
                     render_actor_num_cpus=1, render_actor_restart_s=30, warmup=False,
                     max_sessions=16) as srv:
@@ -92,6 +94,20 @@ from tests.test_server_stream import (  # noqa: E402, F401
     test_view_change_changes_the_image,
     test_welcome_then_rest_frame_then_drive_frame,
 )
+
+
+def test_workers_load_packages_from_cluster_storage(ray_server):
+    async def run():
+        async with stream(ray_server) as ws:
+            await recv_until(ws, is_type("frame"))
+    asyncio.run(run())
+    record = ray_server.ctx.registry.get("demo")
+    copies = list((ray_server.settings.cluster_storage / "avatars").glob("demo-*"))
+    assert len(copies) == 1 and copies[0].name == f"demo-{record.created:.6f}"
+    package = ray_server.ctx.registry.package_dir("demo")
+    for member in package.iterdir():
+        assert (copies[0] / member.name).read_bytes() == member.read_bytes()
+    assert not list(copies[0].parent.glob(".incoming-*"))  # copied, then renamed
 
 
 def test_placement_endpoint_is_admin_only(server):
