@@ -59,7 +59,8 @@ test: $(VENV)/.installed-dev browser
 	@$(MAKE) --no-print-directory models || echo "tracking models unavailable: their tests will skip"
 	$(PY) -m ruff check .
 	# Two workers on two cores: one thread each, or the torch / numba pools oversubscribe.
-	OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 NUMBA_NUM_THREADS=1 $(PY) -m pytest -q -n 2
+	# loadgroup: tests marked xdist_group (a module's one Ray cluster) stay on one worker.
+	OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 NUMBA_NUM_THREADS=1 $(PY) -m pytest -q -n 2 --dist loadgroup
 
 lint: $(VENV)/.installed-dev
 	$(PY) -m ruff check .

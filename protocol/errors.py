@@ -17,6 +17,8 @@ ERROR_CODES = (
     "gone",              # the room was deleted while this session was in it
     "busy",              # session cap reached
     "internal",          # the server failed; the session goes on
+    "reconnecting",      # a notice: the render worker was lost, the session moves to another
+                         # (render_backend ray); frames resume, the session's state is kept
 )
 
 

@@ -22,6 +22,8 @@ from protocol import PROTOCOL_VERSION, View
 from protocol.messages import Orbit
 
 from .auth import LOCAL_SUBJECT, SCOPES, Principal, TokenStore
+from .cluster_render import routes as cluster_render
+from .cluster_render.backend import make_render_backend
 from .config import Settings
 from .context import ServerContext, SessionSlots
 from .drive import DriveState
@@ -84,7 +86,7 @@ def _start(ctx: ServerContext) -> None:
     if rec is not None:
         log.info("demo avatar %r (%s, %d Gaussians)", rec.id, rec.name, rec.num_gaussians)
     ctx.metrics.avatars.set(len(ctx.registry.list()))
-    if s.warmup:
+    if s.warmup and s.render_backend == "local":  # a worker compiles its own
         took = warm_up(ctx)
         if took is not None:
             log.info("warm-up frame rendered in %.1f s", took)
@@ -116,16 +118,19 @@ def create_app(settings: Settings) -> FastAPI:
         track_scheduler=RenderScheduler(settings.track_threads, 1),
         metrics=ServerMetrics(), slots=SessionSlots(settings.max_sessions),
         local_token=local_token)
+    ctx.render = make_render_backend(settings, ctx.registry)
 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         await asyncio.to_thread(_start, ctx)
+        await ctx.render.start()  # render_backend ray: connects, starts the render workers
         sweeper = asyncio.create_task(_sweep_rooms(ctx), name="rooms:sweep")
         try:
             async with jobs.lifespan(ctx):  # the training worker
                 yield
         finally:
             sweeper.cancel()
+            await ctx.render.stop()
         await asyncio.to_thread(ctx.scheduler.shutdown)
         await asyncio.to_thread(ctx.track_scheduler.shutdown)
 
@@ -133,7 +138,7 @@ def create_app(settings: Settings) -> FastAPI:
                   description="Hosts 3D-Gaussian upper-body avatars and drives them live over "
                               f"a WebSocket (protocol version {PROTOCOL_VERSION}).")
     app.state.ctx = ctx
-    for routes in (system, avatars, stream, rooms, motions, jobs):
+    for routes in (system, avatars, stream, rooms, motions, jobs, cluster_render):
         app.include_router(routes.router)
     # Last: the browser page at "/" would shadow any route added after it.
     if (WEB_DIR / "index.html").is_file():

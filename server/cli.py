@@ -30,6 +30,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--body-models", type=Path, default=None,
                         help="body-model folder, official file names (setting body_models; "
                              "default: $TELESPLAT_BODY_MODELS, else the synthetic family)")
+    parser.add_argument("--cluster", metavar="ADDRESS", default=None,
+                        help="run training jobs and render workers on the Ray cluster at "
+                             "ADDRESS (host:port of its head; 'auto': a local Ray); sets "
+                             "job_backend, render_backend and cluster_address (docs/scale.md)")
     parser.add_argument("--log-level", default="info")
     parser.add_argument("--issue-token", metavar="SUBJECT:SCOPES", default=None,
                         help="add a token to the token store (e.g. alice:stream,train), print "
@@ -69,9 +73,11 @@ def serve(args: argparse.Namespace) -> int:
     from .config import load_settings
     from .net import listen_socket, websocket_protocol
 
+    cluster = {} if not getattr(args, "cluster", None) else {
+        "job_backend": "ray", "render_backend": "ray", "cluster_address": args.cluster}
     settings = load_settings(args.config, host=args.host, port=args.port,
                              data_dir=args.data_dir, demo_avatar=args.demo_avatar,
-                             body_models=args.body_models)
+                             body_models=args.body_models, **cluster)
     if args.issue_token:
         from .auth import TokenStore
 

@@ -198,6 +198,40 @@ class Settings(BaseModel):
     startup_room: bool = Field(
         True, description="telesplat serve creates a room 'demo' (owner 'local', one seat of "
                           "the demo avatar, never closed for idleness) and prints its links.")
+    job_backend: Literal["local", "ray"] = Field(
+        "local", description="Where training jobs run. local: a worker process on this "
+                             "machine; ray: a Ray task per job on the cluster at "
+                             "cluster_address (docs/scale.md).")
+    render_backend: Literal["local", "ray"] = Field(
+        "local", description="Where sessions and rooms render. local: this process's render "
+                             "threads; ray: render-worker actors on the cluster at "
+                             "cluster_address, this server the gateway (docs/scale.md).")
+    cluster_address: str | None = Field(
+        None, description="Ray cluster address (host:port of the head), or 'auto': start a "
+                          "private Ray on this machine. Needed when a backend is ray.")
+    cluster_storage: Path | None = Field(
+        None, description="Path every cluster node can reach (shared filesystem): job "
+                          "datasets, checkpoints and finished packages. Default: data_dir "
+                          "(one machine).")
+    cluster_object_store_bytes: int = Field(
+        256 * 2**20, ge=78 * 2**20, description="Object store of the local Ray that "
+                                                "cluster_address 'auto' starts, bytes.")
+    ray_job_num_cpus: float | None = Field(
+        None, gt=0, description="CPUs a training job asks the Ray cluster for (default: its "
+                                "torch threads, 1).")
+    ray_job_num_gpus: float | None = Field(
+        None, ge=0, description="GPUs a training job asks the Ray cluster for (default: 1 "
+                                "when the job's config device is cuda, else 0).")
+    ray_job_max_concurrent: int = Field(
+        16, ge=1, description="job_backend ray: training jobs running at once at most (each "
+                              "also waits for the cluster to have room for its request).")
+    render_actors: int = Field(2, ge=1, le=1024,
+                               description="render_backend ray: render-worker actors started.")
+    render_actor_num_cpus: float = Field(1.0, gt=0, description="CPUs per render-worker actor.")
+    render_actor_num_gpus: float = Field(0.0, ge=0, description="GPUs per render-worker actor.")
+    render_actor_restart_s: float = Field(
+        10.0, gt=0, description="Seconds a dead render actor's rooms may take to be re-placed "
+                                "before their participants get an error.")
     gaussian_ranges: GaussianRanges = Field(
         default_factory=GaussianRanges,
         description="Allowed values of an avatar's Gaussians (count, log-scales, local means, "
@@ -223,6 +257,17 @@ class Settings(BaseModel):
             raise ValueError(f"default_max_fps {self.default_max_fps} is below "
                              f"limits.min_fps {self.limits.min_fps}")
         return self
+
+    @model_validator(mode="after")
+    def _cluster(self) -> Settings:
+        if "ray" in (self.job_backend, self.render_backend) and not self.cluster_address:
+            raise ValueError("job_backend / render_backend 'ray' needs cluster_address "
+                             "(host:port of a Ray head, or 'auto')")
+        return self
+
+    @property
+    def cluster_storage_dir(self) -> Path:
+        return self.cluster_storage or self.data_dir
 
     @property
     def tokens_path(self) -> Path:

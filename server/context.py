@@ -63,6 +63,7 @@ class ServerContext:
     admission: Admission = None  # type: ignore[assignment]  # made from settings below
     rooms: RoomRegistry = None  # type: ignore[assignment]  # made from settings below
     startup_links: dict[str, str] = field(default_factory=dict)  # the start-up room's
+    render: Any = None  # where frames are made (render_backend; server/cluster_render/)
     _manos: dict[str, dict[str, MANOModel]] = field(default_factory=dict)
     _manos_lock: threading.Lock = field(default_factory=threading.Lock)
 

@@ -33,6 +33,10 @@ class ServerMetrics:
         self.render_queue = Gauge("telesplat_render_queue", "Renders queued or running",
                                   registry=r)
         self.avatars = Gauge("telesplat_avatars", "Avatars in the registry", registry=r)
+        self.render_workers = Gauge("telesplat_render_workers", "render_backend ray: render "
+                                    "workers by state (starting, ready)", ["state"], registry=r)
+        self.render_workers_lost = Gauge("telesplat_render_workers_lost", "render_backend ray: "
+                                         "render workers lost since start-up", registry=r)
 
     def render_text(self) -> bytes:
         return generate_latest(self.registry)

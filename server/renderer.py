@@ -6,10 +6,12 @@ encoder) is touched by one thread at a time.
 
 from __future__ import annotations
 
+import concurrent.futures
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -25,6 +27,9 @@ from protocol import Request, Timings, View
 from .drive import DriveState, drive_shapes
 from .encoders import H264Encoder, encode_depth_png, encode_jpeg, encode_png, frame_rgb
 from .view_batch import DeviceCopies, render_device
+
+if TYPE_CHECKING:
+    from .scheduler import RenderScheduler
 
 
 @dataclass(frozen=True)
@@ -153,6 +158,12 @@ class SessionRenderer:
                           encode=(t3 - t2) * 1e3)
         return RenderedFrame(job.drive.seq, codec, cam.width, cam.height, data, depth_png,
                              keyframe, timings)
+
+    def submit(self, scheduler: RenderScheduler, job: FrameJob, session: Any
+               ) -> concurrent.futures.Future:
+        """The frame of ``job`` on this server's render threads, on the session's account
+        (render_backend ray makes it on a render worker: server/cluster_render/)."""
+        return scheduler.submit(self.render, job, key=session.share_key)
 
     def _encode_h264(self, rgb: np.ndarray, req: Request) -> tuple[bytes, bool]:
         return self._h264.encode(rgb, req, self._last_codec)

@@ -311,7 +311,7 @@ class StreamSession:
 
     def _submit(self, job: FrameJob):
         """The render of ``job`` (a concurrent future); a room may share one between many."""
-        return self.scheduler.submit(self.renderer.render, job, key=self.share_key)
+        return self.renderer.submit(self.scheduler, job, self)
 
     def _restore(self, failed: FrameJob, drive_only: bool) -> None:
         """Put back the last state that rendered wherever the failed frame's state is still

@@ -41,7 +41,8 @@ export const ERROR_CODES = Object.freeze([
   "not_found",
   "gone",
   "busy",
-  "internal"
+  "internal",
+  "reconnecting"
 ]);
 
 export const WIRE_DTYPES = Object.freeze([

@@ -19,11 +19,12 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from ..scheduler import limit_threads
-from .store import SQLiteJobStore
+from .store import JobStore, SQLiteJobStore
 
 EXIT_OK, EXIT_FAILED, EXIT_CANCELLED, EXIT_INTERRUPTED = 0, 1, 3, 4
 OUT_DIR = "out"
@@ -73,7 +74,11 @@ def _watch_parent(pid: int, every_s: float = 0.25) -> None:
     threading.Thread(target=watch, name="parent-watch", daemon=True).start()
 
 
-def train(store: SQLiteJobStore, job_id: str, job_dir: Path, body_models: str | None) -> int:
+def train(store: JobStore, job_id: str, job_dir: Path, body_models: str | None, *,
+          interrupted: Callable[[], bool] | None = None) -> int:
+    """Train (or resume) the job; its exit code. ``interrupted``: polled at each progress
+    event instead of a SIGTERM handler (a thread that is not the main one, e.g. a Ray
+    actor's, cannot install one)."""
     from avatar_core.train.checkpoint import latest_checkpoint
     from avatar_core.train.config import config_from_dict
     from avatar_core.train.trainer import Trainer
@@ -87,7 +92,8 @@ def train(store: SQLiteJobStore, job_id: str, job_dir: Path, body_models: str | 
             os._exit(EXIT_INTERRUPTED)
         stop["interrupt"] = True
 
-    signal.signal(signal.SIGTERM, on_term)
+    if interrupted is None:
+        signal.signal(signal.SIGTERM, on_term)
 
     def progress(event: dict[str, Any]) -> None:
         store.report(job_id, _public(event))
@@ -95,7 +101,7 @@ def train(store: SQLiteJobStore, job_id: str, job_dir: Path, body_models: str | 
             return
         if store.get(job_id).cancel_requested:
             raise _Cancelled
-        if stop["interrupt"]:
+        if stop["interrupt"] or (interrupted is not None and interrupted()):
             raise _Interrupted
 
     if latest_checkpoint(out) is not None:

@@ -132,7 +132,8 @@ class JobService:
 
     def __init__(self, data_dir: str | Path, register: Register, *,
                  worker: WorkerConfig | None = None, limits: UploadLimits | None = None,
-                 store: JobStore | None = None, quota: JobQuota | None = None) -> None:
+                 store: JobStore | None = None, quota: JobQuota | None = None,
+                 worker_type: Callable[..., Worker] = Worker) -> None:
         self.data_dir = Path(data_dir)
         self.jobs_dir = self.data_dir / JOBS_DIR
         self.datasets_dir = self.data_dir / DATASETS_DIR
@@ -142,7 +143,7 @@ class JobService:
         self.storage_left: Callable[[str], int] | None = None
         self.quota = quota or JobQuota()
         self.store = store or SQLiteJobStore(self.jobs_dir / DB_FILE)
-        self.worker = Worker(self.store, self.jobs_dir, register, worker)
+        self.worker = worker_type(self.store, self.jobs_dir, register, worker)
 
     @classmethod
     def from_settings(cls, settings: Any, registry: Any) -> JobService:
@@ -179,9 +180,32 @@ class JobService:
         quota = JobQuota(
             max_active=getattr(settings, "job_max_active_per_user", JobQuota.max_active),
             max_stored=getattr(settings, "job_max_stored_per_user", JobQuota.max_stored))
+        if getattr(settings, "job_backend", "local") == "ray":
+            return cls._on_ray(settings, register, worker, upload, quota, registry)
         service = cls(settings.data_dir, register, worker=worker, limits=upload, quota=quota)
         if hasattr(settings, "max_stored_bytes_per_user"):  # the avatars' and jobs' bytes
             service.storage_left = lambda owner: storage_left(owner, settings, registry, service)
+        return service
+
+    @classmethod
+    def _on_ray(cls, settings: Any, register: Register, worker: WorkerConfig,
+                upload: UploadLimits, quota: JobQuota, registry: Any) -> JobService:
+        """job_backend "ray": each attempt a Ray actor (server/jobs/ray_backend.py). Job
+        folders and named datasets live under cluster_storage, which every node reaches; the
+        store stays in data_dir (only this server opens it)."""
+        from functools import partial
+
+        from .. import cluster
+        from .ray_backend import RayWorker
+
+        worker_type = partial(RayWorker, connect=lambda: cluster.connect(settings),
+                              num_cpus=settings.ray_job_num_cpus,
+                              num_gpus=settings.ray_job_num_gpus)
+        worker = replace(worker, max_concurrent=settings.ray_job_max_concurrent)
+        store = SQLiteJobStore(Path(settings.data_dir) / JOBS_DIR / DB_FILE)
+        service = cls(settings.cluster_storage_dir, register, worker=worker, limits=upload,
+                      store=store, quota=quota, worker_type=worker_type)
+        service.storage_left = lambda owner: storage_left(owner, settings, registry, service)
         return service
 
     def start(self) -> None:

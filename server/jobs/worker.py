@@ -229,11 +229,21 @@ class Worker:
                 self._finish(run, rc)
             else:
                 self._check_cancel(run)
-        while not self._stopping.is_set() and len(self.running()) < self.config.max_concurrent:
+        while (not self._stopping.is_set() and len(self.running()) < self.config.max_concurrent
+               and self._has_room()):
             job = self.store.claim_next()
             if job is None:
                 break
             self._launch(job)
+
+    def _has_room(self) -> bool:
+        """Whether the next queued job may start now (besides max_concurrent); a cluster
+        backend asks its cluster."""
+        return True
+
+    def _ended(self, run: _Run, rc: int) -> tuple[str, int | None]:
+        """Why an attempt ended abnormally, in words, and the exit status to record."""
+        return exit_reason(rc), rc
 
     def _check_cancel(self, run: _Run) -> None:
         try:
@@ -331,7 +341,7 @@ class Worker:
             self.store.transition(job.id, "failed", error=error, attempt_end={
                 "attempt": job.attempts, "exit_code": rc, "reason": error[:500]})
         else:  # SIGTERM from someone else (it checkpointed), a kill, a crash: try again
-            self._retry_or_fail(job, exit_reason(rc), rc)
+            self._retry_or_fail(job, *self._ended(run, rc))
 
     def _retry_or_fail(self, job: Job, reason: str, rc: int | None = None, *,
                        always: bool = False) -> None:

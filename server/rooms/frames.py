@@ -179,16 +179,23 @@ class RoomFrames:
             if shared is not None and not _failed(shared):
                 self.counters.shared += 1
             else:
-                shared = (scheduler.submit(self._render, job, h264, last_codec,
-                                           key=self.share_key) if self._batches is None
-                          else self._batches.submit(scheduler, (versions, group[1]),
-                                                    (job, h264, last_codec),
-                                                    share_key=self.share_key))
+                shared = self.dispatch(scheduler, job, h264, last_codec)
                 self._frames[key] = self._inflight[group] = shared
                 self._evict(versions)
         if owner is not None:
             return shared  # a participant's own H.264 frame: nobody else waits on it
         return _relay(shared)
+
+    def dispatch(self, scheduler: RenderScheduler, job: RoomFrameJob,
+                 h264: H264Stream | None, last_codec: str | None) -> concurrent.futures.Future:
+        """Where the frame is made: on this server's render threads (render_backend ray makes
+        it on a render worker: server/cluster_render/). Views of one state and request that
+        wait together share one rasterizer call when batching is on (server/view_batch.py)."""
+        if self._batches is None:
+            return scheduler.submit(self._render, job, h264, last_codec, key=self.share_key)
+        versions = tuple(d.version for d in job.seats)
+        return self._batches.submit(scheduler, (versions, job.request.model_dump_json()),
+                                    (job, h264, last_codec), share_key=self.share_key)
 
     def _evict(self, versions: tuple[int, ...]) -> None:
         """Finished frames of older drive states go (nobody asks for them again), and the

@@ -39,7 +39,6 @@ from ..handshake import (
     refuse,
 )
 from ..session import SessionConfig
-from .frames import RoomFrames, SeatPoser
 from .live import CLOSE_GONE, JoinRefused, LiveRoom
 from .participant import RoomParticipant
 from .registry import Invitation, Room, RoomError, is_invitation
@@ -104,18 +103,12 @@ def _role(room: Room, hello: Hello, principal: Principal | None,
 
 
 async def open_live(ctx: ServerContext, room: Room) -> LiveRoom:
-    """The room's runtime, made at its first join: each seat's avatar loaded once."""
+    """The room's runtime, made at its first join: each seat's avatar loaded once (here or
+    on a render worker)."""
     async with room.opening:
         if room.live is None:
-            s = ctx.settings
-            posers = []
-            for spec in room.seats:
-                animator, manos = await asyncio.to_thread(ctx.session_models, spec.avatar)
-                posers.append(SeatPoser(animator, manos, spec.placement))
-            frames = RoomFrames(posers, f"room:{room.id}", s.backend,
-                                max_frames=s.max_participants_per_room,
-                                batch_max_views=s.render_batch_views)
-            room.live = LiveRoom(room, frames, s)
+            frames = await ctx.render.room_frames(ctx, room)  # render_backend's
+            room.live = LiveRoom(room, frames, ctx.settings)
         return room.live
 
 

@@ -47,7 +47,6 @@ from ..handshake import (
     refuse,
 )
 from ..registry import DEMO_ID, AvatarNotFound, AvatarRecord
-from ..renderer import SessionRenderer
 from ..rooms.join import join_room
 from ..session import SessionConfig, StreamSession
 from ..tickets import TicketsExhausted
@@ -135,7 +134,7 @@ async def stream(ws: WebSocket, ctx: Context, avatar: str = DEMO_ID,
 
 async def _serve(ws: WebSocket, ctx: ServerContext, record: AvatarRecord) -> None:
     try:
-        animator, manos = await asyncio.to_thread(ctx.session_models, record.id)
+        renderer = await ctx.render.session_renderer(ctx, record)
         tracker = await asyncio.to_thread(ctx.session_tracker, record.id)
     except Exception as exc:  # noqa: BLE001 - a broken package must not take the server down
         log.exception("cannot load avatar %s", record.id)
@@ -143,7 +142,6 @@ async def _serve(ws: WebSocket, ctx: ServerContext, record: AvatarRecord) -> Non
                                   CLOSE_INTERNAL), ctx)
         return
     s = ctx.settings
-    renderer = SessionRenderer(animator, manos, backend=s.backend)
     request = default_request(ctx, record)
     session = StreamSession(
         ws, renderer, tracker, ctx.scheduler, ctx.track_scheduler, ctx.metrics,

@@ -34,4 +34,5 @@ def health(ctx: Context) -> HealthOut:
 def metrics(ctx: Context) -> Response:
     ctx.metrics.sessions.set(ctx.slots.count)
     ctx.metrics.render_queue.set(ctx.scheduler.queued)
+    ctx.render.observe(ctx.metrics)
     return Response(ctx.metrics.render_text(), media_type=CONTENT_TYPE_LATEST)
