@@ -261,7 +261,7 @@ def test_refusals_have_their_codes(srv):
 def test_room_limits_are_settings(tmp_path):
     with run_server(tmp_path, max_rooms_per_user=1, max_seats_per_room=2,
                     max_participants_per_room=1, max_invitations_per_room=1,
-                    room_idle_timeout_s=0.4, startup_room=False, default_width=32,
+                    room_idle_timeout_s=2.0, startup_room=False, default_width=32,
                     default_height=32) as server:
         user = server.issue("user", ("stream",))
         r = rest(server, "POST", "/v1/rooms", user, json={"seats": [{"avatar": "demo"}] * 3})
