@@ -15,7 +15,7 @@ import { Session, streamUrl, takeToken } from "./session.js";
 import { canShare, inviteAll, presenceText, showLinks } from "./share.js";
 import { StreamStats, renderStats } from "./stats.js";
 import { Webcam } from "./webcam.js";
-import { WhepSession, chooseTransport } from "./webrtc.js";
+import { WhepSession, chooseTransport, onVideoFrame, serverHealth } from "./webrtc.js";
 
 const $ = (id) => document.getElementById(id);
 const params = new URLSearchParams(location.search);
@@ -163,15 +163,6 @@ async function whepSession(target) {
   }
   const size = Number($("size").value);
   return new WhepSession(roomId, token, { video, query: { width: size, height: size, ...query } });
-}
-
-function countVideoFrames() {
-  if (!video.requestVideoFrameCallback) return;  // the stats overlay still counts decodes
-  const tick = () => {
-    state.framesShown += 1;
-    video.requestVideoFrameCallback(tick);
-  };
-  video.requestVideoFrameCallback(tick);
 }
 
 async function pollRtcStats() {
@@ -355,19 +346,14 @@ function wire() {
 
 /** WebRTC or the WebSocket (see chooseTransport); shows the one chosen. */
 async function pickTransport() {
-  let health = null;
-  try {
-    const response = await fetch("/v1/health");
-    if (response.ok) health = await response.json();
-  } catch { /* no health: the WebSocket it is */ }
   const choice = chooseTransport(params.get("transport"), typeof RTCPeerConnection === "function",
-    health);
+    await serverHealth());
   state.transport = choice.transport;
   state.transportWhy = choice.why;
   state.stats.transport = choice.transport === "webrtc" ? "webrtc" : "websocket";
   canvas.hidden = choice.transport === "webrtc";
   video.hidden = !canvas.hidden;
-  if (choice.transport === "webrtc") countVideoFrames();
+  if (choice.transport === "webrtc") onVideoFrame(video, () => { state.framesShown += 1; });
 }
 
 async function joinRoom(roomId) {

@@ -26,6 +26,27 @@ export function chooseTransport(asked, browserHasRtc, health) {
   return { transport: "webrtc", why: asked === "webrtc" ? "asked for" : "supported by both ends" };
 }
 
+/** GET /v1/health (no token needed), or null when the server does not answer it. */
+export async function serverHealth() {
+  try {
+    const response = await fetch("/v1/health");
+    return response.ok ? await response.json() : null;
+  } catch {
+    return null;
+  }
+}
+
+/** `callback()` for each frame the <video> presents (no-op where the browser lacks
+ *  requestVideoFrameCallback: the overlay's decoded count still shows progress). */
+export function onVideoFrame(video, callback) {
+  if (!video.requestVideoFrameCallback) return;
+  const tick = () => {
+    callback();
+    video.requestVideoFrameCallback(tick);
+  };
+  video.requestVideoFrameCallback(tick);
+}
+
 /** The WHEP URL of a room with the stream's query (size, rate, seat...), empty values left out. */
 export function whepUrl(roomId, query = {}) {
   const search = new URLSearchParams();
@@ -182,8 +203,10 @@ export class WhepSession extends EventTarget {
 
   /** Size and rate go to the video track; codec and JPEG fields mean nothing here. */
   request(fields) {
-    const { codec, jpeg_quality: jpegQuality, ...rest } = fields;  // eslint-disable-line no-unused-vars
-    return this._send({ type: "request", ...rest }, { validate: true });
+    const message = { type: "request", ...fields };
+    delete message.codec;
+    delete message.jpeg_quality;
+    return this._send(message, { validate: true });
   }
 
   image(bytes, format = "jpeg") {
