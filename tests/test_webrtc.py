@@ -17,6 +17,7 @@ from tests.server_fixtures import run_server, wait_until
 from tests.test_server_rooms import create_room, invite, mouth_box
 
 SIZE = 128
+NO_DRIVE = 2**24 - 1  # the stamp of a frame before any drive (seq -1)
 TIMEOUT_S = 30.0
 pytest.importorskip("aiortc")
 
@@ -136,3 +137,55 @@ def test_a_viewers_drive_is_forbidden_and_the_peer_goes_on(srv):
     error, pong, rgb = asyncio.run(run())
     assert error.code == "forbidden" and error.answers.seq == 5
     assert pong.t == 2.0 and rgb.shape == (SIZE, SIZE, 3)
+
+
+def test_under_a_bit_rate_cap_fresh_frames_keep_arriving(tmp_path):
+    """webrtc_max_bitrate = 500 kbit/s while the avatar moves all the time: the encoder's
+    target stays within the cap whatever the receiver estimates, and the picture keeps
+    following the drives (newer stamps keep arriving) instead of stalling."""
+    cap, floor = 500_000, 100_000
+    windows, per_window = 3, 8
+
+    async def run(server):
+        room = await asyncio.to_thread(create_room, server)
+        async with WhepViewer(server.url, room["id"], server.token, stamp=True, fps=30,
+                              timeout_s=TIMEOUT_S) as v:
+            await v.wait_open()
+            peer = next(iter(server.ctx.webrtc_peers.peers()))
+            targets, stamps = [], []
+            seq = 0
+
+            async def drive() -> None:
+                nonlocal seq
+                while True:  # cancelled below; a new pose and view every 50 ms
+                    seq += 1
+                    v.send(Drive(seq=seq, smplx={"jaw_pose": np.array(
+                        [0.4 * (seq % 2), 0.0, 0.0])}))
+                    v.send(View(orbit=Orbit(yaw_deg=float(seq * 7 % 360))))
+                    await asyncio.sleep(0.05)
+
+            driver = asyncio.create_task(drive())
+            try:
+                for _ in range(windows):
+                    window = []
+                    for _ in range(per_window):
+                        rgb, _ = await v.next_frame()
+                        window.append(read_stamp(rgb))
+                    stamps.append(window)
+                    targets.append(peer.encoder.target_bitrate)
+            finally:
+                driver.cancel()
+            inbound = [s for s in (await v.stats()).values() if s.type == "inbound-rtp"]
+            return peer.encoder, targets, stamps, inbound[0].packetsReceived, seq
+
+    with run_server(tmp_path, default_width=SIZE, default_height=SIZE, default_max_fps=30,
+                    webrtc_max_bitrate=cap, webrtc_min_bitrate=floor) as server:
+        encoder, targets, stamps, received, sent = asyncio.run(run(server))
+    assert type(encoder).__name__ == "ClampedVp8Encoder"
+    assert encoder.bitrate_range == (floor, cap)
+    assert all(floor <= t <= cap for t in targets), targets
+    # Every window has frames showing drives newer than the window before (no stall).
+    newest = [max((s for s in window if s is not None and s != NO_DRIVE), default=0)
+              for window in stamps]
+    assert newest == sorted(newest) and newest[-1] > newest[0], stamps
+    assert received > 0 and newest[-1] <= sent

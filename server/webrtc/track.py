@@ -29,7 +29,7 @@ class LatestFrameTrack(MediaStreamTrack):
         self.repeat_after_s = repeat_after_s
         self._pending: tuple[np.ndarray, asyncio.Future] | None = None
         self._new = asyncio.Event()
-        self._last: av.VideoFrame | None = None
+        self._last: np.ndarray | None = None  # [H, W, 3] uint8, the newest taken
         self._start = time.monotonic()
         self._pts = -1
         self.sent = 0       # distinct frames handed to the encoder
@@ -61,15 +61,15 @@ class LatestFrameTrack(MediaStreamTrack):
             if self._pending is not None:
                 rgb, taken = self._pending
                 self._pending = None
-                frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(rgb), format="rgb24")
                 _settle(taken)
-                self._last = frame
+                self._last = np.ascontiguousarray(rgb)
                 self.sent += 1
                 break
             if self._last is not None:
-                frame = self._last
                 self.repeated += 1
                 break
+        # A new frame object each time: the encoder may still hold the one before.
+        frame = av.VideoFrame.from_ndarray(self._last, format="rgb24")
         pts = int((time.monotonic() - self._start) * VIDEO_CLOCK_RATE)
         self._pts = max(pts, self._pts + 1)
         frame.pts, frame.time_base = self._pts, VIDEO_TIME_BASE
