@@ -6,7 +6,9 @@ bit-rate cap. Refusals and limits are in test_webrtc_signalling.py, WHIP in test
 from __future__ import annotations
 
 import asyncio
+import json
 
+import cv2
 import numpy as np
 import pytest
 
@@ -189,3 +191,23 @@ def test_under_a_bit_rate_cap_fresh_frames_keep_arriving(tmp_path):
               for window in stamps]
     assert newest == sorted(newest) and newest[-1] > newest[0], stamps
     assert received > 0 and newest[-1] <= sent
+
+
+def test_cli_watch_webrtc_records_decoded_frames(srv, tmp_path):
+    from client.cli import main as cli_main
+
+    room = create_room(srv)
+    watch = invite(srv, room["id"], "watch")
+    out = tmp_path / "rtc"
+    argv = ["watch", "--webrtc", "--codec", "h264", "--stamp", "--room", room["id"],
+            "--out", str(out), "--frames", "3", "--seconds", "120", "--size", "64",
+            "--view", "20,0,2.5", "--server", srv.url, "--token", watch["token"]]
+    assert cli_main(argv) == 0
+    records = [json.loads(line) for line in (out / "frames.jsonl").read_text().splitlines()]
+    assert [r["index"] for r in records] == [0, 1, 2]
+    assert all(r["codec"].lower() == "video/h264" and (r["width"], r["height"]) == (64, 64)
+               for r in records)
+    assert all(r["seq"] == NO_DRIVE for r in records)  # stamped; nobody drove the seat
+    image = cv2.imread(str(out / records[-1]["file"]))
+    assert image.shape == (64, 64, 3) and image.std() > 10
+    wait_until(lambda: peers(srv) == 0, TIMEOUT_S, what="the CLI's peer to be freed")
