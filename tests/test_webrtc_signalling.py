@@ -206,3 +206,18 @@ def test_whep_error_carries_status_and_detail(srv):
 
     error = asyncio.run(run())
     assert error.status == 404 and "nosuchroom" in error.detail
+
+
+def test_a_performed_seat_refuses_a_second_performer_but_not_a_viewer(srv):
+    room = create_room(srv)
+    perform = invite(srv, room["id"], "perform")
+    sdp = offer_sdp()
+    first = post(srv, room["id"], perform["token"], sdp)
+    assert first.status_code == 201
+    taken = post(srv, room["id"], srv.token, sdp)  # the owner performs seat 0 by default
+    assert taken.status_code == 403 and "performed" in taken.json()["detail"]
+    assert post(srv, room["id"], srv.token, sdp, role="watch").status_code == 201
+    assert peers(srv) == 2
+    no_peers(srv)  # neither connects
+    live = srv.ctx.rooms.get(room["id"]).live
+    assert live.seats[0].performer is None and not live.participants
