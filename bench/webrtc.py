@@ -43,6 +43,7 @@ import platform
 import sys
 import tempfile
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -375,6 +376,31 @@ async def capped_relay(target_port: int, bitrate: float) -> tuple[asyncio.Abstra
 # -- tables -------------------------------------------------------------------------------
 
 
+def merge(runs: list[Run]) -> list[Run]:
+    """One row per (transport, size): the repeats' frames, seconds, bytes, CPU and latencies
+    summed, PSNR and equal-PSNR JPEG bytes averaged (each repeat scored its own samples)."""
+    rows: dict[tuple[str, int], Run] = {}
+    scores: dict[tuple[str, int], list[tuple[float, float]]] = {}
+    for r in runs:
+        row = rows.setdefault((r.transport, r.size), Run(r.transport, r.size, codec=r.codec))
+        offset = row.seconds
+        row.seconds += r.seconds
+        row.frames += r.frames
+        row.bytes += r.bytes
+        row.cpu_s += r.cpu_s
+        row.latencies += [(offset + t, ms) for t, ms in r.latencies]
+        scores.setdefault((r.transport, r.size), []).append(
+            (r.psnr, r.jpeg_equal_bytes_per_frame))
+    for key, row in rows.items():
+        values = np.array(scores[key])  # [repeats, 2]
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN: nothing was scored
+            row.psnr, row.jpeg_equal_bytes_per_frame = (float(v) for v in
+                                                        np.nanmean(values, axis=0))
+    return list(rows.values())
+
+
+
 def thirds(run: Run) -> tuple[float, float, float, float, float]:
     """fps and median latency in the first and last third, and the latency slope (ms/s)."""
     third = run.seconds / 3 if run.seconds else 1.0
@@ -470,6 +496,8 @@ def main() -> int:
     parser.add_argument("--samples", type=int, default=20, help="frames scored for PSNR per row")
     parser.add_argument("--cap-seconds", type=float, default=20.0)
     parser.add_argument("--cap-size", type=int, default=512)
+    parser.add_argument("--repeat", type=int, default=1,
+                        help="rounds over the transports, in alternating order; rows merge them")
     parser.add_argument("--render-threads", type=int, default=1)
     parser.add_argument("--avatar", default="trained",
                         help="the server's demo avatar: trained (cached), synthetic or a path")
@@ -487,9 +515,11 @@ def main() -> int:
             (Path(tmp) / name).mkdir()
         proc, url, token = start_server(Path(tmp) / "a", args.render_threads, 8, args.avatar)
         try:
-            for size in sizes:
-                for transport in transports:
-                    runs.append(asyncio.run(measure(url, token, proc.pid, transport, size, args)))
+            for i in range(args.repeat):  # alternating order: load drift shows as spread
+                for size in sizes:
+                    for transport in (transports if i % 2 == 0 else transports[::-1]):
+                        runs.append(asyncio.run(measure(url, token, proc.pid, transport, size,
+                                                        args)))
             if args.cap_seconds > 0:
                 capped += asyncio.run(capped_websockets(url, token, proc.pid, args))
         finally:
@@ -507,7 +537,7 @@ def main() -> int:
             finally:
                 stop_server(proc)
     load = os.getloadavg() if hasattr(os, "getloadavg") else ("?",) * 3
-    print_tables(runs, capped, args, load)
+    print_tables(merge(runs), capped, args, load)
     return 0
 
 
