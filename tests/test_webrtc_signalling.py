@@ -121,6 +121,9 @@ def test_patch_is_405_and_delete_needs_the_same_token(srv):
         assert c.delete(location.replace("/whep/", "/whip/"), headers={
             "Authorization": f"Bearer {watch['token']}"}).status_code == 404
         assert peers(srv) == 1
+        # Revoked since: it admits nobody new, but still ends what it opened.
+        assert c.delete(f"/v1/rooms/{room['id']}/invitations/{watch['id']}",
+                        headers=srv.headers()).status_code == 204
         assert c.delete(location, headers={"Authorization": f"Bearer {watch['token']}"}
                         ).status_code == 204
         assert peers(srv) == 0

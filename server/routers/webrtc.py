@@ -169,13 +169,17 @@ async def _open(kind: Literal["whep", "whip"], room_id: str, request: HttpReques
 
 async def _delete(kind: str, room_id: str, resource: str, request: HttpRequest,
                   ctx: ServerContext) -> Response:
-    token, principal, _ = _credentials(ctx, request)
+    token = bearer_token(request.headers.get("authorization"))
+    if not token:
+        raise HTTPException(401, "missing bearer token", headers={"WWW-Authenticate": "Bearer"})
     peer = ctx.webrtc_peers.get(resource)
     if peer is None or peer.kind != kind or peer.room.id != room_id:
         raise HTTPException(404, f"no {kind.upper()} session {resource!r} in room {room_id!r}")
-    same_token = _digest(token) == peer.token_digest
-    if not same_token and not (principal is not None and peer.room.visible_to(principal)):
-        raise HTTPException(403, "this session was opened with another token")
+    # The token that opened it ends it, even if it expired or was revoked since.
+    if _digest(token) != peer.token_digest:
+        _, principal, _ = _credentials(ctx, request)
+        if principal is None or not peer.room.visible_to(principal):
+            raise HTTPException(403, "this session was opened with another token")
     await peer.close("DELETE by the client")
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
