@@ -17,7 +17,9 @@ talking-and-gesturing motion at ``--rate`` Hz for ``--seconds`` and decodes ever
   PSNR on those reference frames (lowest quality reaching it), times the row's fps: the
   bytes a JPEG stream would need for that picture quality;
 - drive -> decoded-frame latency: WebSocket frames carry the seq of the newest drive they
-  show; WebRTC frames carry it stamped in their pixels (protocol/stamp.py, ``stamp=1``).
+  show; WebRTC frames carry it stamped in their pixels (protocol/stamp.py, ``stamp=1``). The
+  WebRTC viewer's receiver releases each frame at its last packet, as a browser does
+  (release_at_marker; ``--aiortc-jitter-buffer`` keeps aiortc's, one frame interval later).
 
 Then the 500 kbit/s cap, at ``--cap-size``, for ``--cap-seconds``: WebRTC with the encoder's
 bit rate capped (a second server with TELESPLAT_WEBRTC_MAX_BITRATE=500000; aiortc's
@@ -229,14 +231,45 @@ async def transport_bytes(viewer: WhepViewer) -> int:
                if type(s).__name__ == "RTCTransportStats")
 
 
+def release_at_marker(viewer: WhepViewer) -> None:
+    """Make the viewer's video receiver hand a frame to the decoder at its last packet (the
+    RTP marker bit), as browsers do. aiortc's stock jitter buffer releases a frame only when
+    the next frame's first packet arrives, which adds one frame interval (33 ms at 30 fps,
+    200 ms at 5 fps) to every WebRTC latency measured here but not to a browser's."""
+    from aiortc.jitterbuffer import JitterBuffer, JitterFrame
+
+    class MarkerJitterBuffer(JitterBuffer):
+        def _remove_frame(self, sequence_number: int) -> JitterFrame | None:
+            packets = []
+            for count in range(self.capacity):  # the contiguous packets from the oldest
+                packet = self._packets[(self._origin + count) % self._capacity]
+                if packet is None:
+                    return None
+                if packets and packet.timestamp != packets[0].timestamp:  # no marker (lost)
+                    self.remove(count)
+                    return JitterFrame(b"".join(p._data for p in packets), packets[0].timestamp)
+                packets.append(packet)
+                if packet.marker:
+                    self.remove(count + 1)
+                    return JitterFrame(b"".join(p._data for p in packets), packet.timestamp)
+            return None
+
+    for receiver in viewer.pc.getReceivers():
+        if receiver.track.kind == "video":  # before the first packet: ICE is not up yet
+            receiver._RTCRtpReceiver__jitter_buffer = MarkerJitterBuffer(capacity=512,
+                                                                        is_video=True)
+
+
 async def run_webrtc(url: str, token: str, codec: str, run: Run, pid: int | None,
-                     seconds: float, rate: float, samples: int) -> None:
+                     seconds: float, rate: float, samples: int, marker: bool = True) -> None:
     room = await new_room(url, token)
     run.motion = motion = Motion()
     try:
         viewer = WhepViewer(url, room, token, width=run.size, height=run.size, fps=rate, seat=0,
                             stamp=True, codec=codec, timeout_s=60)
         await viewer.start()
+        if marker:
+            release_at_marker(viewer)
         try:
             await viewer.wait_open()
             welcome = await viewer.welcome()
@@ -429,6 +462,14 @@ def print_tables(runs: list[Run], capped: list[Run], args, load: tuple) -> None:
         print(f"| {r.transport} ({r.codec}) | {r.size} | {r.fps:.1f} | {cpu:.1f} "
               f"| {r.bytes / max(r.seconds, 1e-9) / 1000:.0f} | {r.psnr:.1f} | {jpeg:.0f} "
               f"| {r.latency(50):.0f} | {r.latency(95):.0f} |")
+    if not capped:
+        print()
+    else:
+        print_capped(capped, args)
+    verdicts(runs, capped)
+
+
+def print_capped(capped: list[Run], args) -> None:
     print(f"\nUnder a {CAP_BITRATE // 1000} kbit/s cap, {args.cap_size}x{args.cap_size}, "
           f"{args.cap_seconds:g} s (WebRTC: encoder capped; WebSocket: relayed at that rate).\n")
     print("| transport | kB/s | fps first third | fps last third | latency p50 first (ms) "
@@ -439,6 +480,9 @@ def print_tables(runs: list[Run], capped: list[Run], args, load: tuple) -> None:
         print(f"| {r.transport} ({r.codec}) | {r.bytes / max(r.seconds, 1e-9) / 1000:.0f} "
               f"| {f1:.1f} | {f3:.1f} | {l1:.0f} | {l3:.0f} | {slope:+.1f} |")
     print()
+
+
+def verdicts(runs: list[Run], capped: list[Run]) -> None:
     for r in runs:
         if r.transport.startswith("webrtc") and r.size == min(run.size for run in runs):
             ok = r.fps >= 25 and r.latency(95) <= 100
@@ -466,7 +510,8 @@ async def measure(url: str, token: str, pid: int, transport: str, size: int, arg
         await run_websocket(url, token, codec, run, pid, seconds, args.rate, args.samples,
                             stream_url)
     else:
-        await run_webrtc(url, token, codec, run, pid, seconds, args.rate, args.samples)
+        await run_webrtc(url, token, codec, run, pid, seconds, args.rate, args.samples,
+                         marker=not args.aiortc_jitter_buffer)
     if scored:
         await score(url, token, run)
     print(f"{transport} {size}: {run.fps:.1f} fps, p95 {run.latency(95):.0f} ms, "
@@ -474,14 +519,15 @@ async def measure(url: str, token: str, pid: int, transport: str, size: int, arg
     return run
 
 
-async def capped_websockets(url: str, token: str, pid: int, args) -> list[Run]:
+async def capped_websockets(url: str, token: str, pid: int, args,
+                            transports: list[str]) -> list[Run]:
     port = int(url.rsplit(":", 1)[1])
     relay, relay_port = await capped_relay(port, CAP_BITRATE)
     try:
         return [await measure(url, token, pid, t, args.cap_size, args,
                               stream_url=f"http://127.0.0.1:{relay_port}",
                               seconds=args.cap_seconds, scored=False)
-                for t in TRANSPORTS if t.startswith("ws")]
+                for t in transports if t.startswith("ws")]
     finally:
         relay.close()
 
@@ -498,6 +544,9 @@ def main() -> int:
     parser.add_argument("--cap-size", type=int, default=512)
     parser.add_argument("--repeat", type=int, default=1,
                         help="rounds over the transports, in alternating order; rows merge them")
+    parser.add_argument("--aiortc-jitter-buffer", action="store_true",
+                        help="keep aiortc's stock receiver, which holds each frame until the "
+                             "next one starts (adds one frame interval to WebRTC latency)")
     parser.add_argument("--render-threads", type=int, default=1)
     parser.add_argument("--avatar", default="trained",
                         help="the server's demo avatar: trained (cached), synthetic or a path")
@@ -521,15 +570,15 @@ def main() -> int:
                         runs.append(asyncio.run(measure(url, token, proc.pid, transport, size,
                                                         args)))
             if args.cap_seconds > 0:
-                capped += asyncio.run(capped_websockets(url, token, proc.pid, args))
+                capped += asyncio.run(capped_websockets(url, token, proc.pid, args, transports))
         finally:
             stop_server(proc)
-        if args.cap_seconds > 0:
+        if args.cap_seconds > 0 and any(t.startswith("webrtc") for t in transports):
             os.environ["TELESPLAT_WEBRTC_MAX_BITRATE"] = str(CAP_BITRATE)
             proc, url, token = start_server(Path(tmp) / "b", args.render_threads, 8,
                                             args.avatar)
             try:
-                for transport in TRANSPORTS:
+                for transport in transports:
                     if transport.startswith("webrtc"):
                         capped.append(asyncio.run(measure(
                             url, token, proc.pid, transport, args.cap_size, args,
