@@ -4,7 +4,8 @@ For latency measurements over transports that carry no per-frame metadata to the
 WebRTC video track): the sender stamps each frame with the seq of the newest drive it shows,
 the receiver reads it from the decoded picture and matches it with the drive it sent. A stamp
 is one strip of 32 square cells along the top-left edge: 4 marker bits (1010), the 24-bit
-seq (most significant first), 4 check bits (the sum of the seq's six nibbles, mod 16); a 1 is
+seq (most significant first), 4 check bits (the sum of the seq's six nibbles, mod 16,
+inverted); a 1 is
 black, a 0 white. Cells are ``width // 32`` px (2 to 8), so they survive VP8 / H.264 at low bit
 rates; the reader averages each cell's centre and thresholds it. Pure numpy.
 """
@@ -31,7 +32,8 @@ def cell_size(width: int) -> int:
 def _bits(seq: int) -> list[int]:
     seq &= (1 << SEQ_BITS) - 1
     data = [(seq >> (SEQ_BITS - 1 - i)) & 1 for i in range(SEQ_BITS)]
-    check = sum((seq >> (4 * i)) & 0xF for i in range(SEQ_BITS // 4)) & 0xF
+    # Inverted, so that a flat white (or black) strip never reads as a valid stamp.
+    check = ~sum((seq >> (4 * i)) & 0xF for i in range(SEQ_BITS // 4)) & 0xF
     return [*MARKER, *data, *((check >> (3 - i)) & 1 for i in range(4))]
 
 
