@@ -121,7 +121,7 @@ def test_a_drive_over_the_data_channel_opens_the_decoded_mouth(srv):
     assert inside.mean() > 4 * outside, (inside.mean(), outside)  # codec noise elsewhere
 
 
-def test_a_viewers_drive_is_forbidden_and_the_peer_goes_on(srv):
+def test_a_viewers_drive_and_garbage_get_errors_and_the_peer_goes_on(srv):
     room = create_room(srv)
     watch = invite(srv, room["id"], "watch")
 
@@ -131,13 +131,18 @@ def test_a_viewers_drive_is_forbidden_and_the_peer_goes_on(srv):
             await v.welcome()
             v.send(Drive(seq=5, smplx={"jaw_pose": np.array([0.3, 0.0, 0.0])}))
             error = await v.message(lambda m: m.type == "error")
+            v.channel.send(b"\xc1 not msgpack")  # garbage, then text: errors, nothing else
+            garbage = await v.message(lambda m: m.type == "error")
+            v.channel.send("a text message")
+            text = await v.message(lambda m: m.type == "error")
             v.send(Ping(t=2.0))
             pong = await v.message(lambda m: m.type == "pong")
             rgb, _ = await v.next_frame()
-            return error, pong, rgb
+            return error, garbage, text, pong, rgb
 
-    error, pong, rgb = asyncio.run(run())
+    error, garbage, text, pong, rgb = asyncio.run(run())
     assert error.code == "forbidden" and error.answers.seq == 5
+    assert garbage.code == "bad_message" and text.code == "bad_message", (garbage, text)
     assert pong.t == 2.0 and rgb.shape == (SIZE, SIZE, 3)
 
 

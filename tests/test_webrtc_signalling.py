@@ -93,6 +93,8 @@ def test_refusals_have_their_statuses_and_make_no_peer(srv):
         (post(srv, room["id"], srv.token, good, width=33), 400),  # odd
         (post(srv, room["id"], srv.token, good, width=100000), 400),  # past limits.max_width
         (post(srv, room["id"], srv.token, good, fps=0.01), 400),  # below limits.min_fps
+        (post(srv, room["id"], srv.token, good, fps="nan"), 400),
+        (post(srv, room["id"], srv.token, good, height=-64), 400),
     ]
     for response, status in cases:
         assert response.status_code == status, (status, response.text)
