@@ -194,12 +194,18 @@ async def seat_participant(ctx: ServerContext, room: Room, role: str, seat: int,
     except JoinRefused as exc:
         participant.tracking.close()
         raise Refusal(exc.code, exc.message, JOIN_CLOSE_CODES[exc.code]) from None
-    info = AvatarInfo(id=record.id, name=record.name, num_gaussians=record.num_gaussians,
-                      sh_degree=record.sh_degree, owner=record.owner, metadata=record.metadata)
-    welcome = Welcome(session=participant.id, minor=PROTOCOL_MINOR, avatar=info,
-                      limits=s.limits, codecs=list(CODECS), request=effective,
-                      room=RoomWelcome(id=room.id, name=room.name, role=role,
-                                       seat=seat if role == "perform" else None))
+    try:
+        info = AvatarInfo(id=record.id, name=record.name, num_gaussians=record.num_gaussians,
+                          sh_degree=record.sh_degree, owner=record.owner,
+                          metadata=record.metadata)
+        welcome = Welcome(session=participant.id, minor=PROTOCOL_MINOR, avatar=info,
+                          limits=s.limits, codecs=list(CODECS), request=effective,
+                          room=RoomWelcome(id=room.id, name=room.name, role=role,
+                                           seat=seat if role == "perform" else None))
+    except Exception:
+        live.leave(participant)  # admitted, never run: out again
+        participant.tracking.close()
+        raise
     return participant, welcome
 
 
