@@ -201,8 +201,10 @@ class Settings(BaseModel):
         32 * 1024, ge=1024, description="Largest SDP offer, bytes; past it 413, before any "
                                         "parsing.")
     webrtc_min_bitrate: int = Field(
-        100_000, ge=10_000, description="Lowest target bit rate (bit/s) a WebRTC video encoder "
-                                        "is set to, whatever the receiver's estimate.")
+        250_000, ge=10_000, description="Lowest target bit rate (bit/s) a WebRTC video encoder "
+                                        "is set to, whatever the receiver's estimate (the "
+                                        "delay-based estimate also falls when the machine, "
+                                        "not the link, is slow).")
     webrtc_max_bitrate: int = Field(
         4_000_000, ge=10_000, description="Highest target bit rate (bit/s) of a WebRTC video "
                                           "encoder; the congestion estimate moves it within "

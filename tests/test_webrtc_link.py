@@ -164,8 +164,8 @@ def test_a_500_kbit_link_slows_the_stream_but_frames_keep_coming(tmp_path):
         relay.close()
         return stamps, targets, shaper, seq, start_rate
 
-    with run_server(tmp_path, default_width=SIZE, default_height=SIZE,
-                    default_max_fps=30) as server:
+    with run_server(tmp_path, default_width=SIZE, default_height=SIZE, default_max_fps=30,
+                    webrtc_min_bitrate=50_000) as server:  # the floor below the link's rate
         stamps, targets, shaper, sent, start_rate = asyncio.run(run(server))
     readable = [[s for s in w if s is not None and s != NO_DRIVE] for w in stamps]
     # Frames come in order (latest wins never goes back) ...
