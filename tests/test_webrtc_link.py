@@ -97,7 +97,7 @@ def only_candidate(sdp: str, host: str, port: int) -> str:
     return "\r\n".join(out)
 
 
-def test_a_500_kbit_link_slows_the_stream_but_frames_keep_coming(tmp_path):
+def test_a_150_kbit_link_slows_the_stream_but_frames_keep_coming(tmp_path):
     from aiortc import RTCConfiguration, RTCPeerConnection, RTCSessionDescription
 
     min_windows, max_windows, per_window = 4, 12, 6
