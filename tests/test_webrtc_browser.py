@@ -143,6 +143,21 @@ def test_jaw_slider_moves_the_mouth_over_the_data_channel(page, server):  # noqa
 
 
 @browser_test
+def test_size_menu_resizes_the_video_track(page):
+    wait_playing(page)
+    page.execute_script("""
+        const size = document.getElementById('size');
+        size.value = '384';
+        size.dispatchEvent(new Event('change'));""")  # a `request` over the data channel
+    wait_for(page, "document.getElementById('video').videoWidth === 384", 60, "384 px frames")
+    page.execute_script("""
+        const size = document.getElementById('size');
+        size.value = '512';
+        size.dispatchEvent(new Event('change'));""")
+    wait_playing(page)
+
+
+@browser_test
 def test_transport_ws_still_gives_the_canvas(server):  # noqa: F811
     driver = make_webrtc_chromium()
     try:
