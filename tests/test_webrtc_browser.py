@@ -158,6 +158,24 @@ def test_size_menu_resizes_the_video_track(page):
 
 
 @browser_test
+def test_share_turns_the_private_room_into_a_shared_one(page):
+    wait_playing(page)
+    room = page.execute_script("return window.telesplat.room.id")
+    frames = page.execute_script("return window.telesplat.framesShown")
+    resource = page.execute_script("return window.telesplat.session.resource")
+    page.find_element("id", "share").click()
+    watch_url = wait_for(page, "document.querySelector('#share-links [data-scope=watch] "
+                               "input')?.value", 60, "the watch link")
+    assert f"room={room}" in watch_url and "#token=tsr_" in watch_url
+    assert page.execute_script("return window.telesplat.privateRoom") is None  # kept on leave
+    assert f"room={room}" in page.current_url and "token" not in page.current_url
+    assert page.find_element("id", "room-bar").is_displayed()
+    # The same peer goes on: no reconnect for sharing.
+    assert page.execute_script("return window.telesplat.session.resource") == resource
+    wait_for(page, f"window.telesplat.framesShown > {frames}", 30, "frames after sharing")
+
+
+@browser_test
 def test_transport_ws_still_gives_the_canvas(server):  # noqa: F811
     driver = make_webrtc_chromium()
     try:
