@@ -15,7 +15,7 @@ import httpx
 import numpy as np
 import pytest
 
-from tests.server_fixtures import server_fixture  # noqa: F401 (the `server` fixture)
+from tests.server_fixtures import run_server, server_fixture  # noqa: F401 (`server`)
 from tests.test_client_browser import server_log, wait_for  # noqa: F401 (a fixture)
 from tests.test_client_units import CHROMEDRIVER, CHROMIUM, chromium_missing, node, run_node
 from tests.test_rooms_browser import SIZE, mouth_box
@@ -230,6 +230,37 @@ def test_leaving_the_page_deletes_the_whep_resource_and_its_room(server, server_
             time.sleep(0.1)
     finally:
         driver.quit()
+
+
+@browser_test
+def test_a_refused_whep_falls_back_to_the_websocket(tmp_path):
+    """With one WebRTC peer allowed, a second page's WHEP gets 503: it says so, gives its
+    private room back and streams over the WebSocket instead."""
+    def room_ids() -> set[str]:
+        with httpx.Client(base_url=srv.url, headers=srv.headers(), timeout=30) as http:
+            body = http.get("/v1/rooms").json()
+        return {room["id"] for room in (body["rooms"] if isinstance(body, dict) else body)}
+
+    with run_server(tmp_path, webrtc_max_peers=1) as srv:
+        driver = make_webrtc_chromium()
+        try:
+            driver.get(f"{srv.url}/#token={srv.token}")
+            wait_playing(driver)  # this tab holds the one peer
+            rooms = room_ids()
+            driver.switch_to.new_window("tab")
+            driver.get(f"{srv.url}/#token={srv.token}")
+            wait_for(driver, "window.telesplat?.transport === 'ws' && "
+                             "window.telesplat.framesShown > 0", 90, "WebSocket frames")
+            assert "503" in driver.find_element("id", "messages").text
+            assert driver.find_element("id", "view").is_displayed()
+            assert not driver.find_element("id", "video").is_displayed()
+            assert driver.execute_script("return window.telesplat.privateRoom") is None
+            deadline = time.monotonic() + 30
+            while room_ids() != rooms:  # the second tab's private room is given back
+                assert time.monotonic() < deadline, (room_ids(), rooms)
+                time.sleep(0.1)
+        finally:
+            driver.quit()
 
 
 # -- the overlay's getStats() arithmetic (node, no browser) ----------------------------------

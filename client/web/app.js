@@ -15,7 +15,9 @@ import { Session, streamUrl, takeToken } from "./session.js";
 import { canShare, inviteAll, presenceText, showLinks } from "./share.js";
 import { StreamStats, renderStats } from "./stats.js";
 import { Webcam } from "./webcam.js";
-import { WhepSession, chooseTransport, onVideoFrame, serverHealth } from "./webrtc.js";
+import {
+  WhepSession, chooseTransport, deleteRoom, onVideoFrame, serverHealth, worthFallingBack,
+} from "./webrtc.js";
 
 const $ = (id) => document.getElementById(id);
 const params = new URLSearchParams(location.search);
@@ -141,13 +143,8 @@ function showPresence(presence) {
 // ---- WebRTC: the private room of a solo page, the video's frames -------------------------
 
 function forgetPrivateRoom({ keepalive = false } = {}) {
-  const id = state.privateRoom;
+  if (state.privateRoom) deleteRoom(state.privateRoom, token, keepalive);
   state.privateRoom = null;
-  if (!id) return;
-  // keepalive: the DELETE still goes when the page is being unloaded.
-  fetch(`/v1/rooms/${encodeURIComponent(id)}`, {
-    method: "DELETE", keepalive, headers: token ? { Authorization: `Bearer ${token}` } : {},
-  }).catch(() => { /* an idle room is closed by the server anyway */ });
 }
 
 /** A WebRTC session: a solo page (an avatar id) WHEPs into a private room it makes, as its
@@ -163,6 +160,17 @@ async function whepSession(target) {
   }
   const size = Number($("size").value);
   return new WhepSession(roomId, token, { video, query: { width: size, height: size, ...query } });
+}
+
+/** WebRTC refused or failed where the WebSocket may work (its limits, codecs, ICE): say so,
+ *  switch to the WebSocket and connect again; false when there is nothing to fall back to. */
+function fallBack(err, target) {
+  if (state.transport !== "webrtc" || !worthFallingBack(err)) return false;
+  notify(`WebRTC unavailable (${err.message}): using the WebSocket`, "error");
+  forgetPrivateRoom();
+  useTransport({ transport: "ws", why: `WebRTC failed: ${err.message}` });
+  connect(target);
+  return true;
 }
 
 async function pollRtcStats() {
@@ -187,7 +195,7 @@ async function connect(target) {
     session = state.transport === "webrtc" ? await whepSession(target)
       : new Session(streamUrl(target), token, inRoom ? target : {});
   } catch (err) {
-    $("status").textContent = `could not connect: ${err.message}`;
+    if (!fallBack(err, target)) $("status").textContent = `could not connect: ${err.message}`;
     return;
   }
   state.session = session;
@@ -219,6 +227,7 @@ async function connect(target) {
     session.view({ ...orbit.orbit }, false);
     session.ping();
   } catch (err) {
+    if (state.session === session && fallBack(err, target)) return;
     $("status").textContent = `could not connect: ${err.code ? `${err.code}: ` : ""}${err.message}`;
   }
 }
@@ -348,12 +357,16 @@ function wire() {
 async function pickTransport() {
   const choice = chooseTransport(params.get("transport"), typeof RTCPeerConnection === "function",
     await serverHealth());
+  useTransport(choice);
+  if (choice.transport === "webrtc") onVideoFrame(video, () => { state.framesShown += 1; });
+}
+
+function useTransport(choice) {
   state.transport = choice.transport;
   state.transportWhy = choice.why;
   state.stats.transport = choice.transport === "webrtc" ? "webrtc" : "websocket";
   canvas.hidden = choice.transport === "webrtc";
   video.hidden = !canvas.hidden;
-  if (choice.transport === "webrtc") onVideoFrame(video, () => { state.framesShown += 1; });
 }
 
 async function joinRoom(roomId) {

@@ -8,7 +8,7 @@ import { ProtocolError, decode, encode } from "./protocol.js";
 import { rtcSample, rtcSummary } from "./rtcstats.js";
 
 const GATHER_TIMEOUT_MS = 5000;    // non-trickle: the offer waits for its candidates, bounded
-const WELCOME_TIMEOUT_MS = 30000;  // answer -> ICE -> DTLS -> channel open -> welcome
+const WELCOME_TIMEOUT_MS = 20000;  // answer -> ICE -> DTLS -> channel open -> welcome
 export const CHANNEL_LABEL = "telesplat";
 
 // The server's HTTP refusals as the protocol's error codes, so the page words them alike.
@@ -24,6 +24,22 @@ export function chooseTransport(asked, browserHasRtc, health) {
   if (!browserHasRtc) return { transport: "ws", why: "this browser has no RTCPeerConnection" };
   if (!health?.webrtc) return { transport: "ws", why: "the server offers no WebRTC" };
   return { transport: "webrtc", why: asked === "webrtc" ? "asked for" : "supported by both ends" };
+}
+
+/** Whether the WebSocket may succeed where WebRTC failed: yes for WebRTC's own limits (429,
+ *  503), codecs, ICE or DTLS failures and timeouts; no for the token or the room (401, 403,
+ *  404), which the WebSocket would refuse alike. `err`: a ProtocolError or an api() error. */
+export function worthFallingBack(err) {
+  const code = err?.code ?? { 401: "unauthorized", 403: "forbidden", 404: "not_found" }[err?.status];
+  return !["unauthorized", "forbidden", "not_found"].includes(code);
+}
+
+/** DELETE a room (the solo page's private one); `keepalive` so it still goes while the page
+ *  unloads. Errors are ignored: the server closes an idle room anyway. */
+export function deleteRoom(roomId, token, keepalive = false) {
+  fetch(`/v1/rooms/${encodeURIComponent(roomId)}`, {
+    method: "DELETE", keepalive, headers: token ? { Authorization: `Bearer ${token}` } : {},
+  }).catch(() => { /* closed for idleness later */ });
 }
 
 /** GET /v1/health (no token needed), or null when the server does not answer it. */
