@@ -4,6 +4,7 @@
     telesplat-client drive --avatar demo --webcam   (or --video clip.mp4)
     telesplat-client drive --room ID --seat 0 --webcam   (perform into a room)
     telesplat-client watch --room ID --out frames/ [--seconds 10] [--view 30,0,2.7]
+    telesplat-client watch --webrtc --room ID --out frames/ [--codec h264]   (WHEP)
     telesplat-client rooms create --avatar demo   (then: rooms invite ID --scope watch)
     telesplat-client motions get smile --avatar demo --out smile.json
     telesplat-client jobs submit --dataset NAME [--config cfg.json] --watch
@@ -125,6 +126,16 @@ def cmd_watch(args: argparse.Namespace) -> int:
     from .watch import parse_view, watch_room
 
     view = parse_view(args.view) if args.view else None
+    if args.webrtc:
+        from .watch import watch_room_webrtc
+
+        result = asyncio.run(watch_room_webrtc(
+            args.server, args.token, args.room, args.out, seconds=args.seconds,
+            max_frames=args.frames, view=view, size=args.size, timeout=args.timeout,
+            codec=args.codec, stamp=args.stamp))
+        print(f"wrote {result['frames']} WebRTC ({result['codec']}) frames of room "
+              f"{args.room} to {args.out}")
+        return 0
     result = asyncio.run(watch_room(args.server, args.token, args.room, args.out,
                                     seconds=args.seconds, max_frames=args.frames, view=view,
                                     size=args.size, timeout=args.timeout))
@@ -340,6 +351,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="own viewpoint: degrees, degrees, metres")
     p.add_argument("--size", type=int, default=512, help="frame width and height")
     p.add_argument("--timeout", type=float, default=30.0, help="seconds to wait per frame")
+    p.add_argument("--webrtc", action="store_true",
+                   help="watch over WebRTC (WHEP): save the decoded video frames as PNG")
+    p.add_argument("--codec", choices=("vp8", "h264"), default=None,
+                   help="--webrtc: the codec to prefer in the offer (default: aiortc's, VP8)")
+    p.add_argument("--stamp", action="store_true",
+                   help="--webrtc: ask for frame stamps and record each frame's drive seq")
     p.set_defaults(func=cmd_watch)
 
     p = sub.add_parser("rooms", help="live rooms: one performer per seat, viewers watch")

@@ -78,3 +78,53 @@ async def watch_room(server: str, token: str | None, room: str, out: Path, *,
         presence = client.presence
     return {"frames": saved, "stale_skipped": stale, "room": room,
             "presence": presence.model_dump() if presence is not None else None}
+
+
+async def watch_room_webrtc(server: str, token: str | None, room: str, out: Path, *,
+                            seconds: float | None = 10.0, max_frames: int | None = None,
+                            view: dict[str, float] | None = None, size: int = 512,
+                            timeout: float = 30.0, codec: str | None = None,
+                            stamp: bool = False) -> dict[str, Any]:
+    """Watch ``room`` over WebRTC (WHEP) and save each decoded frame as a PNG (what a WebRTC
+    viewer sees, after VP8 / H.264), with one line per frame in ``frames.jsonl`` (index, file,
+    size, arrival time; with ``stamp`` the drive seq read from the frame's stamp)."""
+    import cv2
+
+    from protocol import Orbit, View
+    from protocol.stamp import read_stamp
+
+    from .webrtc import WhepViewer
+
+    if seconds is None and max_frames is None:
+        raise ValueError("give seconds or max_frames: a recording must end")
+    out.mkdir(parents=True, exist_ok=True)
+    saved = 0
+    viewer = WhepViewer(server, room, token, width=size, height=size, role="watch",
+                        codec=codec, stamp=stamp, timeout_s=timeout)
+    async with viewer:
+        if view is not None:
+            await viewer.wait_open()
+            viewer.send(View(orbit=Orbit(**view)))
+        start = time.monotonic()
+        deadline = start + seconds if seconds is not None else None
+        with (out / "frames.jsonl").open("w") as log:
+            while max_frames is None or saved < max_frames:  # bounded by frames or deadline
+                left = timeout if deadline is None else deadline - time.monotonic()
+                if left <= 0:
+                    break
+                try:
+                    rgb, received = await viewer.next_frame(min(left, timeout))
+                except TimeoutError:
+                    if deadline is None:
+                        raise
+                    break
+                name = f"{saved:05d}.png"
+                cv2.imwrite(str(out / name), rgb[:, :, ::-1])  # cv2 writes BGR
+                log.write(json.dumps({
+                    "index": saved, "file": name, "codec": viewer.codec,
+                    "width": int(rgb.shape[1]), "height": int(rgb.shape[0]),
+                    "seq": read_stamp(rgb) if stamp else None,
+                    "received_s": round(received - start, 4)}) + "\n")
+                saved += 1
+        codec_used = viewer.codec
+    return {"frames": saved, "room": room, "transport": "webrtc", "codec": codec_used}

@@ -34,7 +34,7 @@ from .private import private_dir
 from .registry import DEMO_ID, AvatarRegistry
 from .renderer import FrameJob, SessionRenderer
 from .rooms.registry import SeatSpec
-from .routers import avatars, jobs, motions, rooms, stream, system
+from .routers import avatars, jobs, motions, rooms, stream, system, webrtc
 from .scheduler import RenderScheduler
 
 log = logging.getLogger("telesplat.server")
@@ -130,6 +130,7 @@ def create_app(settings: Settings) -> FastAPI:
                 yield
         finally:
             sweeper.cancel()
+            await ctx.webrtc_peers.close_all("the server is shutting down")
             await ctx.render.stop()
         await asyncio.to_thread(ctx.scheduler.shutdown)
         await asyncio.to_thread(ctx.track_scheduler.shutdown)
@@ -138,7 +139,7 @@ def create_app(settings: Settings) -> FastAPI:
                   description="Hosts 3D-Gaussian upper-body avatars and drives them live over "
                               f"a WebSocket (protocol version {PROTOCOL_VERSION}).")
     app.state.ctx = ctx
-    for routes in (system, avatars, stream, rooms, motions, jobs, cluster_render):
+    for routes in (system, avatars, stream, rooms, webrtc, motions, jobs, cluster_render):
         app.include_router(routes.router)
     # Last: the browser page at "/" would shadow any route added after it.
     if (WEB_DIR / "index.html").is_file():

@@ -232,6 +232,36 @@ class Settings(BaseModel):
     render_actor_restart_s: float = Field(
         10.0, gt=0, description="Seconds a dead render actor's rooms may take to be re-placed "
                                 "before their participants get an error.")
+    webrtc_ice_servers: list[str] = Field(
+        default_factory=list, description="STUN/TURN server URLs WebRTC peers gather candidates "
+                                          "with (e.g. stun:stun.example.org:3478); none by "
+                                          "default: host candidates only (loopback, LAN).")
+    webrtc_turn_username: str | None = Field(
+        None, description="Username for the turn:/turns: servers of webrtc_ice_servers.")
+    webrtc_turn_credential: str | None = Field(
+        None, description="Credential (password) for the turn:/turns: servers of "
+                          "webrtc_ice_servers.")
+    webrtc_max_peers: int = Field(
+        8, ge=0, description="WebRTC peers (WHEP viewers + WHIP publishers) at once; past it "
+                             "POST .../whep or .../whip is 503 (0: WebRTC off).")
+    webrtc_max_peers_per_user: int = Field(
+        4, ge=1, description="WebRTC peers one token subject (or one invitation) may hold; "
+                             "past it 429 (admins exempt).")
+    webrtc_max_sdp_bytes: int = Field(
+        32 * 1024, ge=1024, description="Largest SDP offer, bytes; past it 413, before any "
+                                        "parsing.")
+    webrtc_min_bitrate: int = Field(
+        250_000, ge=10_000, description="Lowest target bit rate (bit/s) a WebRTC video encoder "
+                                        "is set to, whatever the receiver's estimate (the "
+                                        "delay-based estimate also falls when the machine, "
+                                        "not the link, is slow).")
+    webrtc_max_bitrate: int = Field(
+        4_000_000, ge=10_000, description="Highest target bit rate (bit/s) of a WebRTC video "
+                                          "encoder; the congestion estimate moves it within "
+                                          "[webrtc_min_bitrate, webrtc_max_bitrate].")
+    webrtc_connect_timeout_s: float = Field(
+        15.0, gt=0, description="Seconds a WebRTC peer may take from its answer to a connected "
+                                "ICE/DTLS transport; then it is closed and its slot freed.")
     gaussian_ranges: GaussianRanges = Field(
         default_factory=GaussianRanges,
         description="Allowed values of an avatar's Gaussians (count, log-scales, local means, "
@@ -250,6 +280,30 @@ class Settings(BaseModel):
         if not value:
             raise ValueError("demo_avatar is synthetic, trained, none or a package path")
         return value
+
+    @field_validator("webrtc_ice_servers", mode="before")
+    @classmethod
+    def _ice_list(cls, value: Any) -> Any:
+        """TELESPLAT_WEBRTC_ICE_SERVERS is a comma-separated list."""
+        if isinstance(value, str):
+            return [url.strip() for url in value.split(",") if url.strip()]
+        return value
+
+    @field_validator("webrtc_ice_servers")
+    @classmethod
+    def _ice_urls(cls, value: list[str]) -> list[str]:
+        bad = [url for url in value if not url.startswith(("stun:", "stuns:", "turn:", "turns:"))]
+        if bad:
+            raise ValueError(f"ICE server URLs start with stun:, stuns:, turn: or turns:, not "
+                             f"{bad}")
+        return value
+
+    @model_validator(mode="after")
+    def _bitrates(self) -> Settings:
+        if self.webrtc_min_bitrate > self.webrtc_max_bitrate:
+            raise ValueError(f"webrtc_min_bitrate {self.webrtc_min_bitrate} exceeds "
+                             f"webrtc_max_bitrate {self.webrtc_max_bitrate}")
+        return self
 
     @model_validator(mode="after")
     def _frame_rate(self) -> Settings:

@@ -20,6 +20,7 @@ from .registry import AvatarRegistry
 from .rooms.registry import RoomRegistry
 from .scheduler import RenderScheduler
 from .tracking import SessionTracker
+from .webrtc.registry import PeerRegistry
 
 if TYPE_CHECKING:
     from avatar_core.motion.keyframes import Rig
@@ -62,6 +63,7 @@ class ServerContext:
     motion_rigs: dict[str, Rig] = field(default_factory=dict)  # avatar id -> its motion rig
     admission: Admission = None  # type: ignore[assignment]  # made from settings below
     rooms: RoomRegistry = None  # type: ignore[assignment]  # made from settings below
+    webrtc_peers: PeerRegistry = None  # type: ignore[assignment]  # made from settings below
     startup_links: dict[str, str] = field(default_factory=dict)  # the start-up room's
     render: Any = None  # where frames are made (render_backend; server/cluster_render/)
     _manos: dict[str, dict[str, MANOModel]] = field(default_factory=dict)
@@ -72,6 +74,8 @@ class ServerContext:
             self.admission = Admission.from_settings(self.settings)
         if self.rooms is None:
             self.rooms = RoomRegistry(self.settings)
+        if self.webrtc_peers is None:
+            self.webrtc_peers = PeerRegistry(self.settings)
 
     def session_models(self, avatar_id: str) -> tuple[AvatarAnimator, dict[str, MANOModel]]:
         """A session's own animator, plus the (shared, read-only) MANO models for fusion."""

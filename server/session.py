@@ -53,7 +53,12 @@ from .inbound import InboundDecoder, InboundLimits
 from .metrics import ServerMetrics
 from .renderer import FrameJob, RenderedFrame, SessionRenderer
 from .scheduler import RenderScheduler
-from .tracking import SessionTracker, TrackingInputInvalid, TrackingUnavailable
+from .tracking import (
+    DecodedImage,
+    SessionTracker,
+    TrackingInputInvalid,
+    TrackingUnavailable,
+)
 
 log = logging.getLogger(__name__)
 
@@ -138,7 +143,7 @@ class StreamSession:
         # webcam tracking: the newest image waiting (latest wins) and the tracking time of the
         # newest tracked one, reported with the next frame
         self.tracking = tracker
-        self._image: tuple[Image, float] | None = None
+        self._image: tuple[Image | DecodedImage, float] | None = None
         self._image_ready = asyncio.Event()
         self._track_inflight = None
         self._track_ms = 0.0
@@ -218,13 +223,17 @@ class StreamSession:
             if self.tracking.unavailable:
                 raise ProtocolError("unsupported", self.tracking.unavailable,
                                     {"type": "image", "seq": msg.seq})
-            self._image = (msg, time.monotonic())  # supersedes one not yet tracking
-            self._image_ready.set()
+            self.offer_image(msg, time.monotonic())
         elif isinstance(msg, Hello):
             if msg.version != PROTOCOL_VERSION:
                 raise ProtocolError("version", f"this server speaks protocol version "
                                                f"{PROTOCOL_VERSION}, not {msg.version}",
                                     {"type": "hello", "seq": None})
+
+    def offer_image(self, image: Image | DecodedImage, received_at: float) -> None:
+        """The newest webcam image to track; it supersedes one not yet tracking."""
+        self._image = (image, received_at)
+        self._image_ready.set()
 
     @staticmethod
     def merged_request(current: Request, update: Request, limits: Limits) -> Request:
@@ -370,18 +379,24 @@ class StreamSession:
             send.cancel()  # the session ends: the send goes with it
 
     async def _send_frame(self, f: RenderedFrame) -> None:
-        msg = Frame(seq=f.seq, frame=self.frames, codec=f.codec, width=f.width, height=f.height,
-                    data=f.data, depth=f.depth, keyframe=f.keyframe, timings=f.timings)
-        data = encode(msg)
-        await self._send(data)
+        sent = await self._deliver(f)
         self.frames += 1
-        self.bytes_sent += len(data)
+        self.bytes_sent += sent
         self._render_ms.append(f.timings.render)
         m = self.metrics
         m.frames.labels(f.codec).inc()
-        m.bytes_sent.inc(len(data))
+        m.bytes_sent.inc(sent)
         for stage in ("pose", "render", "encode"):
             m.stage_ms.labels(stage).observe(getattr(f.timings, stage))
+
+    async def _deliver(self, f: RenderedFrame) -> int:
+        """Hand one frame to the client (here: a ``frame`` message on the socket); the bytes
+        sent. A WebRTC peer hands it to its video track instead."""
+        data = encode(Frame(seq=f.seq, frame=self.frames, codec=f.codec, width=f.width,
+                            height=f.height, data=f.data, depth=f.depth, keyframe=f.keyframe,
+                            timings=f.timings))
+        await self._send(data)
+        return len(data)
 
     # -- stats ---------------------------------------------------------------------------------
 

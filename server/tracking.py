@@ -10,6 +10,7 @@ flight, and an image that arrives meanwhile replaces the waiting one (latest win
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,6 +25,17 @@ class TrackingUnavailable(RuntimeError):
 
 class TrackingInputInvalid(ValueError):
     """This image cannot be tracked (corrupt, too large, not JPEG / PNG)."""
+
+
+@dataclass(frozen=True)
+class DecodedImage:
+    """A webcam frame that arrives decoded (a WHIP video track), not as an ``image`` message;
+    ``to_bgr`` converts it on the tracking thread, off the event loop."""
+
+    seq: int
+    width: int
+    height: int
+    to_bgr: Callable[[], np.ndarray]  # -> [H, W, 3] uint8 BGR
 
 
 @dataclass
@@ -61,7 +73,7 @@ class SessionTracker:
         self._tracker = tracker
         self._fit = SequenceFit(self.body_model, self.betas)
 
-    def process(self, image: Image, received_at: float) -> TrackedImage:
+    def process(self, image: Image | DecodedImage, received_at: float) -> TrackedImage:
         """Raises TrackingUnavailable or TrackingInputInvalid; anything else is a bug."""
         from avatar_core.track.fit.observations import from_track_result
         from avatar_core.track.fit.sequence import drive_params
@@ -71,13 +83,23 @@ class SessionTracker:
         t0 = time.perf_counter()
         self._ensure()
         try:
-            frame = decode_image(image.data, max_pixels=self.limits.max_image_pixels)
+            frame = (self._decoded(image) if isinstance(image, DecodedImage) else
+                     decode_image(image.data, max_pixels=self.limits.max_image_pixels))
             result = self._tracker.track(frame)
         except TrackingInputError as exc:
             raise TrackingInputInvalid(str(exc)) from exc
         out = self._fit.step(from_track_result(result), received_at)
         return TrackedImage(image.seq, drive_params(out.params),
                             (time.perf_counter() - t0) * 1e3, out.seen)
+
+    def _decoded(self, image: DecodedImage) -> np.ndarray:
+        from avatar_core.track.types import TrackingInputError
+
+        pixels = image.width * image.height
+        if pixels > self.limits.max_image_pixels:
+            raise TrackingInputError(f"video frame too large: {image.width}x{image.height} = "
+                                     f"{pixels} pixels > {self.limits.max_image_pixels}")
+        return image.to_bgr()
 
     def close(self) -> None:
         if self._tracker is not None:

@@ -1,6 +1,7 @@
 """The browser page (client/web/) in a real headless Chromium against a real server: it loads,
 shows frames on its canvas, orbits on a mouse drag, shows stats, drives from its sliders and
-reports the server's answer to webcam frames."""
+reports the server's answer to webcam frames. These are the WebSocket transport's tests
+(?transport=ws); tests/test_webrtc_browser.py has the WebRTC one's."""
 
 from __future__ import annotations
 
@@ -85,7 +86,8 @@ def server_log():
 def page(server, server_log):  # noqa: F811
     driver = make_chromium()
     try:
-        driver.get(f"{server.url}/#token={server.token}")  # as `telesplat serve` prints it
+        # As `telesplat serve` prints it, with the WebSocket transport forced.
+        driver.get(f"{server.url}/?transport=ws#token={server.token}")
         yield driver
     finally:
         driver.quit()
@@ -113,6 +115,7 @@ def test_stats_overlay_is_visible(page):
                           "document.getElementById('stats').innerText", 20, "the ping")
     for label in ("fps:", "latency p50:", "kB/s", "frames:"):
         assert label in text
+    assert "transport: websocket" in text
 
 
 def test_mouse_drag_orbits_and_changes_the_image(page):
@@ -199,7 +202,7 @@ def test_the_token_stays_out_of_urls_and_logs(page, server, server_log):  # noqa
 
 
 def test_an_old_link_with_a_query_token_still_works(page, server, server_log):  # noqa: F811
-    page.get(f"{server.url}/?token={server.token}&avatar=demo")
+    page.get(f"{server.url}/?token={server.token}&avatar=demo&transport=ws")
     wait_for(page, "window.telesplat.framesShown > 0", 60, "a frame")
     assert "token" not in page.current_url and "avatar=demo" in page.current_url
     # Nor does it travel on in the Referer of the page's own requests (scripts, API calls).

@@ -82,13 +82,15 @@ def browsers():
 
 def test_share_link_viewer_sees_the_performers_jaw(server, browsers):  # noqa: F811
     performer, viewer = browsers
-    performer.get(f"{server.url}/#token={server.token}")  # the admin URL `make run` prints
+    # The admin URL `make run` prints; these are the WebSocket transport's pages (canvas).
+    performer.get(f"{server.url}/?transport=ws#token={server.token}")
     wait_for(performer, "window.telesplat.framesShown > 0", 60, "the performer's first frame")
     assert visible(performer, "share")
     performer.find_element("id", "share").click()
     watch_url = wait_for(performer, "document.querySelector('#share-links [data-scope=watch] "
                                     "input')?.value", 60, "the watch link")
     assert watch_url.startswith(f"{server.url}/?room=") and "#token=tsr_" in watch_url
+    watch_url = watch_url.replace("/?room=", "/?transport=ws&room=", 1)
     room = performer.execute_script("return window.telesplat.room")
     assert room["role"] == "perform" and room["seat"] == 0 and room["id"] in watch_url
     # One seat, performed by this page: no perform link is offered.

@@ -4,6 +4,9 @@
 // once, then travels only in the WebSocket's hello and REST calls' Authorization header.
 // Opened at /?room=ID#token=T (an invitation link) it joins the room: as a viewer the drive
 // controls are hidden (orbit and zoom stay), as a performer they drive the room's seat.
+// Transport: WebRTC (webrtc.js: WHEP, a <video>, messages on a data channel) when the browser
+// and the server both can, else the WebSocket (session.js); ?transport=ws forces the latter.
+// Over WebRTC a solo page makes itself a private room and performs its seat 0.
 
 import { Controls } from "./controls.js";
 import { MotionPlayer } from "./motions.js";
@@ -12,6 +15,9 @@ import { Session, streamUrl, takeToken } from "./session.js";
 import { canShare, inviteAll, presenceText, showLinks } from "./share.js";
 import { StreamStats, renderStats } from "./stats.js";
 import { Webcam } from "./webcam.js";
+import {
+  WhepSession, chooseTransport, deleteRoom, onVideoFrame, serverHealth, worthFallingBack,
+} from "./webrtc.js";
 
 const $ = (id) => document.getElementById(id);
 const params = new URLSearchParams(location.search);
@@ -21,6 +27,7 @@ const token = takeToken(window);
 const state = window.telesplat = {
   session: null, stats: new StreamStats(), framesShown: 0, errors: [], avatar: null,
   room: null, presence: null, shareLinks: [],
+  transport: null, transportWhy: null, privateRoom: null,  // privateRoom: the solo page's room id
 };
 
 function notify(text, kind = "info") {
@@ -50,6 +57,7 @@ async function api(path, { method = "GET", body } = {}) {
 // ---- frames on the canvas: the newest wins, decodes never queue up ---------------------
 
 const canvas = $("view");
+const video = $("video");
 const ctx = canvas.getContext("2d");
 let pending = null;
 let decoding = false;
@@ -88,7 +96,8 @@ function showFrame(frame) {
 
 const controls = new Controls($("sliders"), (families) => drive(families));
 const player = new MotionPlayer(api, (families, reset) => drive(families, reset));
-const orbit = new OrbitControl(canvas, (view, moving) => state.session?.view(view, moving));
+// On the stage, so that dragging the canvas or the video orbits alike.
+const orbit = new OrbitControl($("stage"), (view, moving) => state.session?.view(view, moving));
 const webcam = new Webcam((bytes) => state.session?.image(bytes));
 state.orbit = orbit;
 state.player = player;
@@ -131,6 +140,47 @@ function showPresence(presence) {
   $("presence").textContent = presenceText(presence);
 }
 
+// ---- WebRTC: the private room of a solo page, the video's frames -------------------------
+
+function forgetPrivateRoom({ keepalive = false } = {}) {
+  if (state.privateRoom) deleteRoom(state.privateRoom, token, keepalive);
+  state.privateRoom = null;
+}
+
+/** A WebRTC session: a solo page (an avatar id) WHEPs into a private room it makes, as its
+ *  owner performing seat 0; a room page WHEPs into the room with its (invitation) token. */
+async function whepSession(target) {
+  let roomId = target.room;
+  let query = { seat: target.seat, role: target.role };
+  if (typeof target === "string") {
+    forgetPrivateRoom();
+    const room = await api("/v1/rooms", { method: "POST", body: { seats: [{ avatar: target }] } });
+    state.privateRoom = roomId = room.id;
+    query = { seat: 0 };
+  }
+  const size = Number($("size").value);
+  return new WhepSession(roomId, token, { video, query: { width: size, height: size, ...query } });
+}
+
+/** WebRTC refused or failed where the WebSocket may work (its limits, codecs, ICE): say so,
+ *  switch to the WebSocket and connect again; false when there is nothing to fall back to. */
+function fallBack(err, target) {
+  if (state.transport !== "webrtc" || !worthFallingBack(err)) return false;
+  notify(`WebRTC unavailable (${err.message}): using the WebSocket`, "error");
+  forgetPrivateRoom();
+  useTransport({ transport: "ws", why: `WebRTC failed: ${err.message}` });
+  connect(target);
+  return true;
+}
+
+async function pollRtcStats() {
+  const session = state.session;
+  if (!session?.poll || session.closed) return;
+  try {
+    state.stats.rtc = await session.poll();
+  } catch { /* closed meanwhile */ }
+}
+
 /** `target`: an avatar id (a private session) or {room, role, seat} (join a room). */
 async function connect(target) {
   state.session?.close();
@@ -138,8 +188,16 @@ async function connect(target) {
   const inRoom = typeof target !== "string";
   state.avatar = inRoom ? null : target;
   state.room = null;
+  state.stats.rtc = null;
   $("status").textContent = `connecting to ${inRoom ? `room ${target.room}` : target}…`;
-  const session = new Session(streamUrl(target), token, inRoom ? target : {});
+  let session;
+  try {
+    session = state.transport === "webrtc" ? await whepSession(target)
+      : new Session(streamUrl(target), token, inRoom ? target : {});
+  } catch (err) {
+    if (!fallBack(err, target)) $("status").textContent = `could not connect: ${err.message}`;
+    return;
+  }
   state.session = session;
   session.addEventListener("presence", (e) => showPresence(e.detail));
   session.addEventListener("frame", (e) => showFrame(e.detail));
@@ -154,19 +212,22 @@ async function connect(target) {
     const info = welcome.avatar;
     state.avatar = info.id;
     state.room = welcome.room ?? null;
-    $("room-bar").hidden = !state.room;
-    $("avatar").disabled = Boolean(state.room);
+    const solo = !state.room || state.room.id === state.privateRoom;
+    $("room-bar").hidden = solo;
+    $("avatar").disabled = !solo;
     setViewer(state.room?.role === "watch");
-    const where = state.room
+    const where = !solo
       ? `room ${state.room.name || state.room.id} (${state.room.role === "watch" ? "watching"
         : `performing seat ${state.room.seat}`})`
       : `session ${welcome.session}`;
-    $("status").textContent = `${info.name} — ${info.num_gaussians} Gaussians, ${where}`;
+    const over = state.transport === "webrtc" ? "WebRTC" : "WebSocket";
+    $("status").textContent = `${info.name} — ${info.num_gaussians} Gaussians, ${where} (${over})`;
     controls.build(info.metadata?.expression_names || []);
     sendRequest();
     session.view({ ...orbit.orbit }, false);
     session.ping();
   } catch (err) {
+    if (state.session === session && fallBack(err, target)) return;
     $("status").textContent = `could not connect: ${err.code ? `${err.code}: ` : ""}${err.message}`;
   }
 }
@@ -227,6 +288,14 @@ async function share() {
   const button = $("share");
   button.disabled = true;
   try {
+    if (state.room && state.room.id === state.privateRoom) {  // WebRTC: share the private room
+      state.privateRoom = null;
+      $("avatar").disabled = true;
+      const url = new URL(location.href);
+      url.searchParams.delete("avatar");
+      url.searchParams.set("room", state.room.id);
+      history.replaceState(history.state, "", url.toString());
+    }
     if (!state.room) {  // a room for the avatar on screen; this page performs its seat 0
       const room = await api("/v1/rooms", { method: "POST", body: { seats: [{ avatar: state.avatar }] } });
       await connect({ room: room.id, role: "perform", seat: 0 });
@@ -276,6 +345,28 @@ function wire() {
   });
   setInterval(() => renderStats($("stats"), state.stats.summary()), 250);
   setInterval(() => state.session?.ping(), 1000);
+  setInterval(pollRtcStats, 1000);
+  // Leaving the page ends the peer (DELETE of the WHEP resource) and the solo page's room.
+  window.addEventListener("pagehide", () => {
+    state.session?.close();
+    forgetPrivateRoom({ keepalive: true });
+  });
+}
+
+/** WebRTC or the WebSocket (see chooseTransport); shows the one chosen. */
+async function pickTransport() {
+  const choice = chooseTransport(params.get("transport"), typeof RTCPeerConnection === "function",
+    await serverHealth());
+  useTransport(choice);
+  if (choice.transport === "webrtc") onVideoFrame(video, () => { state.framesShown += 1; });
+}
+
+function useTransport(choice) {
+  state.transport = choice.transport;
+  state.transportWhy = choice.why;
+  state.stats.transport = choice.transport === "webrtc" ? "webrtc" : "websocket";
+  canvas.hidden = choice.transport === "webrtc";
+  video.hidden = !canvas.hidden;
 }
 
 async function joinRoom(roomId) {
@@ -287,11 +378,16 @@ async function joinRoom(roomId) {
   if (state.room?.role === "perform") loadMotions();
 }
 
-wire();
-if (!token) notify("no #token= in the address: the server prints a URL with one", "error");
-if (params.get("room")) {
-  joinRoom(params.get("room"));
-} else {
-  loadAvatars();
-  loadMotions();
+async function start() {
+  wire();
+  if (!token) notify("no #token= in the address: the server prints a URL with one", "error");
+  await pickTransport();
+  if (params.get("room")) {
+    joinRoom(params.get("room"));
+  } else {
+    loadAvatars();
+    loadMotions();
+  }
 }
+
+start();

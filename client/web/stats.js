@@ -1,5 +1,7 @@
 // Rolling client-side statistics for the overlay: frames per second, drive -> frame latency,
-// ping round trip, bytes per second; plus the server's own `stats` message.
+// ping round trip, bytes per second; plus the server's own `stats` message. Over WebRTC the
+// frames are a video track the browser decodes: the figures come from getStats() (`rtc`, see
+// rtcstats.js) instead.
 
 const WINDOW_MS = 2000;
 
@@ -17,6 +19,8 @@ export class StreamStats {
     this.server = null;
     this.frameSize = null;
     this.framesTotal = 0;
+    this.transport = null;  // "websocket" or "webrtc"
+    this.rtc = null;        // rtcSummary() of the WebRTC peer
   }
 
   _trim(list, now) {
@@ -49,14 +53,32 @@ export class StreamStats {
       frames: this.framesTotal,
       size: this.frameSize,
       server: this.server,
+      transport: this.transport,
+      rtc: this.rtc,
     };
   }
 }
 
 const fmt = (value, digits = 0, unit = "") => (value == null ? "–" : `${value.toFixed(digits)}${unit}`);
 
+function rtcRows(s) {
+  const rtc = s.rtc ?? {};
+  return [
+    ["transport", `webrtc${rtc.codec ? ` (${rtc.codec})` : ""}`],
+    ["fps", fmt(rtc.fps, 1)],
+    ["bit rate", fmt(rtc.bitrateKbps, 0, " kbit/s")],
+    ["decoded", rtc.framesDecoded == null ? "–" : String(rtc.framesDecoded)],
+    ["dropped", rtc.framesDropped == null ? "–" : String(rtc.framesDropped)],
+    ["jitter", fmt(rtc.jitterMs, 1, " ms")],
+    ["rtt", fmt(rtc.rttMs, 0, " ms")],
+    ["ping", fmt(s.rttMs, 0, " ms")],
+    ["frame", rtc.size || "–"],
+  ];
+}
+
 export function renderStats(element, s) {
-  const rows = [
+  const rows = s.transport === "webrtc" ? rtcRows(s) : [
+    ["transport", s.transport || "–"],
     ["fps", fmt(s.fps, 1)],
     ["latency p50", fmt(s.latencyP50, 0, " ms")],
     ["latency p95", fmt(s.latencyP95, 0, " ms")],

@@ -49,12 +49,14 @@ class RoomFrameJob(FrameJob):
     """A participant's frame: its own view and request over every seat's drive state."""
 
     seats: tuple[DriveState, ...] = ()
+    raw: bool = False  # the RGB array itself, not encoded (a WebRTC track encodes it)
 
 
 @dataclass
 class RoomFrame(RenderedFrame):
     seat_seqs: tuple[int, ...] = ()  # each seat's newest drive seq: a participant reports its
     versions: tuple[int, ...] = ()   # each seat's drive version this frame shows
+    rgb: np.ndarray | None = None    # [H, W, 3] uint8, raw frames only
 
 
 @dataclass
@@ -137,6 +139,7 @@ class SeatPoser:
             return world
 
 
+RAW_CODEC = "raw"  # a frame's codec when the job asked for the RGB array itself
 POSED_VERSIONS = 2  # per seat: the version being rendered and the one before
 
 
@@ -168,7 +171,7 @@ class RoomFrames:
         versions = tuple(d.version for d in job.seats)
         owner = id(h264) if job.request.codec == "h264" else None
         group = (job.view.model_dump_json(exclude={"moving"}), job.request.model_dump_json(),
-                 job.jpeg_quality, owner)
+                 job.jpeg_quality, owner, job.raw)
         key = (versions, *group)
         with self._lock:
             shared = self._frames.get(key)
@@ -233,15 +236,19 @@ class RoomFrames:
             assert h264 is not None, "an h264 frame is rendered for its own participant"
             return h264.encode(rgb_, req_, last_codec)
 
-        codec, data, keyframe, depth_png = encode_outputs(rgb, alpha, depth, req,
-                                                          job.jpeg_quality, own_h264)
-        c.encodes += 1
+        if job.raw:
+            codec, data, keyframe, depth_png = RAW_CODEC, b"", True, None
+        else:
+            codec, data, keyframe, depth_png = encode_outputs(rgb, alpha, depth, req,
+                                                              job.jpeg_quality, own_h264)
+            c.encodes += 1
         t3 = time.perf_counter()
         timings = Timings(track=job.track_ms, pose=(t1 - t0) * 1e3, render=(t2 - t1) * 1e3,
                           encode=(t3 - t2) * 1e3)
         return RoomFrame(job.drive.seq, codec, cam.width, cam.height, data, depth_png,
                          keyframe, timings, seat_seqs=tuple(d.seq for d in job.seats),
-                         versions=tuple(d.version for d in job.seats))
+                         versions=tuple(d.version for d in job.seats),
+                         rgb=rgb if job.raw else None)
 
     def _render_views(self, items: list[tuple[RoomFrameJob, H264Stream | None, str | None]]
                       ) -> list[RoomFrame]:
@@ -280,16 +287,19 @@ class RoomFrames:
                 assert h264 is not None, "an h264 frame is rendered for its own participant"
                 return h264.encode(rgb_, req_, last_codec)
 
-            codec, data, keyframe, depth_png = encode_outputs(rgb, alpha, depth, req,
-                                                              job.jpeg_quality, own_h264)
-            c.encodes += 1
+            if job.raw:  # a WebRTC track encodes it
+                codec, data, keyframe, depth_png = RAW_CODEC, b"", True, None
+            else:
+                codec, data, keyframe, depth_png = encode_outputs(rgb, alpha, depth, req,
+                                                                  job.jpeg_quality, own_h264)
+                c.encodes += 1
             timings = Timings(track=job.track_ms, pose=(t1 - t0) * 1e3,
                               render=(t2 - t1) * 1e3,
                               encode=(time.perf_counter() - t3) * 1e3)
             frames.append(RoomFrame(
                 job.drive.seq, codec, cam.width, cam.height, data, depth_png, keyframe,
                 timings, seat_seqs=tuple(d.seq for d in job.seats),
-                versions=tuple(d.version for d in job.seats)))
+                versions=tuple(d.version for d in job.seats), rgb=rgb if job.raw else None))
         return frames
 
 

@@ -14,11 +14,22 @@ from __future__ import annotations
 import asyncio
 import logging
 import uuid
+from collections.abc import Callable
+from typing import Any
 
 from fastapi import WebSocket
 from starlette.websockets import WebSocketDisconnect
 
-from protocol import PROTOCOL_MINOR, AvatarInfo, Hello, RoomWelcome, View, Welcome, encode
+from protocol import (
+    PROTOCOL_MINOR,
+    AvatarInfo,
+    Hello,
+    Request,
+    RoomWelcome,
+    View,
+    Welcome,
+    encode,
+)
 from protocol.messages import CODECS, Orbit
 
 from ..auth import Principal
@@ -38,7 +49,7 @@ from ..handshake import (
     read_credentials,
     refuse,
 )
-from ..session import SessionConfig
+from ..session import SessionConfig, StreamSession
 from .live import CLOSE_GONE, JoinRefused, LiveRoom
 from .participant import RoomParticipant
 from .registry import Invitation, Room, RoomError, is_invitation
@@ -74,20 +85,21 @@ def _room(ctx: ServerContext, room_id: str) -> Room:
         raise Refusal("not_found", f"no room {room_id!r}", CLOSE_NOT_FOUND) from None
 
 
-def _role(room: Room, hello: Hello, principal: Principal | None,
-          invitation: Invitation | None) -> tuple[str, int]:
-    """(role, seat index) this hello may take in ``room``."""
+def choose_role(room: Room, asked_role: str | None, asked_seat: int | None,
+                principal: Principal | None, invitation: Invitation | None) -> tuple[str, int]:
+    """(role, seat index) a principal or an invitation may take in ``room`` when it asks for
+    ``asked_role`` and ``asked_seat`` (None: the default)."""
     first = room.seats[0].index
     if invitation is not None:
         if invitation.room_id != room.id:
             raise Refusal("forbidden", "this invitation is for another room", CLOSE_FORBIDDEN)
-        role = hello.role or invitation.scope
+        role = asked_role or invitation.scope
         if role == "perform" and invitation.scope != "perform":
             raise Refusal("forbidden", "a watch invitation cannot perform", CLOSE_FORBIDDEN)
         if role == "perform":
-            if hello.seat is not None and hello.seat != invitation.seat:
+            if asked_seat is not None and asked_seat != invitation.seat:
                 raise Refusal("forbidden", f"this invitation performs seat {invitation.seat}, "
-                                           f"not {hello.seat}", CLOSE_FORBIDDEN)
+                                           f"not {asked_seat}", CLOSE_FORBIDDEN)
             return role, invitation.seat
     else:
         if not principal.has("stream"):
@@ -95,8 +107,8 @@ def _role(room: Room, hello: Hello, principal: Principal | None,
         if not room.visible_to(principal):
             raise Refusal("forbidden", f"room {room.id!r} belongs to another owner; join it "
                                        "with an invitation", CLOSE_FORBIDDEN)
-        role = hello.role or "perform"
-    seat = first if hello.seat is None else hello.seat
+        role = asked_role or "perform"
+    seat = first if asked_seat is None else asked_seat
     if seat not in {s.index for s in room.seats}:
         raise Refusal("not_found", f"room {room.id!r} has no seat {seat}", CLOSE_NOT_FOUND)
     return role, seat
@@ -118,7 +130,7 @@ async def join_room(ws: WebSocket, ctx: ServerContext, room_id: str) -> None:
     try:
         hello, principal, invitation = await _credentials(ws, ctx)
         room = _room(ctx, room_id)
-        role, seat = _role(room, hello, principal, invitation)
+        role, seat = choose_role(room, hello.role, hello.seat, principal, invitation)
         if not ctx.slots.try_acquire():
             raise Refusal("busy", f"server busy: {ctx.slots.limit} sessions are open; try "
                                   "again later", CLOSE_BUSY)
@@ -144,8 +156,14 @@ async def join_room(ws: WebSocket, ctx: ServerContext, room_id: str) -> None:
             ctx.admission.sessions.release(subject)
 
 
-async def _serve(ws: WebSocket, ctx: ServerContext, room: Room, role: str, seat: int,
-                 client: str | None) -> None:
+async def seat_participant(ctx: ServerContext, room: Room, role: str, seat: int,
+                           client: str | None, ws: Any, *,
+                           factory: Callable[..., RoomParticipant] = RoomParticipant,
+                           request: Request | None = None,
+                           ) -> tuple[RoomParticipant, Welcome]:
+    """A participant made and admitted to the room (Refusal otherwise), and the welcome it
+    is owed. ``ws`` is its message channel (a WebSocket, or what stands in for one);
+    ``request`` updates the default request (already checked against the limits)."""
     s = ctx.settings
     spec = next(x for x in room.seats if x.index == seat)
     try:
@@ -156,14 +174,16 @@ async def _serve(ws: WebSocket, ctx: ServerContext, room: Room, role: str, seat:
         log.exception("cannot open room %s", room.id)
         raise Refusal("internal", f"cannot open room {room.id!r}: {exc}",
                       CLOSE_INTERNAL) from None
-    request = default_request(ctx, record)
+    effective = default_request(ctx, record)
+    if request is not None:
+        effective = StreamSession.merged_request(effective, request, s.limits)
     name = client or f"{'performer' if role == 'perform' else 'viewer'}-{uuid.uuid4().hex[:4]}"
-    participant = RoomParticipant(
+    participant = factory(
         ws, live, role, seat, name, tracker=tracker, scheduler=ctx.scheduler,
         track_scheduler=ctx.track_scheduler, metrics=ctx.metrics,
         config=SessionConfig(s.limits, s.jpeg_quality, s.jpeg_quality_moving,
                              s.stats_interval_s, inbound_limits(s)),
-        request=request, view=View(orbit=Orbit()), session_count=lambda: ctx.slots.count)
+        request=effective, view=View(orbit=Orbit()), session_count=lambda: ctx.slots.count)
     try:
         live.join(participant)
     except JoinRefused as exc:
@@ -173,11 +193,24 @@ async def _serve(ws: WebSocket, ctx: ServerContext, room: Room, role: str, seat:
         info = AvatarInfo(id=record.id, name=record.name, num_gaussians=record.num_gaussians,
                           sh_degree=record.sh_degree, owner=record.owner,
                           metadata=record.metadata)
-        await ws.send_bytes(encode(Welcome(
-            session=participant.id, minor=PROTOCOL_MINOR, avatar=info, limits=s.limits,
-            codecs=list(CODECS), request=request, encoders=encoders_info(),
-            room=RoomWelcome(id=room.id, name=room.name, role=role,
-                             seat=seat if role == "perform" else None))))
+        welcome = Welcome(session=participant.id, minor=PROTOCOL_MINOR, avatar=info,
+                          limits=s.limits, codecs=list(CODECS), request=effective,
+                          encoders=encoders_info(),
+                          room=RoomWelcome(id=room.id, name=room.name, role=role,
+                                           seat=seat if role == "perform" else None))
+    except Exception:
+        live.leave(participant)  # admitted, never run: out again
+        participant.tracking.close()
+        raise
+    return participant, welcome
+
+
+async def _serve(ws: WebSocket, ctx: ServerContext, room: Room, role: str, seat: int,
+                 client: str | None) -> None:
+    participant, welcome = await seat_participant(ctx, room, role, seat, client, ws)
+    live = participant.live
+    try:
+        await ws.send_bytes(encode(welcome))
         live.broadcast(live.presence("join", participant))
         ctx.sessions[participant.id] = participant
         await participant.run()

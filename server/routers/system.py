@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Response
 from prometheus_client import CONTENT_TYPE_LATEST
-from pydantic import BaseModel
+from pydantic import BaseModel, Field
 
 from protocol import PROTOCOL_VERSION
 
@@ -20,13 +20,17 @@ class HealthOut(BaseModel):
     max_sessions: int
     avatars: int
     render_queue: int
+    webrtc: bool = Field(description="WHEP / WHIP endpoints open (webrtc_max_peers > 0)")
+    webrtc_peers: int = Field(description="WebRTC peers now")
 
 
 @router.get("/v1/health", summary="Liveness and load", response_model=HealthOut)
 def health(ctx: Context) -> HealthOut:
     return HealthOut(status="ok", protocol_version=PROTOCOL_VERSION, sessions=ctx.slots.count,
                      max_sessions=ctx.slots.limit, avatars=len(ctx.registry.list()),
-                     render_queue=ctx.scheduler.queued)
+                     render_queue=ctx.scheduler.queued,
+                     webrtc=ctx.settings.webrtc_max_peers > 0,
+                     webrtc_peers=len(ctx.webrtc_peers))
 
 
 @router.get("/metrics", summary="Prometheus metrics", response_class=Response,

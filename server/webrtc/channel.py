@@ -1,0 +1,108 @@
+"""The data channel as the message socket of a room participant.
+
+A StreamSession talks to its client through ``receive`` / ``send_bytes`` / ``close`` (a
+WebSocket's); :class:`DataChannelSocket` offers the same over the peer's data channel labelled
+``telesplat``, so the participant's receiver, rate limits, decoding and control sender are the
+WebSocket path's. Messages are the WebSocket protocol's msgpack messages. The ``welcome`` goes
+first, as soon as the channel opens. A peer without a data channel still gets its video; its
+control messages wait (the participant's bounded control queue drops past its size).
+
+The channel ends the session only when the peer ends (``disconnect``): a client that closes
+just its channel keeps watching.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections.abc import Callable
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+LABEL = "telesplat"
+INBOX = 64                   # messages received, not yet read; past it new ones are dropped
+MAX_BUFFERED_BYTES = 2**20   # unsent bytes on the channel past which a message is dropped
+DISCONNECT = {"type": "websocket.disconnect", "code": 1000}
+
+
+class DataChannelSocket:
+    def __init__(self, on_close: Callable[[str], None]) -> None:
+        self._on_close = on_close
+        self._inbox: asyncio.Queue[dict[str, Any]] = asyncio.Queue(INBOX)
+        self._ready = asyncio.Event()  # open, or disconnected
+        self._channel: Any = None
+        self.welcome: bytes | None = None  # set before the channel can open
+        self.disconnected = False
+        self.dropped_in = 0
+        self.dropped_out = 0
+
+    @property
+    def open(self) -> bool:
+        return self._channel is not None and self._channel.readyState == "open"
+
+    def attach(self, channel: Any) -> None:
+        """A data channel the client opened; only the first ``telesplat`` one is used."""
+        if channel.label != LABEL or self._channel is not None or self.disconnected:
+            log.info("ignoring data channel %r", channel.label)
+            channel.close()
+            return
+        self._channel = channel
+        channel.on("message", self._message)
+        if channel.readyState == "open":
+            self._opened()
+        else:
+            channel.on("open", self._opened)
+
+    def _opened(self) -> None:
+        if self.welcome is not None:
+            self._channel.send(self.welcome)
+        self._ready.set()
+
+    def _message(self, data: bytes | str) -> None:
+        if self.disconnected:
+            return
+        item = ({"type": "websocket.receive", "bytes": bytes(data)}
+                if isinstance(data, (bytes, bytearray)) else
+                {"type": "websocket.receive", "text": data})
+        try:
+            self._inbox.put_nowait(item)
+        except asyncio.QueueFull:
+            self.dropped_in += 1  # the participant reads slower than the client sends
+
+    # -- what StreamSession calls ---------------------------------------------------------------
+
+    async def receive(self) -> dict[str, Any]:
+        return await self._inbox.get()
+
+    async def send_bytes(self, data: bytes) -> None:
+        await self._ready.wait()
+        if self.disconnected:
+            raise ConnectionResetError("the WebRTC peer is closed")
+        channel = self._channel
+        if channel.readyState != "open":
+            return  # the client closed its channel; the video goes on
+        if channel.bufferedAmount > MAX_BUFFERED_BYTES:
+            self.dropped_out += 1  # the client does not read its channel
+            return
+        channel.send(data)
+
+    async def close(self, code: int = 1000, reason: str = "") -> None:
+        """The participant ends the peer (its room closed)."""
+        self._on_close(reason or f"closed ({code})")
+
+    # -- the peer's side ------------------------------------------------------------------------
+
+    def disconnect(self) -> None:
+        """The peer is gone: the participant's receiver sees a disconnect next."""
+        if self.disconnected:
+            return
+        self.disconnected = True
+        while not self._inbox.empty():
+            self._inbox.get_nowait()
+        self._inbox.put_nowait(DISCONNECT)
+        self._ready.set()
+        if self._channel is not None:
+            with contextlib.suppress(Exception):
+                self._channel.close()

@@ -1,0 +1,113 @@
+"""The SDP side of a peer: check an offer before anything is made, then answer it.
+
+An offer is checked with aiortc's own parser first (400 for what it cannot use): a WHEP offer
+needs a video m-line the client receives (recvonly or sendrecv); a WHIP offer needs one it
+sends (sendonly or sendrecv) and may carry one it receives too. Either needs VP8 or H.264 on
+those m-lines. The answer carries every ICE candidate (aiortc gathers them all before
+``setLocalDescription`` returns: no trickle). Codecs: aiortc answers with the common codecs
+in the offer's order (its ``find_common_codecs`` walks the offer's list), so the offer's
+preference between VP8 and H.264 wins. m-lines the peer does not use (audio, extra video)
+are answered inactive, so nothing arrives that no one reads.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Literal
+
+from aiortc import RTCConfiguration, RTCIceServer, RTCPeerConnection, RTCSessionDescription
+from aiortc import sdp as aiortc_sdp
+
+VIDEO_CODECS = ("video/vp8", "video/h264")
+RECEIVING = ("recvonly", "sendrecv")  # the client receives (watches) on this m-line
+SENDING = ("sendonly", "sendrecv")    # the client sends (publishes) on it
+
+Kind = Literal["whep", "whip"]
+
+
+class OfferRefused(ValueError):
+    """An offer this server cannot answer (HTTP 400)."""
+
+
+@dataclass(frozen=True)
+class Offer:
+    sdp: str
+    watch_mid: str | None     # the video m-line our track goes out on
+    publish_mid: str | None   # the video m-line the client's webcam comes in on (WHIP)
+    data_channel: bool
+
+
+def _usable(media: Any) -> bool:
+    return any(c.mimeType.lower() in VIDEO_CODECS for c in media.rtp.codecs)
+
+
+def check_offer(text: str, kind: Kind) -> Offer:
+    """The offer's m-lines this peer uses; OfferRefused when it cannot be answered."""
+    try:
+        description = aiortc_sdp.SessionDescription.parse(text)
+    except Exception as exc:  # noqa: BLE001 - any parser failure is the client's SDP
+        raise OfferRefused(f"unparseable SDP offer: {type(exc).__name__}: {exc}") from None
+    if not description.media:
+        raise OfferRefused("the SDP offer has no m-line (is the body an SDP offer?)")
+    videos = [m for m in description.media if m.kind == "video"]
+    if not videos:
+        raise OfferRefused("the SDP offer has no video m-line")
+    if any(m.rtp.muxId is None or m.rtp.muxId == "" for m in videos):
+        raise OfferRefused("every video m-line needs an a=mid (BUNDLE)")
+
+    def first(directions: tuple[str, ...], but: str | None = None) -> Any:
+        return next((m for m in videos if (m.direction or "sendrecv") in directions
+                     and m.rtp.muxId != but), None)
+
+    if kind == "whep":
+        watch, publish = first(RECEIVING), None
+        if watch is None:
+            raise OfferRefused("a WHEP offer needs a recvonly (or sendrecv) video m-line")
+    else:
+        publish = first(SENDING)
+        if publish is None:
+            raise OfferRefused("a WHIP offer needs a sendonly (or sendrecv) video m-line")
+        watch = (publish if (publish.direction or "sendrecv") == "sendrecv"
+                 else first(("recvonly",), but=publish.rtp.muxId))
+    for media in (watch, publish):
+        if media is not None and not _usable(media):
+            raise OfferRefused(f"no common video codec on m-line {media.rtp.muxId!r}: this "
+                               f"server sends and receives {', '.join(VIDEO_CODECS)}")
+    return Offer(text, None if watch is None else watch.rtp.muxId,
+                 None if publish is None else publish.rtp.muxId,
+                 any(m.kind == "application" for m in description.media))
+
+
+def configuration(settings) -> RTCConfiguration:
+    """ICE servers from the settings; an empty list (not aiortc's default, a public STUN
+    server) when none are set: host candidates only."""
+    servers = [RTCIceServer(urls=url, username=settings.webrtc_turn_username,
+                            credential=settings.webrtc_turn_credential)
+               if url.startswith("turn") else RTCIceServer(urls=url)
+               for url in settings.webrtc_ice_servers]
+    return RTCConfiguration(iceServers=servers)
+
+
+async def answer(pc: RTCPeerConnection, offer: Offer, track: Any) -> tuple[str, str | None]:
+    """Apply ``offer``, attach ``track`` to its watched m-line, answer; (answer SDP, the
+    negotiated video codec's MIME type on the watched m-line or None)."""
+    try:
+        await pc.setRemoteDescription(RTCSessionDescription(offer.sdp, "offer"))
+    except Exception as exc:  # noqa: BLE001 - aiortc refuses the client's SDP
+        raise OfferRefused(f"cannot apply the SDP offer: {type(exc).__name__}: {exc}") from None
+    for transceiver in pc.getTransceivers():
+        watched = transceiver.kind == "video" and transceiver.mid == offer.watch_mid
+        published = transceiver.kind == "video" and transceiver.mid == offer.publish_mid
+        if watched:
+            transceiver.sender.replaceTrack(track)
+        transceiver.direction = {(True, True): "sendrecv", (True, False): "sendonly",
+                                 (False, True): "recvonly"}.get((watched, published),
+                                                                "inactive")
+    await pc.setLocalDescription(await pc.createAnswer())
+    local = pc.localDescription.sdp
+    codec = None
+    if offer.watch_mid is not None:
+        for media in aiortc_sdp.SessionDescription.parse(local).media:
+            if media.rtp.muxId == offer.watch_mid and media.rtp.codecs:
+                codec = media.rtp.codecs[0].mimeType.lower()
+    return local, codec

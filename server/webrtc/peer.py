@@ -1,0 +1,182 @@
+"""One WebRTC peer: an aiortc peer connection around a room participant.
+
+The participant is a :class:`PeerParticipant`: the room participant's session (latest-wins
+render loop, pacing, fair share, seat and presence) whose frames are raw RGB arrays handed to
+a :class:`~.track.LatestFrameTrack` and whose messages use the data channel. aiortc encodes
+in its own threads; rendering stays on the render scheduler. A peer ends on DELETE, when its
+room closes, when its transport fails or never connects (``webrtc_connect_timeout_s``), and
+at server shutdown; each path goes through :meth:`WebRTCPeer.close`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import functools
+import logging
+from typing import Any
+
+from aiortc import RTCPeerConnection
+
+from protocol import Request, encode
+from protocol.stamp import stamp as stamp_frame
+
+from ..context import ServerContext
+from ..rooms.frames import RoomFrame, RoomFrameJob
+from ..rooms.join import seat_participant
+from ..rooms.participant import RoomParticipant
+from ..rooms.registry import Room
+from .channel import DataChannelSocket
+from .encoders import install_encoder
+from .ingest import ingest
+from .negotiate import Kind, Offer, answer, configuration
+from .track import LatestFrameTrack
+
+log = logging.getLogger(__name__)
+
+CLOSE_WAIT_S = 5.0  # teardown waits this long for the participant's tasks
+
+
+class PeerParticipant(RoomParticipant):
+    """A room participant whose frames go to a video track (None: a WHIP peer that only
+    publishes, and so renders nothing)."""
+
+    def __init__(self, ws: Any, live: Any, role: str, seat_index: int, name: str, *,
+                 track: LatestFrameTrack | None, stamp: bool, **session: Any) -> None:
+        super().__init__(ws, live, role, seat_index, name, **session)
+        self.track = track
+        self.stamp = stamp
+
+    def _snapshot(self) -> RoomFrameJob:
+        return dataclasses.replace(super()._snapshot(), raw=True)
+
+    async def _render_loop(self) -> None:
+        if self.track is None:
+            await asyncio.get_running_loop().create_future()  # until the session ends
+        await super()._render_loop()
+
+    async def _deliver(self, f: RoomFrame) -> int:
+        rgb = f.rgb  # shared with the room's other raw participants: stamp a copy
+        if self.stamp:
+            rgb = stamp_frame(rgb.copy(), f.seq)
+        await self.track.deliver(rgb)
+        return 0  # the encoded size is aiortc's to know (the client's getStats has it)
+
+
+class WebRTCPeer:
+    def __init__(self, ctx: ServerContext, kind: Kind, resource: str, room: Room,
+                 token_digest: str) -> None:
+        self.ctx, self.kind, self.resource, self.room = ctx, kind, resource, room
+        self.token_digest = token_digest  # DELETE must show the same token (or the owner's)
+        self.pc = RTCPeerConnection(configuration(ctx.settings))
+        self.channel = DataChannelSocket(on_close=self._close_soon)
+        self.track: LatestFrameTrack | None = None
+        self.participant: PeerParticipant | None = None
+        self.codec: str | None = None      # negotiated video codec (MIME type), watching
+        self.encoder: Any = None           # our clamped encoder, once installed
+        self._connected = asyncio.Event()
+        self._tasks: set[asyncio.Task] = set()
+        self._run: asyncio.Task | None = None
+        self._closing: asyncio.Task | None = None
+
+    # -- opening --------------------------------------------------------------------------------
+
+    async def start(self, offer: Offer, role: str, seat: int, request: Request | None,
+                    stamp: bool) -> str:
+        """Seat the participant, answer the offer, start everything; the answer SDP. Raises
+        Refusal (seating) or OfferRefused (the SDP); the peer is closed then."""
+        s = self.ctx.settings
+        if offer.watch_mid is not None:
+            self.track = LatestFrameTrack()
+        self.pc.on("datachannel", self.channel.attach)
+        self.pc.on("track", self._on_track)
+        self.pc.on("connectionstatechange", self._on_state)
+        try:
+            factory = functools.partial(PeerParticipant, track=self.track, stamp=stamp)
+            self.participant, welcome = await seat_participant(
+                self.ctx, self.room, role, seat, f"{self.kind}-{self.resource[:6]}",
+                self.channel, factory=factory, request=request)
+            self.channel.welcome = encode(welcome)
+            self._run = self._spawn(self._serve(), "serve")
+            sdp, self.codec = await answer(self.pc, offer, self.track)
+        except BaseException:
+            await self.close("the offer was refused")
+            raise
+        if self.codec is not None:
+            sender = next(t.sender for t in self.pc.getTransceivers()
+                          if t.mid == offer.watch_mid)
+            self.encoder = install_encoder(sender, self.codec, s.webrtc_min_bitrate,
+                                           s.webrtc_max_bitrate)
+        self._spawn(self._connect_deadline(s.webrtc_connect_timeout_s), "deadline")
+        return sdp
+
+    def _spawn(self, coro, what: str) -> asyncio.Task:
+        task = asyncio.get_running_loop().create_task(coro, name=f"peer {self.resource} {what}")
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+        return task
+
+    async def _serve(self) -> None:
+        p, ctx = self.participant, self.ctx
+        live = p.live
+        live.broadcast(live.presence("join", p))
+        ctx.sessions[p.id] = p
+        try:
+            await p.run()
+        finally:
+            ctx.sessions.pop(p.id, None)
+            live.leave(p)
+            self._close_soon("the session ended")
+
+    def _on_track(self, track: Any) -> None:
+        if self.kind == "whip" and track.kind == "video" and self.participant is not None:
+            self._spawn(ingest(track, self.participant), "ingest")
+
+    def _on_state(self) -> None:
+        state = self.pc.connectionState
+        if state == "connected":
+            self._connected.set()
+        elif state in ("failed", "closed"):
+            self._close_soon(f"the connection {state}")
+
+    async def _connect_deadline(self, timeout_s: float) -> None:
+        try:
+            await asyncio.wait_for(self._connected.wait(), timeout_s)
+        except TimeoutError:
+            log.info("WebRTC peer %s did not connect within %g s", self.resource, timeout_s)
+            self._close_soon("not connected within webrtc_connect_timeout_s")
+
+    # -- closing --------------------------------------------------------------------------------
+
+    @property
+    def closed(self) -> bool:
+        return self._closing is not None
+
+    def _close_soon(self, reason: str) -> None:
+        if self._closing is None:
+            self._closing = asyncio.get_running_loop().create_task(self._teardown(reason))
+
+    async def close(self, reason: str) -> None:
+        """End the peer (idempotent); returns once it is torn down and its slot free."""
+        self._close_soon(reason)
+        await asyncio.shield(self._closing)
+
+    async def _teardown(self, reason: str) -> None:
+        log.info("WebRTC peer %s (%s) closing: %s", self.resource, self.kind, reason)
+        try:
+            self.channel.disconnect()  # the participant's receiver returns: run() ends
+            if self.track is not None:
+                self.track.stop()
+            with contextlib.suppress(Exception):
+                await self.pc.close()
+            pending = [t for t in self._tasks if t is not asyncio.current_task()]
+            for task in pending:
+                if task is not self._run:
+                    task.cancel()
+            if pending:
+                await asyncio.wait(pending, timeout=CLOSE_WAIT_S)
+        finally:
+            self.ctx.slots.release()
+            self.ctx.metrics.sessions.set(self.ctx.slots.count)
+            self.ctx.webrtc_peers.release(self.resource)
