@@ -167,6 +167,30 @@ def test_room_views_are_batched_and_equal_separate_renders(srv):
     assert len({f.data for f in got}) == len(yaws)  # distinct views, distinct pictures
 
 
+def test_batched_raw_views_come_back_unencoded(srv):
+    """A WebRTC peer asks for the RGB array (its track encodes it): in a batch too."""
+    import dataclasses
+
+    from server.rooms.frames import RAW_CODEC
+
+    room = create_room(srv)
+
+    async def open_room():
+        async with join(srv, room["id"], srv.token):
+            return live(srv, room["id"]).frames
+
+    frames = asyncio.run(open_room())
+    jobs = [dataclasses.replace(job, raw=True) for job in _jobs(frames, (-30.0, 0.0, 30.0))]
+    with blocked_scheduler() as (scheduler, gate):
+        futs = [frames.submit(scheduler, job) for job in jobs]
+        gate.set()
+        got = [f.result(TIMEOUT_S) for f in futs]
+    assert frames._batches.counters.largest == len(jobs)
+    assert all(f.codec == RAW_CODEC and f.data == b"" for f in got)
+    assert all(f.rgb is not None and f.rgb.shape == (SIZE, SIZE, 3) for f in got)
+    assert len({f.rgb.tobytes() for f in got}) == len(jobs)  # distinct views
+
+
 def test_viewers_of_distinct_views_stream_with_batching_on(srv):
     room = create_room(srv)
     watch = invite(srv, room["id"], "watch")
