@@ -252,3 +252,27 @@ def test_hinge_prior_keeps_noiseless_fingers(model_and_betas):
                                                      Rotation.from_rotvec(want[k]).as_matrix())
                                   for k in rows])
     assert errors[10.0] < errors[0.0] + 1.0 and errors[10.0] < 8.0, errors
+
+
+def test_sequence_offers_only_palm_rotations_stable_across_frames(model_and_betas):
+    """`SequenceFit` passes a palm rotation to the retry only when the same hand's previous
+    frame (at most `palm_gap_s` before) agrees within `palm_stable_deg`: the first frame of a
+    hand, a one-frame flip and a hand seen again after a gap are not offered."""
+    from avatar_core.track.fit.sequence import SequenceFit, SequenceFitConfig
+
+    model, betas = model_and_betas
+    fit = SequenceFit(model, betas, SequenceFitConfig(palm_stable_deg=30.0, palm_gap_s=0.1))
+    truth = _posed(model, np.array([0.2, -0.3, 0.1]))
+    obs, _ = synthetic_observations(fit.fitter, truth, CAMERA)
+    sl = cor.GROUP_SLICES["right_hand"]
+    flipped, _ = synthetic_observations(fit.fitter, truth, CAMERA)
+    flipped.depth[sl] = -flipped.depth[sl]  # the palm seen from the back
+    fps = 30.0
+    assert "right" not in fit._stable_palms(obs, CAMERA, 0.0)          # first sight
+    assert "right" in fit._stable_palms(obs, CAMERA, 1 / fps)          # agrees
+    assert "right" not in fit._stable_palms(flipped, CAMERA, 2 / fps)  # a one-frame flip
+    assert "right" not in fit._stable_palms(obs, CAMERA, 3 / fps)      # back: not yet
+    assert "right" in fit._stable_palms(obs, CAMERA, 4 / fps)
+    assert "right" not in fit._stable_palms(obs, CAMERA, 1.0)          # after a gap
+    off = SequenceFit(model, betas, SequenceFitConfig(fit=FitConfig(palm_retry_deg=180.0)))
+    assert off._stable_palms(obs, CAMERA, 0.0) == {} and off._stable_palms(obs, CAMERA, 0.03) == {}

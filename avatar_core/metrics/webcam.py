@@ -18,7 +18,10 @@ and, frame by frame:
 3. beside it, the same avatar at the same camera driven by the true parameters (the capture's
    ``true_params.npz`` where it has one, else the fused dataset parameters, which the plain
    simulated trackers make equal to the truth) and by the simulated trackers + fusion (the
-   dataset's parameters, fused), so avatar error and tracking error separate.
+   dataset's parameters, fused), so avatar error and tracking error separate; and, as a
+   diagnostic, the webcam's parameters with the true root orientation (``global_orient``, which
+   a monocular fit of an upper body sees worst and which, without ``transl``, moves the whole
+   upper body).
 
 AKD is against the true body (body-model keypoints at the score camera); TJE per drive over
 consecutive evaluated frames. Latency: the live path per frame (tracking = JPEG decode +
@@ -63,9 +66,10 @@ from .report import _fmt, _json_safe, side_by_side
 __all__ = ["DRIVES", "WebcamResult", "evaluate_webcam", "true_params_path", "webcam_cameras",
            "webcam_markdown", "write_webcam_result"]
 
-DRIVES = ("true", "trackers", "webcam")
+DRIVES = ("true", "trackers", "webcam", "webcam_true_root")
 DRIVE_LABELS = {"true": "true parameters", "trackers": "simulated trackers + fusion",
-                "webcam": "webcam tracking (live config)"}
+                "webcam": "webcam tracking (live config)",
+                "webcam_true_root": "webcam tracking, true root orientation"}
 METRICS = ("psnr", "ssim", "l1", "akd_face", "akd_hands", "akd_torso", "tje")
 STAGES = ("track", "fit", "pose", "render")
 JPEG_QUALITY = 90        # what a browser / client sends the server
@@ -319,6 +323,11 @@ def evaluate_webcam(avatar: str | Path | LoadedAvatar, dataset: str | Path | Dat
                 scorer.score("trackers", key, {k: v[frame] for k, v in tracked.items()},
                              truth_out, gt, keep)
                 pred = scorer.score("webcam", key, webcam, truth_out, gt, keep)
+                # the root is what a monocular fit of an upper body sees worst: this row
+                # shows how much of the webcam's error is the rest (a diagnostic, not live)
+                scorer.score("webcam_true_root", key,
+                             {**webcam, "global_orient": true_row["global_orient"]},
+                             truth_out, gt, keep)
                 if out_dir is not None and len(images) < max_images and \
                         i % max(1, len(frames) // max(max_images, 1)) == 0:
                     name = f"images/{seq}_{frame:05d}_{score_name}.png"

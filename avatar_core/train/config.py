@@ -143,9 +143,13 @@ class FineTuneConfig:
     expression: float = DEFAULT_PARAM_LRS["expression"]
     body_pose: float = DEFAULT_PARAM_LRS["body_pose"]
     schedule: str = "fixed"
-    reach_transl: float = 0.01          # m
-    reach_expression: float = 0.3       # expression units (the library's reach about 1)
-    reach_body_pose_deg: float = 5.0    # per axis
+    # The reach should match the trackers' per-joint error: Adam moves a delta by about its
+    # rate per update whatever the gradient's size, so a larger reach becomes a random walk
+    # that, summed down the arm chain, misposes the hands (docs/results.md: 5 deg cost the
+    # avatar 6 dB, 1 deg gained 0.3-0.8 dB on the noisy-tracker benchmark).
+    reach_transl: float = 0.005         # m
+    reach_expression: float = 0.1       # expression units (the library's reach about 1)
+    reach_body_pose_deg: float = 1.0    # per axis, per joint
     start: float = 0.2                  # fraction of the run before the deltas move
     final: float = 0.1                  # last rate / first rate
 

@@ -29,12 +29,13 @@ from ...body.joint_limits import EXPRESSION_LIMIT, JOINT_LIMITS_DEG, RELAXED_ARM
 from ...body.models import SMPLXModel
 from ...body.skeleton import JOINT, LEFT_HAND_JOINTS, RIGHT_HAND_JOINTS, SMPLX_JOINT_NAMES
 from . import correspondence as cor
+from . import palm_retry
 from .camera import MIN_DEPTH_M, WebcamCamera, project_points
 from .hand_prior import hinge_matrix, hinge_rows
 from .keypoints import BodyKeypoints
 from .kinematics import KeypointKinematics, rodrigues_and_left_jacobian
 from .observations import Observations
-from .palm import PALM_JOINTS, PALM_LANDMARKS, axis_angle, palm_rotation, rotation_angle_deg
+from .palm import PALM_JOINTS
 
 # Body joints the fit moves (the rest of body_pose, i.e. the legs, stays 0).
 FREE_BODY_JOINTS = ("spine1", "spine2", "spine3", "neck", "left_collar", "right_collar", "head",
@@ -410,7 +411,7 @@ class FrameFitter:
             start: dict[str, np.ndarray] | None = None,
             palm_targets: dict[str, np.ndarray] | None = None) -> FitResult:
         """Fit one frame. `start`: the previous frame's parameters (a warm start), or None.
-        `palm_targets`: side -> the palm rotation a wrist is retried from (`_palm_retry`);
+        `palm_targets`: side -> the palm rotation a wrist is retried from (`palm_retry`);
         None: this frame's own (`palm_targets`), {}: no retry."""
         t0 = time.perf_counter()
         warm = start is not None
@@ -436,7 +437,7 @@ class FrameFitter:
             problem, weight, stats)
         if self.config.palm_retry_deg < 180.0:
             targets = self.palm_targets(obs, camera) if palm_targets is None else palm_targets
-            x = self._palm_retry(x, targets, problem, weight, stats)
+            x = palm_retry.retry(self, x, targets, problem, weight, stats)
         terms, proj = self._terms(x, problem, np.sqrt(weight), False)
         return FitResult(self.to_params(x), reprojection_errors(proj, obs),
                          sum(float(t.residuals @ t.residuals) for t in terms),
@@ -464,47 +465,8 @@ class FrameFitter:
         return sum(float(t.residuals @ t.residuals) for t in terms)
 
     def palm_targets(self, obs: Observations, camera: WebcamCamera) -> dict[str, np.ndarray]:
-        """Each hand's palm rotation (`palm_rotation`), side -> [3, 3], for the hands whose
-        five palm landmarks and their z are usable."""
-        out = {}
-        if obs.depth is None:
-            return out
-        for side, (sl, _, _, _, rest) in zip(("left", "right"), self.palm_hands, strict=True):
-            rows = sl.start + np.array(PALM_LANDMARKS)
-            if (obs.weights[rows] <= 0).any():
-                continue
-            hand = np.concatenate([obs.pixels[sl], obs.depth[sl, None]], axis=1)
-            target = palm_rotation(hand, rest, HAND_Z_SCALE, camera.focal, camera.center)
-            if target is not None:
-                out[side] = target
-        return out
-
-    def _palm_retry(self, x: np.ndarray, targets: dict[str, np.ndarray], problem: _Problem,
-                    weight: np.ndarray, stats: dict) -> np.ndarray:
-        """For each hand whose fitted wrist is more than `palm_retry_deg` from its palm
-        rotation in `targets`: fit again from that wrist rotation and the mean hand, and keep
-        whichever fit costs less."""
-        cost = None
-        for side, (sl, wrist_cols, hand_cols, wrist, _) in zip(("left", "right"),
-                                                                self.palm_hands, strict=True):
-            target = targets.get(side)
-            if target is None or weight[sl.start] <= 0 or rotation_angle_deg(
-                    self.world_rotation(x, wrist), target) <= self.config.palm_retry_deg:
-                continue
-            parent = self.world_rotation(x, int(self.kinematics.parents[wrist]))
-            trial = x.copy()
-            trial[wrist_cols] = axis_angle(parent.T @ target)
-            trial[hand_cols] = 0.0  # the fingers bent to fit the other side start over
-            trial = self._levenberg_marquardt(trial, np.ones(x.size, dtype=bool),
-                                              self.config.palm_retry_iterations, problem,
-                                              weight, stats)
-            cost = self.robust_cost(x, problem, weight) if cost is None else cost
-            trial_cost = self.robust_cost(trial, problem, weight)
-            stats["palm_retries"] = stats.get("palm_retries", 0) + 1
-            if trial_cost < cost:
-                x, cost = trial, trial_cost
-                stats["palm_kept"] = stats.get("palm_kept", 0) + 1
-        return x
+        """Each hand's palm rotation, side -> [3, 3] (`palm_retry.palm_targets`)."""
+        return palm_retry.palm_targets(self.palm_hands, obs, camera, HAND_Z_SCALE)
 
     def _depth_pairs(self, obs: Observations, weight: np.ndarray):
         """(keypoint, reference, target, sqrt weight) rows of the relative-depth term: each
