@@ -29,49 +29,19 @@ export function takeToken(win) {
   return token || null;
 }
 
-export class Session extends EventTarget {
-  /** `token` goes in the first message, the hello, which the server reads before anything;
-   *  `join` ({role, seat}) too, in a room. */
-  constructor(url, token = null, join = {}) {
+/** What both transports share: seq numbers and send times, the incoming messages as events,
+ *  and the send methods. A subclass gives `_send(message, options)` and `open`. */
+export class MessageSession extends EventTarget {
+  constructor() {
     super();
-    this.url = url;
     this.seq = 0;
     this.welcome = null;
     this.sentAt = new Map();  // seq -> performance.now() when sent
     this.bytesIn = 0;
-    this.ws = new WebSocket(url);
-    this.ws.binaryType = "arraybuffer";
-    this.ready = new Promise((resolve, reject) => {
-      this._resolve = resolve;
-      this._reject = reject;
-    });
-    this.ws.addEventListener("open", () => {
-      const hello = { type: "hello", version: PROTOCOL_VERSION, client: "telesplat-web" };
-      if (token) hello.token = token;
-      if (join.role) hello.role = join.role;
-      if (Number.isInteger(join.seat)) hello.seat = join.seat;
-      this._send(hello);
-    });
-    this.ws.addEventListener("message", (event) => this._receive(event.data));
-    this.ws.addEventListener("close", (event) => {
-      this._reject(new ProtocolError("internal", event.reason || "connection closed"));
-      this._emit("close", { code: event.code, reason: event.reason });
-    });
-  }
-
-  get open() {
-    return this.ws.readyState === WebSocket.OPEN;
   }
 
   _emit(type, detail) {
     this.dispatchEvent(new CustomEvent(type, { detail }));
-  }
-
-  _send(message, options = {}) {
-    // Nothing but the hello until welcome: before it the server reads one small message only.
-    if (!this.open || (!this.welcome && message.type !== "hello")) return false;
-    this.ws.send(encode(message, options));
-    return true;
   }
 
   _receive(data) {
@@ -86,7 +56,7 @@ export class Session extends EventTarget {
     }
     if (message.type === "welcome") {
       this.welcome = message;
-      this._resolve(message);
+      this._resolve?.(message);
       this._emit("welcome", message);
     } else if (message.type === "frame") {
       const sent = this.sentAt.get(message.seq);
@@ -95,7 +65,7 @@ export class Session extends EventTarget {
       for (const seq of this.sentAt.keys()) if (seq <= message.seq) this.sentAt.delete(seq);
       this._emit("frame", message);
     } else if (message.type === "error") {
-      if (!this.welcome) this._reject(new ProtocolError(message.code, message.message));
+      if (!this.welcome) this._reject?.(new ProtocolError(message.code, message.message));
       this._emit("servererror", message);
     } else if (message.type === "pong") {
       message.rttMs = performance.now() - message.t;
@@ -133,6 +103,44 @@ export class Session extends EventTarget {
 
   ping() {
     return this._send({ type: "ping", t: performance.now() });
+  }
+}
+
+export class Session extends MessageSession {
+  /** `token` goes in the first message, the hello, which the server reads before anything;
+   *  `join` ({role, seat}) too, in a room. */
+  constructor(url, token = null, join = {}) {
+    super();
+    this.url = url;
+    this.ws = new WebSocket(url);
+    this.ws.binaryType = "arraybuffer";
+    this.ready = new Promise((resolve, reject) => {
+      this._resolve = resolve;
+      this._reject = reject;
+    });
+    this.ws.addEventListener("open", () => {
+      const hello = { type: "hello", version: PROTOCOL_VERSION, client: "telesplat-web" };
+      if (token) hello.token = token;
+      if (join.role) hello.role = join.role;
+      if (Number.isInteger(join.seat)) hello.seat = join.seat;
+      this._send(hello);
+    });
+    this.ws.addEventListener("message", (event) => this._receive(event.data));
+    this.ws.addEventListener("close", (event) => {
+      this._reject(new ProtocolError("internal", event.reason || "connection closed"));
+      this._emit("close", { code: event.code, reason: event.reason });
+    });
+  }
+
+  get open() {
+    return this.ws.readyState === WebSocket.OPEN;
+  }
+
+  _send(message, options = {}) {
+    // Nothing but the hello until welcome: before it the server reads one small message only.
+    if (!this.open || (!this.welcome && message.type !== "hello")) return false;
+    this.ws.send(encode(message, options));
+    return true;
   }
 
   close() {

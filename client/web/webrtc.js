@@ -4,8 +4,9 @@
 // labelled "telesplat". WhepSession has Session's interface (session.js): `ready` resolves to
 // the welcome, the same send methods, the same events, so app.js drives either transport.
 
-import { ProtocolError, decode, encode } from "./protocol.js";
+import { ProtocolError, encode } from "./protocol.js";
 import { rtcSample, rtcSummary } from "./rtcstats.js";
+import { MessageSession } from "./session.js";
 
 const GATHER_TIMEOUT_MS = 5000;    // non-trickle: the offer waits for its candidates, bounded
 const WELCOME_TIMEOUT_MS = 20000;  // answer -> ICE -> DTLS -> channel open -> welcome
@@ -98,16 +99,13 @@ async function httpError(response) {
   return new ProtocolError(HTTP_CODES[response.status] ?? "internal", `${response.status} ${text}`);
 }
 
-export class WhepSession extends EventTarget {
+export class WhepSession extends MessageSession {
   /** `video`: the <video> the track plays in; `query`: WHEP query (width, height, fps, seat). */
   constructor(roomId, token, { video, query = {}, iceServers = [] } = {}) {
     super();
     this.transport = "webrtc";
     this.url = whepUrl(roomId, query);
     this.token = token;
-    this.seq = 0;
-    this.welcome = null;
-    this.sentAt = new Map();  // seq -> performance.now() when sent (as Session keeps it)
     this.resource = null;     // the WHEP session's URL (Location), DELETEd on close
     this.closed = false;
     this.rtc = null;          // the newest rtcSummary()
@@ -132,10 +130,6 @@ export class WhepSession extends EventTarget {
 
   get open() {
     return this.channel.readyState === "open";
-  }
-
-  _emit(type, detail) {
-    this.dispatchEvent(new CustomEvent(type, { detail }));
   }
 
   _headers(extra = {}) {
@@ -177,61 +171,10 @@ export class WhepSession extends EventTarget {
     return true;
   }
 
-  _receive(data) {
-    if (!(data instanceof ArrayBuffer)) return;  // binary only, like the WebSocket
-    let message;
-    try {
-      message = decode(data);
-    } catch (err) {
-      this._emit("servererror", { code: "bad_message", message: String(err) });
-      return;
-    }
-    if (message.type === "welcome") {
-      this.welcome = message;
-      this._resolve?.(message);
-      this._emit("welcome", message);
-    } else if (message.type === "error") {
-      if (!this.welcome) this._reject?.(new ProtocolError(message.code, message.message));
-      this._emit("servererror", message);
-    } else if (message.type === "pong") {
-      message.rttMs = performance.now() - message.t;
-      this._emit("pong", message);
-    } else {
-      this._emit(message.type, message);
-    }
-  }
-
-  _stamp() {
-    this.seq += 1;
-    this.sentAt.set(this.seq, performance.now());
-    if (this.sentAt.size > 1000) this.sentAt.delete(this.sentAt.keys().next().value);
-    return this.seq;
-  }
-
-  drive(families, reset = false) {
-    const seq = this._stamp();
-    return this._send({ type: "drive", seq, reset, ...families }, { validate: true }) ? seq : null;
-  }
-
-  view(orbit, moving = false) {
-    return this._send({ type: "view", orbit, moving }, { validate: true });
-  }
-
   /** Size and rate go to the video track; codec and JPEG fields mean nothing here. */
   request(fields) {
-    const message = { type: "request", ...fields };
-    delete message.codec;
-    delete message.jpeg_quality;
-    return this._send(message, { validate: true });
-  }
-
-  image(bytes, format = "jpeg") {
-    const seq = this._stamp();
-    return this._send({ type: "image", seq, format, data: bytes }) ? seq : null;
-  }
-
-  ping() {
-    return this._send({ type: "ping", t: performance.now() });
+    const { codec, jpeg_quality, ...track } = fields;  // eslint-disable-line no-unused-vars
+    return super.request(track);
   }
 
   /** Sample getStats() and keep the overlay's figures in `this.rtc`. */
