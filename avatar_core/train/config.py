@@ -145,8 +145,8 @@ class FineTuneConfig:
     schedule: str = "fixed"
     # The reach should match the trackers' per-joint error: Adam moves a delta by about its
     # rate per update whatever the gradient's size, so a larger reach becomes a random walk
-    # that, summed down the arm chain, misposes the hands (docs/results.md: 5 deg cost the
-    # avatar 6 dB, 1 deg gained 0.3-0.8 dB on the noisy-tracker benchmark).
+    # that, summed down the arm chain, misposes the hands (docs/results.md, noisy-tracker
+    # benchmark: 5 deg cost the avatar 6 dB; 1 deg gained 0.8-1.8 dB on the held-out take).
     reach_transl: float = 0.005         # m
     reach_expression: float = 0.1       # expression units (the library's reach about 1)
     reach_body_pose_deg: float = 1.0    # per axis, per joint
