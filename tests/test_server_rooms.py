@@ -290,13 +290,13 @@ def test_room_limits_are_settings(tmp_path):
 
 def test_seats_render_in_one_call_and_the_front_avatar_occludes(srv, monkeypatch):
     calls = []
-    real = room_frames.rasterize
+    real = room_frames.render_views
 
     def counting(gaussians, *args, **kwargs):
         calls.append(gaussians.num)
         return real(gaussians, *args, **kwargs)
 
-    monkeypatch.setattr(room_frames, "rasterize", counting)
+    monkeypatch.setattr(room_frames, "render_views", counting)
     front = {"avatar": "demo", "placement": {"translation": [0.0, 0.0, 0.6]}}
     both = create_room(srv, seats=[{"avatar": "demo"}, front])
     back_only = create_room(srv)

@@ -28,7 +28,7 @@ def render_views(gaussians: GaussianSet, cameras: Sequence[Camera],
     if not cameras:
         raise ValueError("render_views needs at least one camera")
     backend = resolve_backend(request.backend, gaussians.means.device)
-    if backend != "gsplat":
+    if backend != "gsplat" or len(cameras) == 1:
         return [rasterize(gaussians, cam, request) for cam in cameras]
     return _gsplat_views(gaussians, cameras, request)
 

@@ -30,7 +30,6 @@ from avatar_core.body.lbs import rodrigues
 from avatar_core.body.models import MANOModel
 from avatar_core.gaussians.animate import AvatarAnimator
 from avatar_core.render.camera_path import framing_target
-from avatar_core.render.rasterize import rasterize
 from avatar_core.render.types import GaussianSet, RenderRequest, to_uint8
 from avatar_core.render.views import render_views
 from avatar_core.rotations import matrix_to_quaternion, quaternion_multiply
@@ -212,48 +211,13 @@ class RoomFrames:
 
     def _render(self, job: RoomFrameJob, h264: H264Stream | None,
                 last_codec: str | None) -> RoomFrame:
-        req, c = job.request, self.counters
-        t0 = time.perf_counter()
-        with torch.no_grad():
-            gaussians = self._on_device.get(job_versions(job), union([
-                poser.world(drive, c) for poser, drive in zip(self.posers, job.seats,
-                                                              strict=True)]))
-            t1 = time.perf_counter()
-            cam = view_camera(job.view, req.width, req.height, self.chest)
-            outputs = tuple(dict.fromkeys(("rgb", *req.outputs)))
-            budget = None if req.quality >= 1.0 else float(req.quality)
-            out = rasterize(gaussians, cam, RenderRequest(
-                outputs=outputs, background=tuple(req.background),
-                sh_degree=min(req.sh_degree, gaussians.sh_degree), budget=budget,
-                backend=self.backend))
-            c.renders += 1
-            rgb = frame_rgb(out.rgb, req.codec, "alpha" in req.outputs)
-            alpha = None if out.alpha is None else to_uint8(out.alpha)
-            depth = None if out.depth is None else out.depth.cpu().numpy()
-        t2 = time.perf_counter()
-
-        def own_h264(rgb_: np.ndarray, req_) -> tuple[bytes, bool]:
-            assert h264 is not None, "an h264 frame is rendered for its own participant"
-            return h264.encode(rgb_, req_, last_codec)
-
-        if job.raw:
-            codec, data, keyframe, depth_png = RAW_CODEC, b"", True, None
-        else:
-            codec, data, keyframe, depth_png = encode_outputs(rgb, alpha, depth, req,
-                                                              job.jpeg_quality, own_h264)
-            c.encodes += 1
-        t3 = time.perf_counter()
-        timings = Timings(track=job.track_ms, pose=(t1 - t0) * 1e3, render=(t2 - t1) * 1e3,
-                          encode=(t3 - t2) * 1e3)
-        return RoomFrame(job.drive.seq, codec, cam.width, cam.height, data, depth_png,
-                         keyframe, timings, seat_seqs=tuple(d.seq for d in job.seats),
-                         versions=tuple(d.version for d in job.seats),
-                         rgb=rgb if job.raw else None)
+        """One view: a batch of one (``render_views`` of one camera is ``rasterize``)."""
+        return self._render_views([(job, h264, last_codec)])[0]
 
     def _render_views(self, items: list[tuple[RoomFrameJob, H264Stream | None, str | None]]
                       ) -> list[RoomFrame]:
-        """``_render`` for several views of one state and request (a batch of
-        :class:`ViewBatches`): one posing, one ``render_views`` call, an encode each."""
+        """Views of one state and request (one, or a batch of :class:`ViewBatches`): one
+        posing, one ``render_views`` call, an encode each (none for a raw frame)."""
         c = self.counters
         jobs = [job for job, _, _ in items]
         req = jobs[0].request
