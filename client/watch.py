@@ -3,8 +3,10 @@ frame in ``frames.jsonl`` (seq, frame counter, size, codec, stage timings, arriv
 
 from __future__ import annotations
 
+import contextlib
 import json
 import time
+from collections.abc import AsyncIterator, Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +23,25 @@ def parse_view(text: str) -> dict[str, float]:
     except ValueError as exc:
         raise ValueError(f"--view wants three numbers, got {text!r}") from exc
     return {"yaw_deg": yaw, "pitch_deg": pitch, "distance": distance}
+
+
+async def arrivals(next_frame: Callable[[float], Awaitable[Any]], seconds: float | None,
+                   timeout: float) -> AsyncIterator[Any]:
+    """What ``next_frame(wait_s)`` returns, as it arrives, until ``seconds`` have passed (None:
+    until a wait past ``timeout``, which raises ``TimeoutError``); the caller stops on its own
+    count of frames kept."""
+    deadline = None if seconds is None else time.monotonic() + seconds
+    while True:  # bounded by the deadline, or by the timeout of each wait
+        left = timeout if deadline is None else deadline - time.monotonic()
+        if left <= 0:
+            return
+        try:
+            frame = await next_frame(min(left, timeout))
+        except TimeoutError:
+            if deadline is None:
+                raise
+            return
+        yield frame
 
 
 def frame_record(frame: Frame, index: int, file: str, received_s: float) -> dict[str, Any]:
@@ -54,27 +75,24 @@ async def watch_room(server: str, token: str | None, room: str, out: Path, *,
         if view is not None:
             await client.view(view)
         start = time.monotonic()
-        deadline = start + seconds if seconds is not None else None
+        frames = arrivals(client.next_frame, seconds, timeout)
         with (out / "frames.jsonl").open("w") as log:
-            while max_frames is None or saved < max_frames:  # bounded by frames or deadline
-                left = timeout if deadline is None else deadline - time.monotonic()
-                if left <= 0:
-                    break
-                try:
-                    frame = await client.next_frame(min(left, timeout))
-                except TimeoutError:
-                    if deadline is None:
-                        raise
-                    break
-                if frame.codec == "h264":
-                    continue
-                if saved == 0 and stale < max_stale and (frame.width, frame.height) != (size, size):
-                    stale += 1
-                    continue
-                path = save_frame(frame, out / f"{saved:05d}")
-                log.write(json.dumps(frame_record(frame, saved, path.name,
-                                                  time.monotonic() - start)) + "\n")
-                saved += 1
+            async with contextlib.aclosing(frames):
+                async for frame in frames:
+                    if max_frames is not None and saved >= max_frames:
+                        break
+                    if frame.codec == "h264":
+                        continue
+                    asked = (frame.width, frame.height) == (size, size)
+                    if saved == 0 and stale < max_stale and not asked:
+                        stale += 1
+                        continue
+                    path = save_frame(frame, out / f"{saved:05d}")
+                    log.write(json.dumps(frame_record(frame, saved, path.name,
+                                                      time.monotonic() - start)) + "\n")
+                    saved += 1
+                    if max_frames is not None and saved >= max_frames:
+                        break
         presence = client.presence
     return {"frames": saved, "stale_skipped": stale, "room": room,
             "presence": presence.model_dump() if presence is not None else None}
@@ -106,25 +124,21 @@ async def watch_room_webrtc(server: str, token: str | None, room: str, out: Path
             await viewer.wait_open()
             viewer.send(View(orbit=Orbit(**view)))
         start = time.monotonic()
-        deadline = start + seconds if seconds is not None else None
+        frames = arrivals(viewer.next_frame, seconds, timeout)
         with (out / "frames.jsonl").open("w") as log:
-            while max_frames is None or saved < max_frames:  # bounded by frames or deadline
-                left = timeout if deadline is None else deadline - time.monotonic()
-                if left <= 0:
-                    break
-                try:
-                    rgb, received = await viewer.next_frame(min(left, timeout))
-                except TimeoutError:
-                    if deadline is None:
-                        raise
-                    break
-                name = f"{saved:05d}.png"
-                cv2.imwrite(str(out / name), rgb[:, :, ::-1])  # cv2 writes BGR
-                log.write(json.dumps({
-                    "index": saved, "file": name, "codec": viewer.codec,
-                    "width": int(rgb.shape[1]), "height": int(rgb.shape[0]),
-                    "seq": read_stamp(rgb) if stamp else None,
-                    "received_s": round(received - start, 4)}) + "\n")
-                saved += 1
+            async with contextlib.aclosing(frames):
+                async for rgb, received in frames:
+                    if max_frames is not None and saved >= max_frames:
+                        break
+                    name = f"{saved:05d}.png"
+                    cv2.imwrite(str(out / name), rgb[:, :, ::-1])  # cv2 writes BGR
+                    log.write(json.dumps({
+                        "index": saved, "file": name, "codec": viewer.codec,
+                        "width": int(rgb.shape[1]), "height": int(rgb.shape[0]),
+                        "seq": read_stamp(rgb) if stamp else None,
+                        "received_s": round(received - start, 4)}) + "\n")
+                    saved += 1
+                    if max_frames is not None and saved >= max_frames:
+                        break
         codec_used = viewer.codec
     return {"frames": saved, "room": room, "transport": "webrtc", "codec": codec_used}
