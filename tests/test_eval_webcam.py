@@ -23,24 +23,9 @@ from avatar_core.metrics.webcam import (
 )
 from avatar_core.synth.capture import CaptureSpec, capture
 from avatar_core.synth.trackers import TrackerNoise
+from tests.track_models import needs_models
 
 FRAMES, CAMERAS, SIZE = 3, 5, 96
-
-
-def models_available() -> bool:
-    try:
-        from avatar_core.track.models import MODELS, model_path
-
-        for name in MODELS:
-            model_path(name)
-    except Exception:  # noqa: BLE001 - any reason means: skip
-        return False
-    return True
-
-
-needs_models = pytest.mark.skipif(not models_available(),
-                                  reason="MediaPipe ONNX models not fetched "
-                                         "(telesplat track fetch-models)")
 
 
 @pytest.fixture(scope="module")

@@ -8,7 +8,6 @@ import json
 
 import cv2
 import numpy as np
-import pytest
 
 from protocol import DEFAULT_LIMITS, Drive, Image, encode
 from tests.server_fixtures import (
@@ -17,22 +16,7 @@ from tests.server_fixtures import (
     server_fixture,  # noqa: F401 (the `server` fixture)
     stream,
 )
-
-
-def models_available() -> bool:
-    try:
-        from avatar_core.track.models import MODELS, model_path
-
-        for name in MODELS:
-            model_path(name)
-    except Exception:  # noqa: BLE001 - any reason means: skip
-        return False
-    return True
-
-
-needs_models = pytest.mark.skipif(not models_available(),
-                                  reason="MediaPipe ONNX models not fetched "
-                                         "(telesplat track fetch-models)")
+from tests.track_models import needs_models
 
 
 def astronaut_jpeg(scale: float = 1.0) -> bytes:
