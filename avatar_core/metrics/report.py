@@ -143,14 +143,20 @@ def result_markdown(result: EvalResult) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_result(result: EvalResult, out_dir: str | Path) -> tuple[Path, Path]:
-    """``metrics.json`` and ``metrics.md`` in ``out_dir``."""
+def write_report(out_dir: str | Path, stem: str, data: dict, markdown: str
+                 ) -> tuple[Path, Path]:
+    """``{stem}.json`` (strict JSON: no NaN) and ``{stem}.md`` in ``out_dir``."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    js, md = out / "metrics.json", out / "metrics.md"
-    js.write_text(json.dumps(result.to_dict(), indent=2, allow_nan=False) + "\n")
-    md.write_text(result_markdown(result))
+    js, md = out / f"{stem}.json", out / f"{stem}.md"
+    js.write_text(json.dumps(data, indent=2, allow_nan=False) + "\n")
+    md.write_text(markdown)
     return js, md
+
+
+def write_result(result: EvalResult, out_dir: str | Path) -> tuple[Path, Path]:
+    """``metrics.json`` and ``metrics.md`` in ``out_dir``."""
+    return write_report(out_dir, "metrics", result.to_dict(), result_markdown(result))
 
 
 # -- side-by-side images -------------------------------------------------------------------

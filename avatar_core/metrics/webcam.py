@@ -61,7 +61,7 @@ from .evaluate import (
     image_scores,
 )
 from .keypoints import GROUPS, body_akd
-from .report import _fmt, _json_safe, side_by_side
+from .report import _fmt, _json_safe, side_by_side, write_report
 
 __all__ = ["DRIVES", "WebcamResult", "evaluate_webcam", "true_params_path", "webcam_cameras",
            "webcam_markdown", "write_webcam_result"]
@@ -388,11 +388,5 @@ def webcam_markdown(result: WebcamResult) -> str:
 
 
 def write_webcam_result(result: WebcamResult, out_dir: str | Path) -> tuple[Path, Path]:
-    import json
-
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    js, md = out / "webcam.json", out / "webcam.md"
-    js.write_text(json.dumps(result.to_dict(), indent=2, allow_nan=False) + "\n")
-    md.write_text(webcam_markdown(result))
-    return js, md
+    """``webcam.json`` and ``webcam.md`` in ``out_dir``."""
+    return write_report(out_dir, "webcam", result.to_dict(), webcam_markdown(result))
