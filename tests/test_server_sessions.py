@@ -358,3 +358,42 @@ def test_the_scheduler_cancels_queued_jobs_on_shutdown():
     assert sched.queued == 0 and sched.running == 0
     with pytest.raises(RuntimeError):
         sched.submit(time.monotonic)
+
+
+def test_a_session_that_never_runs_closes_its_renderer(tmp_path, monkeypatch):
+    """A renderer made for a session that then fails to start (here its tracker cannot be
+    made) is closed at once: with render workers it holds a scene on one of them."""
+    with run_server(tmp_path, startup_room=False) as server:
+        ctx = server.ctx
+        made, closed = [], []
+        real = ctx.render.session_renderer
+
+        async def watched(ctx_, record):
+            renderer = await real(ctx_, record)
+            close = renderer.close
+            renderer.close = lambda: (closed.append(renderer), close())
+            made.append(renderer)
+            return renderer
+
+        def no_tracker(avatar_id):
+            raise RuntimeError("tracker unavailable")
+
+        monkeypatch.setattr(ctx.render, "session_renderer", watched)
+        monkeypatch.setattr(ctx, "session_tracker", no_tracker)
+
+        async def run():
+            async with stream(server, welcome=False) as ws:
+                with pytest.raises(websockets.ConnectionClosedError) as closed_by:
+                    await recv_until(ws, is_type("welcome"))
+            return closed_by.value.rcvd
+
+        refusal = asyncio.run(run())
+        assert refusal.code == 1011 and "cannot load avatar" in refusal.reason
+        assert len(made) == 1 and closed == made
+        monkeypatch.undo()
+        assert asyncio.run(_still_serves(server))  # and the server goes on
+
+
+async def _still_serves(server) -> bool:
+    async with stream(server) as ws:
+        return ws.welcome.type == "welcome"

@@ -133,10 +133,13 @@ async def stream(ws: WebSocket, ctx: Context, avatar: str = DEMO_ID,
 
 
 async def _serve(ws: WebSocket, ctx: ServerContext, record: AvatarRecord) -> None:
+    renderer = None
     try:
         renderer = await ctx.render.session_renderer(ctx, record)
         tracker = await asyncio.to_thread(ctx.session_tracker, record.id)
     except Exception as exc:  # noqa: BLE001 - a broken package must not take the server down
+        if renderer is not None:
+            renderer.close()  # a render worker's scene, an encoder
         log.exception("cannot load avatar %s", record.id)
         await refuse(ws, Refusal("internal", f"cannot load avatar {record.id!r}: {exc}",
                                   CLOSE_INTERNAL), ctx)
@@ -150,9 +153,14 @@ async def _serve(ws: WebSocket, ctx: ServerContext, record: AvatarRecord) -> Non
         request, View(orbit=Orbit()), session_count=lambda: ctx.slots.count)
     info = AvatarInfo(id=record.id, name=record.name, num_gaussians=record.num_gaussians,
                       sh_degree=record.sh_degree, owner=record.owner, metadata=record.metadata)
-    await ws.send_bytes(encode(Welcome(session=session.id, avatar=info, limits=s.limits,
-                                       codecs=list(CODECS), request=request,
-                                       encoders=encoders_info())))
+    try:
+        await ws.send_bytes(encode(Welcome(session=session.id, avatar=info, limits=s.limits,
+                                           codecs=list(CODECS), request=request,
+                                           encoders=encoders_info())))
+    except BaseException:  # the client left before its session ran: nothing else holds them
+        renderer.close()
+        tracker.close()
+        raise
     ctx.sessions[session.id] = session
     try:
         await session.run()
