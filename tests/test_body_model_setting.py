@@ -35,12 +35,8 @@ from server.jobs.worker import Worker, WorkerConfig
 from server.registry import AvatarRegistry
 from tests.dataset_fixtures import write_tiny_dataset
 from tests.server_fixtures import is_type, recv_until, run_server, stream
-from tests.test_track_drive import (
-    _astronaut_video,
-    astronaut_jpeg,
-    models_available,
-    needs_models,
-)
+from tests.test_track_drive import _astronaut_video, astronaut_jpeg
+from tests.track_models import models_available, needs_models
 
 STUDIO_ONLY = ("manifest.json", "gestures.npz", "identities")  # not in an official download
 TINY_CONFIG = ('preset = "test"\ncheckpoint_interval = 1000\n[finetune]\nenabled = false\n'

@@ -158,7 +158,7 @@ def test_slider_drives_and_latency_is_measured(page):
 
 
 def test_webcam_toggle_shows_the_servers_answer(page):
-    from tests.test_track_drive import models_available
+    from tests.track_models import models_available
 
     wait_for(page, "window.telesplat.framesShown > 0", 60, "a frame")
     page.find_element("id", "webcam").click()  # Chromium's fake camera stands in

@@ -184,7 +184,8 @@ async def _poll(predicate, timeout: float, what: str) -> None:
 
 @needs_rooms
 def test_drive_room_performs_a_seat_from_a_video(server, tmp_path):  # noqa: F811
-    from tests.test_track_drive import _astronaut_video, models_available
+    from tests.test_track_drive import _astronaut_video
+    from tests.track_models import models_available
 
     if not models_available():
         pytest.skip("MediaPipe ONNX models not fetched (telesplat track fetch-models)")
