@@ -63,7 +63,7 @@ from client import StreamClient  # noqa: E402
 from client.webrtc import WhepViewer  # noqa: E402
 from protocol import Drive  # noqa: E402
 from protocol.stamp import cell_size, read_stamp  # noqa: E402
-from server.encoders import H264Decoder, encode_jpeg  # noqa: E402
+from server.stream.encoders import H264Decoder, encode_jpeg  # noqa: E402
 
 TRANSPORTS = ("ws-jpeg", "ws-h264", "webrtc-vp8", "webrtc-h264")
 WARMUP_S = 2.0          # connect, first keyframe, the congestion estimate's first steps

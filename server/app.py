@@ -23,19 +23,21 @@ from protocol.messages import Orbit
 
 from .auth import LOCAL_SUBJECT, SCOPES, Principal, TokenStore
 from .cluster_render import routes as cluster_render
-from .cluster_render.backend import make_render_backend
+from .cluster_render.backend import make_frame_workers
 from .config import Settings
-from .context import ServerContext, SessionSlots
-from .drive import DriveState
-from .encoders import select_encoders
+from .context import ServerContext
 from .logsafe import install_log_redaction
 from .metrics import ServerMetrics
 from .private import private_dir
 from .registry import DEMO_ID, AvatarRegistry
-from .renderer import FrameJob, SessionRenderer
-from .rooms.registry import SeatSpec
+from .rooms.registry import Placement, SeatSpec
 from .routers import avatars, jobs, motions, rooms, stream, system, webrtc
-from .scheduler import RenderScheduler
+from .stream.admission import SessionSlots
+from .stream.drive import DriveState
+from .stream.encoders import select_encoders
+from .stream.gate import default_request
+from .stream.scene import FrameJob, SceneFrames, SeatPoser
+from .stream.scheduler import RenderScheduler
 
 log = logging.getLogger("telesplat.server")
 
@@ -53,12 +55,12 @@ def warm_up(ctx: ServerContext) -> float | None:
         return None
     start = time.perf_counter()
     animator, manos = ctx.session_models(record.id)
-    renderer = SessionRenderer(animator, manos, backend=ctx.settings.backend)
-    req = stream.default_request(ctx, record).model_copy(
+    frames = SceneFrames([SeatPoser(animator, manos, Placement())], ctx.settings.backend)
+    req = default_request(ctx, record).model_copy(
         update={"width": WARMUP_SIZE, "height": WARMUP_SIZE})
-    job = FrameJob(DriveState(), View(orbit=Orbit()), req, ctx.settings.jpeg_quality)
-    ctx.scheduler.submit(renderer.render, job).result()
-    renderer.close()
+    job = FrameJob((DriveState(),), View(orbit=Orbit()), req, ctx.settings.jpeg_quality)
+    ctx.scheduler.submit(frames.make_one, job).result()
+    frames.close()
     return time.perf_counter() - start
 
 
@@ -118,7 +120,7 @@ def create_app(settings: Settings) -> FastAPI:
         track_scheduler=RenderScheduler(settings.track_threads, 1),
         metrics=ServerMetrics(), slots=SessionSlots(settings.max_sessions),
         local_token=local_token)
-    ctx.render = make_render_backend(settings, ctx.registry)
+    ctx.render = make_frame_workers(settings, ctx.registry, ctx.scheduler)
 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:

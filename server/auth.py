@@ -31,6 +31,7 @@ SCOPES = ("stream", "train", "admin")
 PUBLIC_OWNER = "public"  # avatars any stream-scoped token may see and stream
 LOCAL_SUBJECT = "local"
 TOKEN_PREFIX = "tsk_"
+INVITATION_PREFIX = "tsr_"  # a room's invitation (server/rooms/registry.py)
 
 
 @dataclass(frozen=True)
@@ -184,3 +185,8 @@ def bearer_token(authorization: str | None) -> str | None:
 def token_from_websocket(ws: WebSocket) -> str | None:
     """A WebSocket's token from ``?token=`` or ``Authorization: Bearer`` (None: wait for hello)."""
     return ws.query_params.get("token") or bearer_token(ws.headers.get("authorization"))
+
+
+def is_invitation(token: str | None) -> bool:
+    """A room invitation's token (resolved by the room registry), not a bearer token."""
+    return bool(token) and token.startswith(INVITATION_PREFIX)

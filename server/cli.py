@@ -71,7 +71,7 @@ def serve(args: argparse.Namespace) -> int:
 
     from .app import create_app
     from .config import load_settings
-    from .net import listen_socket, websocket_protocol
+    from .stream.net import listen_socket, websocket_protocol
 
     cluster = {} if not getattr(args, "cluster", None) else {
         "job_backend": "ray", "render_backend": "ray", "cluster_address": args.cluster}

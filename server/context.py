@@ -1,4 +1,4 @@
-"""What the routes share: settings, tokens, avatars, rooms, the render scheduler, metrics,
+"""What the routes share: settings, tokens, avatars, rooms, where frames are made, metrics,
 sessions, the job service. The app carries this one object (``app.state.ctx``;
 server/dependencies.py)."""
 
@@ -12,40 +12,21 @@ from avatar_core.body.models import MANOModel
 from avatar_core.gaussians.animate import AvatarAnimator
 from avatar_core.gaussians.loading import mano_models
 
-from .admission import Admission
-from .auth import TokenStore
+from .auth import Principal, TokenStore, is_invitation
 from .config import Settings
 from .metrics import ServerMetrics
 from .registry import AvatarRegistry
-from .rooms.registry import RoomRegistry
-from .scheduler import RenderScheduler
-from .tracking import SessionTracker
+from .rooms.registry import Invitation, RoomRegistry
+from .stream.admission import Admission, SessionSlots
+from .stream.scheduler import RenderScheduler
+from .stream.tracking import SessionTracker
 from .webrtc.registry import PeerRegistry
 
 if TYPE_CHECKING:
     from avatar_core.motion.keyframes import Rig
 
     from .jobs.service import JobService
-
-
-class SessionSlots:
-    """At most ``limit`` sessions at once."""
-
-    def __init__(self, limit: int) -> None:
-        self.limit = limit
-        self.count = 0
-        self._lock = threading.Lock()
-
-    def try_acquire(self) -> bool:
-        with self._lock:
-            if self.count >= self.limit:
-                return False
-            self.count += 1
-            return True
-
-    def release(self) -> None:
-        with self._lock:
-            self.count = max(0, self.count - 1)
+    from .stream.workers import FrameWorkers
 
 
 @dataclass
@@ -65,7 +46,8 @@ class ServerContext:
     rooms: RoomRegistry = None  # type: ignore[assignment]  # made from settings below
     webrtc_peers: PeerRegistry = None  # type: ignore[assignment]  # made from settings below
     startup_links: dict[str, str] = field(default_factory=dict)  # the start-up room's
-    render: Any = None  # where frames are made (render_backend; server/cluster_render/)
+    render: FrameWorkers = None  # type: ignore[assignment]  # where frames are made
+    # (render_backend: server/stream/workers.py, server/cluster_render/backend.py)
     _manos: dict[str, dict[str, MANOModel]] = field(default_factory=dict)
     _manos_lock: threading.Lock = field(default_factory=threading.Lock)
 
@@ -76,6 +58,15 @@ class ServerContext:
             self.rooms = RoomRegistry(self.settings)
         if self.webrtc_peers is None:
             self.webrtc_peers = PeerRegistry(self.settings)
+
+    def credential(self, token: str | None) -> tuple[Principal | None, Invitation | None]:
+        """Whom a token names: a bearer token's principal, or a room invitation (valid ones
+        only; (None, None) otherwise)."""
+        if not token:
+            return None, None
+        if is_invitation(token):
+            return None, self.rooms.resolve(token)
+        return self.tokens.principal(token), None
 
     def session_models(self, avatar_id: str) -> tuple[AvatarAnimator, dict[str, MANOModel]]:
         """A session's own animator, plus the (shared, read-only) MANO models for fusion."""

@@ -27,7 +27,7 @@ import uvicorn
 
 from server.app import create_app
 from server.config import Settings
-from server.net import listen_socket, websocket_protocol
+from server.stream.net import listen_socket, websocket_protocol
 
 START_TIMEOUT_S = 180.0  # the first warm-up compiles numba kernels (cached afterwards)
 STOP_TIMEOUT_S = 15.0

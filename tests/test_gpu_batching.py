@@ -11,10 +11,10 @@ import pytest
 import torch
 
 from protocol import Orbit, Request, View, encode
-from server.drive import DriveState
-from server.rooms.frames import RoomFrameJob, RoomFrames
-from server.scheduler import RenderScheduler
-from server.view_batch import DEFAULT_BATCH_VIEWS, ViewBatches, batch_views
+from server.stream.batching import DEFAULT_BATCH_VIEWS, ViewBatches, batch_views
+from server.stream.drive import DriveState
+from server.stream.scene import FrameJob, Scene
+from server.stream.scheduler import RenderScheduler
 from tests.server_fixtures import is_type, recv_until, run_server
 from tests.test_server_rooms import create_room, invite, join, live
 
@@ -125,12 +125,20 @@ def srv(tmp_path_factory):
         yield running
 
 
-def _jobs(frames: RoomFrames, yaws, codec="jpeg"):
+def _jobs(scene: Scene, yaws, codec="jpeg"):
     req = Request(outputs=["rgb", "depth"], width=SIZE, height=SIZE, background=(0.2, 0.2, 0.2),
                   sh_degree=3, quality=1.0, jpeg_quality=90, codec=codec, max_fps=30)
-    seats = tuple(DriveState() for _ in frames.posers)
-    return [RoomFrameJob(seats[0], View(orbit=Orbit(yaw_deg=y)), req, 90, seats=seats)
-            for y in yaws]
+    seats = tuple(DriveState() for _ in scene.shapes)
+    return [FrameJob(seats, View(orbit=Orbit(yaw_deg=y)), req, 90) for y in yaws]
+
+
+def _on(scheduler: RenderScheduler, scene: Scene, views: int) -> Scene:
+    """The server's scene (its frame maker, its setting's batches) on another scheduler."""
+    from server.stream.workers import LocalWorkers
+
+    workers = LocalWorkers(scheduler, "cpu", views)
+    return Scene(f"{scene.id}:test", scene.shapes, workers, frames=scene.frames,
+                 batch_views=workers.views_per_batch)
 
 
 def test_room_views_are_batched_and_equal_separate_renders(srv):
@@ -138,29 +146,31 @@ def test_room_views_are_batched_and_equal_separate_renders(srv):
 
     async def open_room():
         async with join(srv, room["id"], srv.token):
-            return live(srv, room["id"]).frames
+            return live(srv, room["id"]).scene
 
-    frames = asyncio.run(open_room())  # the server's own RoomFrames, setting applied
-    assert frames._batches is not None and frames._batches.max_views == 8
+    server_scene = asyncio.run(open_room())  # the server's own scene, setting applied
+    assert server_scene.batches is not None and server_scene.batches.max_views == 8
     yaws = (-50.0, -20.0, 0.0, 15.0, 40.0)
-    c = frames.counters
+    c = server_scene.frames.counters
     renders, batched = c.renders, c.batched
     with blocked_scheduler() as (scheduler, gate):
-        futs = [frames.submit(scheduler, job) for job in _jobs(frames, yaws)]
+        scene = _on(scheduler, server_scene, 8)
+        futs = [scene.submit(job) for job in _jobs(scene, yaws)]
         gate.set()
         got = [f.result(TIMEOUT_S) for f in futs]
-    # one rasterizer call for the five views (the performer's own frame may render too)
-    assert frames._batches.counters.largest == len(yaws) and c.batched - batched == len(yaws)
+    # one render_views call for the five views (the performer's own frame may render too)
+    assert scene.batches.counters.largest == len(yaws) and c.batched - batched == len(yaws)
     assert c.renders - renders <= 2
 
-    alone = RoomFrames(frames.posers, "alone", "cpu", max_frames=16, batch_max_views=1)
-    assert alone._batches is None
     scheduler = RenderScheduler(render_threads=1)
     try:
-        want = [alone.submit(scheduler, job).result(TIMEOUT_S) for job in _jobs(alone, yaws)]
+        alone = _on(scheduler, server_scene, 1)
+        assert alone.batches is None
+        renders = c.renders
+        want = [alone.submit(job).result(TIMEOUT_S) for job in _jobs(alone, yaws)]
     finally:
         scheduler.shutdown()
-    assert alone.counters.renders == len(yaws)
+    assert c.renders - renders == len(yaws)
     for a, b in zip(got, want, strict=True):
         assert (a.codec, a.width, a.height) == (b.codec, b.width, b.height)
         assert a.data == b.data and a.depth == b.depth  # the same pixels, the same bytes
@@ -171,21 +181,23 @@ def test_batched_raw_views_come_back_unencoded(srv):
     """A WebRTC peer asks for the RGB array (its track encodes it): in a batch too."""
     import dataclasses
 
-    from server.rooms.frames import RAW_CODEC
+    from server.stream.scene import RAW_CODEC
 
     room = create_room(srv)
 
     async def open_room():
         async with join(srv, room["id"], srv.token):
-            return live(srv, room["id"]).frames
+            return live(srv, room["id"]).scene
 
-    frames = asyncio.run(open_room())
-    jobs = [dataclasses.replace(job, raw=True) for job in _jobs(frames, (-30.0, 0.0, 30.0))]
+    server_scene = asyncio.run(open_room())
+    jobs = [dataclasses.replace(job, raw=True)
+            for job in _jobs(server_scene, (-30.0, 0.0, 30.0))]
     with blocked_scheduler() as (scheduler, gate):
-        futs = [frames.submit(scheduler, job) for job in jobs]
+        scene = _on(scheduler, server_scene, 8)
+        futs = [scene.submit(job) for job in jobs]
         gate.set()
         got = [f.result(TIMEOUT_S) for f in futs]
-    assert frames._batches.counters.largest == len(jobs)
+    assert scene.batches.counters.largest == len(jobs)
     assert all(f.codec == RAW_CODEC and f.data == b"" for f in got)
     assert all(f.rgb is not None and f.rgb.shape == (SIZE, SIZE, 3) for f in got)
     assert len({f.rgb.tobytes() for f in got}) == len(jobs)  # distinct views
@@ -205,14 +217,14 @@ def test_viewers_of_distinct_views_stream_with_batching_on(srv):
 
     got = asyncio.run(run())
     assert all(f.width == SIZE and f.data for f in got)
-    c = live(srv, room["id"]).frames.counters
+    c = live(srv, room["id"]).scene.counters
     # a render may still be under way when the counters are read (a newer view's), so each
     # count is only known to have started
     assert c.renders >= 1 and c.encodes >= 1
 
 
 def test_render_device_and_one_upload_per_state():
-    from server.view_batch import DeviceCopies, render_device
+    from server.stream.batching import DeviceCopies, render_device
 
     assert render_device("cpu") is None and render_device("torch") is None
     assert render_device("gsplat") == torch.device("cuda")

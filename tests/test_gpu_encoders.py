@@ -11,8 +11,8 @@ import pytest
 import torch
 
 from avatar_core.render.types import to_uint8
-from server import encoders as enc
-from server.encoders import (
+from server.stream import encoders as enc
+from server.stream.encoders import (
     EncodeError,
     EncoderChoice,
     H264Decoder,
@@ -113,7 +113,7 @@ def test_nvjpeg_encodes_a_cuda_frame():  # pragma: no cover (needs CUDA)
     pytest.importorskip("torchvision", reason="torchvision not installed (the cuda extra)")
     assert enc.probe_nvjpeg()
     rgb = _smooth(48, 64, "cuda")
-    img = enc._encode_jpeg_gpu((rgb * 255).round().byte(), 90)
+    img = enc.images._encode_jpeg_gpu((rgb * 255).round().byte(), 90)
     back = cv2.imdecode(np.frombuffer(img, np.uint8), cv2.IMREAD_COLOR)[..., ::-1]
     assert back.shape == (48, 64, 3)
     assert np.abs(back.astype(int) - to_uint8(rgb).astype(int)).mean() < 3

@@ -43,7 +43,7 @@ def mouth_box(server) -> tuple[int, int, int, int]:  # noqa: F811
     the head joint's height down to below the chin, a mouth's width either side of the jaw."""
     from avatar_core.render.camera_path import framing_target
     from protocol import Orbit, View
-    from server.renderer import view_camera
+    from server.stream.scene import view_camera
 
     model = server.ctx.registry.open("demo").animator.body_model
     joints = model.joint_template.cpu().numpy().astype(np.float64)

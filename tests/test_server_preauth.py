@@ -19,7 +19,7 @@ import websockets
 
 from client.stream import StreamClient
 from protocol import Hello, Ping, encode
-from server.handshake import (
+from server.stream.gate import (
     CLOSE_BUSY,
     CLOSE_HELLO_TIMEOUT,
     CLOSE_TOO_LARGE,
@@ -298,7 +298,7 @@ def test_tokens_issued_while_running_work_without_a_restart(srv):
 
 
 def test_the_byte_budget_delays_instead_of_dropping():
-    from server.inbound import ByteBudget
+    from server.stream.inbound import ByteBudget
 
     budget = ByteBudget(rate=1.0, burst=100.0)  # 1 byte/s: refills are negligible here
     assert budget.reserve(100) == 0.0  # the burst
@@ -329,7 +329,7 @@ def test_stream_tickets_are_single_use_and_capped(srv):
 
 def test_an_expired_ticket_is_refused():
     from server.auth import Principal
-    from server.tickets import TicketBook
+    from server.stream.tickets import TicketBook
 
     who = Principal("tess", frozenset({"stream"}))
     assert TicketBook(ttl_s=0.0, max_per_subject=4).redeem(

@@ -15,9 +15,9 @@ import pytest
 import websockets
 
 from protocol import Drive, Hello, Image, Orbit, Ping, Request, View, encode
-from server.drive import DriveState, fit_drive
-from server.renderer import view_camera
-from server.rooms import frames as room_frames
+from server.stream import scene as room_frames
+from server.stream.drive import DriveState, fit_drive
+from server.stream.scene import view_camera
 from tests.server_fixtures import (
     WS_TIMEOUT_S,
     is_type,
@@ -123,7 +123,7 @@ def mouth_box(srv, view: View, width: int, height: int, angle: float) -> tuple[i
 
 
 def live_shapes(model, manos):
-    from server.drive import drive_shapes
+    from server.stream.drive import drive_shapes
 
     return drive_shapes(model, manos)
 
@@ -323,7 +323,7 @@ def test_seats_render_in_one_call_and_the_front_avatar_occludes(srv, monkeypatch
     # Where they overlap the front avatar wins: its depth, ~0.6 m nearer than the back one.
     assert np.median(np.abs(d_both[overlap] - d_front[overlap])) < 20  # mm
     assert np.median(d_back[overlap] - d_both[overlap]) > 400
-    seats = live(srv, both["id"]).frames.counters
+    seats = live(srv, both["id"]).scene.counters
     assert seats.renders >= 1 and seats.poses >= 2
 
 
@@ -362,7 +362,7 @@ def test_viewers_at_one_view_share_posing_rendering_and_encoding(srv):
                        for _ in range(viewers_n)]
             for ws in (performer, *viewers):
                 await recv_until(ws, is_type("frame"))
-            counters = live(srv, room["id"]).frames.counters
+            counters = live(srv, room["id"]).scene.counters
             before = (counters.poses, counters.renders, counters.encodes)
             sender = asyncio.create_task(_drive_for(performer, 1.5, hz=10))
             counts = await asyncio.gather(*(_count_frames(ws, 2.0) for ws in
@@ -394,7 +394,7 @@ def test_distinct_views_render_once_each_per_drive_update(srv):
                 await ws.send(encode(side))
             for ws in (performer, *viewers):
                 await recv_until(ws, is_type("frame"))
-            counters = live(srv, room["id"]).frames.counters
+            counters = live(srv, room["id"]).scene.counters
             await asyncio.sleep(0.3)  # frames of the side view settle
             poses, renders = counters.poses, counters.renders
             sender = asyncio.create_task(_drive_for(performer, 1.5, hz=10))

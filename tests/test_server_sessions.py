@@ -13,8 +13,8 @@ import pytest
 import websockets
 
 from protocol import Drive, Limits, Ping, Request, encode
-from server.drive import DriveState
-from server.scheduler import RenderScheduler
+from server.stream.drive import DriveState
+from server.stream.scheduler import RenderScheduler
 from tests.server_fixtures import is_type, recv_msg, recv_until, run_server, stream, wait_until
 
 MAX_SESSIONS = 3
@@ -360,25 +360,25 @@ def test_the_scheduler_cancels_queued_jobs_on_shutdown():
         sched.submit(time.monotonic)
 
 
-def test_a_session_that_never_runs_closes_its_renderer(tmp_path, monkeypatch):
-    """A renderer made for a session that then fails to start (here its tracker cannot be
-    made) is closed at once: with render workers it holds a scene on one of them."""
+def test_a_session_that_never_runs_closes_its_scene(tmp_path, monkeypatch):
+    """The scene opened for a plain session that then fails to start (here its tracker
+    cannot be made) is closed at once: with render workers it holds a scene on one of them."""
     with run_server(tmp_path, startup_room=False) as server:
         ctx = server.ctx
         made, closed = [], []
-        real = ctx.render.session_renderer
+        real = ctx.render.open_scene
 
-        async def watched(ctx_, record):
-            renderer = await real(ctx_, record)
-            close = renderer.close
-            renderer.close = lambda: (closed.append(renderer), close())
-            made.append(renderer)
-            return renderer
+        async def watched(ctx_, room, kind):
+            scene = await real(ctx_, room, kind)
+            close = scene.close
+            scene.close = lambda: (closed.append(scene), close())
+            made.append(scene)
+            return scene
 
         def no_tracker(avatar_id):
             raise RuntimeError("tracker unavailable")
 
-        monkeypatch.setattr(ctx.render, "session_renderer", watched)
+        monkeypatch.setattr(ctx.render, "open_scene", watched)
         monkeypatch.setattr(ctx, "session_tracker", no_tracker)
 
         async def run():

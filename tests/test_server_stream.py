@@ -10,7 +10,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from protocol import Drive, Image, Orbit, Ping, ProtocolError, Request, View, decode_client, encode
-from server.encoders import H264Decoder, decode_depth_png
+from server.stream.encoders import H264Decoder, decode_depth_png
 from tests.server_fixtures import (
     is_type,
     recv_until,

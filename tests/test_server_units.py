@@ -17,8 +17,8 @@ from protocol import Drive, ProtocolError
 from server.auth import Principal, TokenStore
 from server.config import Settings, load_settings
 from server.dependencies import StreamPrincipal, require_scope
-from server.drive import DriveState, fit_drive
-from server.encoders import (
+from server.stream.drive import DriveState, fit_drive
+from server.stream.encoders import (
     H264Decoder,
     H264Encoder,
     decode_depth_png,
@@ -26,7 +26,7 @@ from server.encoders import (
     encode_jpeg,
     encode_png,
 )
-from server.session import TokenBucket
+from server.stream.session import TokenBucket
 
 IMG = np.zeros((48, 64, 3), np.uint8)  # [H, W, 3]
 IMG[10:30, 20:50] = (200, 120, 40)

@@ -1,6 +1,6 @@
-"""Where frames are made (``render_backend``): ``backend`` is the seam the stream and room
-code goes through (local: this process's render threads; ray: render-worker actors), ``pool``
-the gateway's render workers on a Ray cluster (placement by load, failover), ``worker`` the
-actor, ``gateway`` a room's and a plain session's side of a scene on a worker, ``notices``
-what participants are told when their worker is lost, ``routes`` the placement endpoint.
+"""Frames made on a Ray cluster (``render_backend = "ray"``), built on server/stream/:
+``backend`` is :class:`RayWorkers`, the stream's FrameWorkers for render-worker actors,
+``pool`` the gateway's render workers (placement by load, fair share, failover), ``worker``
+the actor (the stream's SceneFrames), ``notices`` what participants are told when their
+worker is lost, ``routes`` the placement endpoint.
 """

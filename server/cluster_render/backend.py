@@ -1,73 +1,42 @@
-"""Where sessions and rooms render (``render_backend``): the seam the stream and room code
-goes through.
+"""Frames made on Ray render workers (``render_backend = "ray"``): :class:`RayWorkers`, the
+:class:`~server.stream.workers.FrameWorkers` of a gateway whose scenes live on render-worker
+actors (server/cluster_render/pool.py). The gateway keeps every scene's state (seats, drive
+states, sharing between participants) and relays the frames; a worker poses, renders and
+encodes them with the stream's own :class:`~server.stream.scene.SceneFrames`.
 
-``local``: this process's render threads (server/scheduler.py), exactly the code path of a
-server without a cluster. ``ray``: render-worker actors on a Ray cluster; this server is the
-gateway that keeps every session's and room's state and relays the frames
-(server/cluster_render/pool.py). A backend gives a plain session its renderer and a room its
-frame work; both hand frames to the sessions as concurrent futures.
+Fair share: a scene's render time (the worker's own timings) is accounted per scene with the
+same time-based policy as the local render threads, pacing a scene that takes more than its
+share of its worker. The serving order cannot apply here: an actor runs its calls first in
+first out, so the scene with the least recent render time cannot be served first.
 """
 
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import shutil
 import tempfile
+from collections.abc import Hashable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from ..registry import AvatarRecord
-from ..renderer import SessionRenderer
-from ..rooms.frames import RoomFrames, SeatPoser
-from ..rooms.registry import Placement, Room
+from ..rooms.registry import Placement
+from ..stream.scene import FrameJob, Scene
 
 if TYPE_CHECKING:
     from ..context import ServerContext
     from .pool import RenderPool
 
 
-class LocalRenderBackend:
-    """Today's path: a session renders on the render threads, a room's posers live here."""
-
-    name = "local"
-
-    async def start(self) -> None:
-        """Nothing to start: the render threads start at the first frame."""
-
-    async def stop(self) -> None:
-        """Nothing to stop: the app shuts the render scheduler down."""
-
-    async def session_renderer(self, ctx: ServerContext, record: AvatarRecord
-                               ) -> SessionRenderer:
-        animator, manos = await asyncio.to_thread(ctx.session_models, record.id)
-        return SessionRenderer(animator, manos, backend=ctx.settings.backend)
-
-    async def room_frames(self, ctx: ServerContext, room: Room) -> RoomFrames:
-        posers = []
-        for spec in room.seats:
-            animator, manos = await asyncio.to_thread(ctx.session_models, spec.avatar)
-            posers.append(SeatPoser(animator, manos, spec.placement))
-        s = ctx.settings
-        return RoomFrames(posers, f"room:{room.id}", s.backend,
-                          max_frames=s.max_participants_per_room,
-                          batch_max_views=s.render_batch_views)
-
-    def observe(self, metrics) -> None:
-        """No render workers here."""
-
-    def placement(self, ctx: ServerContext) -> dict[str, Any]:
-        s = ctx.settings
-        return {"backend": "local", "render_threads": s.render_threads,
-                "torch_threads": s.torch_threads, "render_queue": ctx.scheduler.queued}
-
-
-class RayRenderBackend:
+class RayWorkers:
     """Render-worker actors (render_actors of them); this server is the gateway."""
 
     name = "ray"
 
-    def __init__(self, pool: RenderPool) -> None:
+    def __init__(self, pool: RenderPool, max_frames: int) -> None:
         self.pool = pool
+        self.max_frames = max_frames
 
     async def start(self) -> None:
         await self.pool.start()
@@ -75,33 +44,44 @@ class RayRenderBackend:
     async def stop(self) -> None:
         await self.pool.stop()
 
-    async def session_renderer(self, ctx: ServerContext, record: AvatarRecord):
-        from .gateway import RaySessionRenderer, new_session_scene_id
-
-        seat = await self._seat(ctx, record, Placement())
-        scene = self.pool.scene(new_session_scene_id(), (seat,), audience=tuple,
-                                kind="session")
-        try:
-            await self.pool.open(scene)
-        except BaseException:
-            self.pool.close(scene)
-            raise
-        return RaySessionRenderer(self.pool, scene, await self._shapes(ctx, record.id))
-
-    async def room_frames(self, ctx: ServerContext, room: Room) -> RoomFrames:
-        from .gateway import RayRoomFrames
-
+    async def open_scene(self, ctx: ServerContext, room: Any, kind: str) -> Scene:
+        """The room's scene on a worker (a broken package fails here, at the join)."""
         seats = tuple([await self._seat(ctx, ctx.registry.get(spec.avatar), spec.placement)
                        for spec in room.seats])
 
         def audience() -> list:
             return [] if room.live is None else list(room.live.participants)
 
-        scene = self.pool.scene(f"room:{room.id}", seats, audience, kind="room")
-        await self.pool.open(scene)
+        scene_id = f"{kind}:{room.id}"
+        remote = self.pool.scene(scene_id, seats, audience, kind=kind)
+        try:
+            await self.pool.open(remote)
+        except BaseException:
+            self.pool.close(remote)
+            raise
         shapes = [await self._shapes(ctx, spec.avatar) for spec in room.seats]
-        return RayRoomFrames(self.pool, scene, shapes, f"room:{room.id}",
-                             ctx.settings.backend, ctx.settings.max_participants_per_room)
+        scene = Scene(scene_id, shapes, self, max_frames=self.max_frames, kind=kind)
+        scene.remote = remote
+        return scene
+
+    def run(self, scene: Scene, job: FrameJob) -> concurrent.futures.Future:
+        return self.pool.submit(scene.remote, job)
+
+    def pace_s(self, share_key: Hashable) -> float:
+        return self.pool.pace_s(share_key)
+
+    def stalled(self, share_key: Hashable) -> None:
+        self.pool.call_soon(self.pool.stalled, share_key)
+
+    def forget(self, share_key: Hashable) -> None:
+        self.pool.call_soon(self.pool.forget, share_key)
+
+    def release(self, scene: Scene, participant: Hashable) -> None:
+        self.pool.call_soon(self.pool.release, scene.remote, participant)
+
+    def close(self, scene: Scene) -> None:
+        """The scene is gone: freed on its worker (on the gateway's loop)."""
+        self.pool.call_soon(self.pool.close, scene.remote)
 
     def placement(self, ctx: ServerContext) -> dict[str, Any]:
         return self.pool.placement()
@@ -116,7 +96,7 @@ class RayRenderBackend:
     async def _shapes(self, ctx: ServerContext, avatar_id: str) -> dict:
         """The parameter shapes drives are checked against here, before any frame is asked
         (the gateway loads the avatar once, shared; it never poses it)."""
-        from ..drive import drive_shapes
+        from ..stream.drive import drive_shapes
 
         animator, manos = await asyncio.to_thread(ctx.session_models, avatar_id)
         return drive_shapes(animator.body_model, manos)
@@ -152,14 +132,17 @@ def shared_package(ctx: ServerContext, record: AvatarRecord) -> Path:
     return target
 
 
-def make_render_backend(settings, registry) -> LocalRenderBackend | RayRenderBackend:
+def make_frame_workers(settings, registry, scheduler):
+    """The FrameWorkers of ``render_backend``: the local render threads, or Ray's workers."""
     if settings.render_backend == "local":
-        return LocalRenderBackend()
+        from ..stream.workers import LocalWorkers
+
+        return LocalWorkers(scheduler, settings.backend, settings.render_batch_views)
     from .pool import RenderPool
     from .worker import WorkerConfig
 
     config = WorkerConfig(
         backend=settings.backend, threads=max(1, round(settings.render_actor_num_cpus)),
         max_package_bytes=registry.max_package_bytes, npz_limits=registry.npz_limits,
-        ranges=registry.ranges, max_h264_per_scene=settings.max_participants_per_room)
-    return RayRenderBackend(RenderPool(settings, config))
+        ranges=registry.ranges, max_streams_per_scene=settings.max_participants_per_room)
+    return RayWorkers(RenderPool(settings, config), settings.max_participants_per_room)

@@ -3,12 +3,11 @@ scene moves to another worker; frames follow), or, when none is left, an error a
 
 from __future__ import annotations
 
-import contextlib
 from typing import Any
 
-from protocol import Error, encode
+from protocol import Error
 
-from ..handshake import CLOSE_BUSY
+from ..stream.gate import CLOSE_BUSY
 
 
 def reconnecting(worker: str) -> Error:
@@ -19,6 +18,4 @@ def reconnecting(worker: str) -> Error:
 
 async def close_unavailable(session: Any, message: str) -> None:
     """Tell a session no worker can render it, then close it (1013: try again later)."""
-    with contextlib.suppress(Exception):  # the client may be gone already
-        await session._send(encode(Error(code="internal", message=message)))
-        await session.ws.close(CLOSE_BUSY, message[:120])
+    await session.close_with("internal", message, CLOSE_BUSY)

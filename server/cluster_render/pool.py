@@ -14,7 +14,10 @@ frame, so only the frames in flight are lost. If no worker is ready within
 ``render_actor_restart_s``, the scene's participants get an ``error`` saying so and are
 closed (1013, try again later).
 
-All state here is touched on the gateway's event loop only; frames are handed to the
+Fair share: each scene's frames are accounted with their workers' own timings, and a scene
+that takes more than its share is paced (:meth:`RenderPool.pace_s`), as on the local render
+threads (``fair_share = "time"``; ``"frames"`` paces nothing). All state here is touched on
+the gateway's event loop only; frames are handed to the
 sessions as concurrent futures (``asyncio.run_coroutine_threadsafe``), as the local render
 threads do.
 """
@@ -30,7 +33,8 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
-from ..rooms.frames import RoomFrame, RoomFrameJob
+from ..stream.scene import Frame, FrameJob
+from ..stream.scheduler import FairShare
 from .worker import RenderWorker, SeatSource, WorkerConfig
 
 log = logging.getLogger(__name__)
@@ -59,13 +63,15 @@ class Worker:
     scenes: set[str] = field(default_factory=set)
     gone: asyncio.Event = field(default_factory=asyncio.Event)
 
-    def load(self, scenes: dict[str, Scene], now: float) -> tuple[int, float]:
+    def load(self, scenes: dict[str, RemoteScene], now: float) -> tuple[int, float]:
         active = sum(now - scenes[s].used < ACTIVE_S for s in self.scenes if s in scenes)
         return active, self.frame_ms
 
 
 @dataclass(eq=False)
-class Scene:
+class RemoteScene:
+    """A scene as the pool places it: its seats, who hears its notices, its worker."""
+
     id: str
     seats: tuple[SeatSource, ...]
     audience: Callable[[], Iterable[Any]]  # the sessions that get its notices
@@ -81,7 +87,8 @@ class RenderPool:
         self.config = config
         self.prefix = f"render-{uuid.uuid4().hex[:6]}"  # actor names: unique per gateway
         self.workers: list[Worker] = []
-        self.scenes: dict[str, Scene] = {}
+        self.scenes: dict[str, RemoteScene] = {}
+        self.share = FairShare(settings.fair_share_window_s, max(1, settings.render_actors))
         self.lost = 0          # workers lost since start-up (metrics, tests)
         self.replaced = 0
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -187,25 +194,26 @@ class RenderPool:
     # -- scenes -----------------------------------------------------------------------------
 
     def scene(self, scene_id: str, seats: tuple[SeatSource, ...],
-              audience: Callable[[], Iterable[Any]], kind: str) -> Scene:
+              audience: Callable[[], Iterable[Any]], kind: str) -> RemoteScene:
         scene = self.scenes.get(scene_id)
         if scene is None or scene.seats != seats:
-            scene = self.scenes[scene_id] = Scene(scene_id, seats, audience, kind)
+            scene = self.scenes[scene_id] = RemoteScene(scene_id, seats, audience, kind)
         scene.audience = audience
         return scene
 
-    async def open(self, scene: Scene) -> None:
+    async def open(self, scene: RemoteScene) -> None:
         """Place the scene and load its avatars on its worker now (a broken package fails
         here, at the join, with the package's own error)."""
         await self._on_worker(scene, lambda w: w.handle.open.remote(scene.id, scene.seats))
 
-    def close(self, scene: Scene) -> None:
-        """The scene is gone (its session ended): its worker frees it."""
+    def close(self, scene: RemoteScene) -> None:
+        """The scene is gone (its room closed, its session ended): its worker frees it."""
+        self.share.forget(scene.id)
         if self.scenes.get(scene.id) is scene:
             del self.scenes[scene.id]
         self._unplace(scene, close=True)
 
-    def _unplace(self, scene: Scene, close: bool) -> None:
+    def _unplace(self, scene: RemoteScene, close: bool) -> None:
         worker, scene.worker = scene.worker, None
         if worker is None:
             return
@@ -215,26 +223,45 @@ class RenderPool:
 
     # -- frames -----------------------------------------------------------------------------
 
-    def submit(self, scene: Scene, job: RoomFrameJob, owner: int | None,
-               last_codec: str | None) -> concurrent.futures.Future:
+    def submit(self, scene: RemoteScene, job: FrameJob) -> concurrent.futures.Future:
         """The frame of ``job``, made on the scene's worker (from any thread)."""
-        return asyncio.run_coroutine_threadsafe(self.frame(scene, job, owner, last_codec),
-                                                self._loop)
+        return asyncio.run_coroutine_threadsafe(self.frame(scene, job), self._loop)
 
-    async def frame(self, scene: Scene, job: RoomFrameJob, owner: int | None,
-                    last_codec: str | None) -> RoomFrame:
+    async def frame(self, scene: RemoteScene, job: FrameJob) -> Frame:
         scene.used = time.monotonic()
+        self.share.seen(scene.id, scene.used)
         self.scenes.setdefault(scene.id, scene)  # back after the idle sweep
         worker, frame = await self._on_worker(scene, lambda w: w.handle.render.remote(
-            scene.id, scene.seats, job, owner, last_codec))
+            scene.id, scene.seats, job))
         t = frame.timings
         took = t.pose + t.render + t.encode
+        self.share.add(scene.id, took / 1e3, time.monotonic())
         worker.frame_ms = (took if worker.frames == 0 else
                            FRAME_MS_DECAY * worker.frame_ms + (1 - FRAME_MS_DECAY) * took)
         worker.frames += 1
         return frame
 
-    async def _on_worker(self, scene: Scene, call: Callable[[Worker], Any]) -> tuple[Worker, Any]:
+    def release(self, scene: RemoteScene, participant: Any) -> None:
+        """What a participant's frames kept on the scene's worker (stateful encoders) goes."""
+        worker = scene.worker
+        if worker is not None and worker.state == "ready":
+            worker.handle.release.remote(scene.id, participant)  # fire and forget
+
+    # -- fair share ---------------------------------------------------------------------------
+
+    def pace_s(self, key: str) -> float:
+        if self.settings.fair_share != "time":
+            return 0.0
+        return self.share.wait_s(key, time.monotonic())
+
+    def stalled(self, key: str) -> None:
+        self.share.stalled(key)
+
+    def forget(self, key: str) -> None:
+        self.share.forget(key)
+
+    async def _on_worker(self, scene: RemoteScene, call: Callable[[Worker], Any]
+                         ) -> tuple[Worker, Any]:
         """``call(worker)``'s result from the scene's worker; a worker lost meanwhile: the
         call goes to another (within render_actor_restart_s of the loss)."""
         import ray
@@ -254,7 +281,7 @@ class RenderPool:
     def _deadline(self) -> float:
         return time.monotonic() + self.settings.render_actor_restart_s
 
-    async def _placed(self, scene: Scene, deadline: float) -> Worker:
+    async def _placed(self, scene: RemoteScene, deadline: float) -> Worker:
         """The scene's worker, placing it on the least loaded ready one (waiting for one
         until ``deadline``); RenderUnavailable when none came."""
         if self._stopped:
@@ -304,7 +331,7 @@ class RenderPool:
                 session.send_control(reconnecting(worker.name))
         await self._notify()
 
-    def _fail(self, scene: Scene, message: str) -> None:
+    def _fail(self, scene: RemoteScene, message: str) -> None:
         """No worker for the scene: its participants are told and closed (once)."""
         from .notices import close_unavailable
 

@@ -5,7 +5,8 @@ A scene is a room or a plain session (a one-seat scene). The gateway sends every
 the scene's seats (avatar, package folder on storage this worker reaches, placement), so a
 worker that never saw the scene, or a fresh one after a failover, opens it on the spot. The
 drive state travels with each frame: nothing here outlives a frame but caches (loaded
-avatars, posed seats) and the H.264 encoders, which are stateful per client.
+avatars, posed seats) and the encoders' per-participant state. A scene's frames are made by the
+stream's own :class:`~server.stream.scene.SceneFrames`, as on the local render threads.
 
 Nothing here imports ray: the pool wraps the class with ``ray.remote`` (server/cluster_render/
 pool.py), so the class is also usable, and testable, in-process.
@@ -24,10 +25,10 @@ from avatar_core.gaussians.animate import AvatarAnimator
 from avatar_core.gaussians.loading import LoadedAvatar, load_avatar, mano_models
 from avatar_core.gaussians.validate import GaussianRanges
 
-from ..renderer import H264Stream
-from ..rooms.frames import RoomFrame, RoomFrameJob, RoomFrames, SeatPoser
 from ..rooms.registry import Placement
-from ..scheduler import limit_threads
+from ..stream.encoders import FrameEncoders
+from ..stream.scene import Frame, FrameJob, SceneFrames, SeatPoser
+from ..stream.scheduler import limit_threads
 
 LOADED_AVATARS = 8  # avatars kept loaded per worker (least recently used goes first)
 
@@ -49,35 +50,15 @@ class WorkerConfig:
     max_package_bytes: int
     npz_limits: NpzLimits | None
     ranges: GaussianRanges | None
-    max_h264_per_scene: int          # H.264 streams kept per scene (max_participants_per_room)
+    max_streams_per_scene: int       # stateful encoder streams kept per scene
 
 
-class WorkerScene(RoomFrames):
-    """A scene's frame work on a worker: the room's own code (one rasterize for all seats),
-    called directly: the gateway already shares frames between participants."""
+@dataclass
+class WorkerScene:
+    """A scene's frame maker on this worker, and the seats it was made for."""
 
-    def __init__(self, posers: list[SeatPoser], seats: tuple[SeatSource, ...],
-                 config: WorkerConfig) -> None:
-        super().__init__(posers, share_key=None, backend=config.backend,
-                         max_frames=config.max_h264_per_scene)
-        self.seats = seats
-        self.max_streams = config.max_h264_per_scene
-        self.h264: collections.OrderedDict[int, H264Stream] = collections.OrderedDict()
-
-    def make(self, job: RoomFrameJob, owner: int | None, last_codec: str | None) -> RoomFrame:
-        return self._render(job, None if owner is None else self._stream(owner), last_codec)
-
-    def _stream(self, owner: int) -> H264Stream:
-        stream = self.h264.pop(owner, None) or H264Stream()
-        self.h264[owner] = stream  # most recently used last
-        while len(self.h264) > self.max_streams:
-            self.h264.popitem(last=False)[1].close()
-        return stream
-
-    def close(self) -> None:
-        for stream in self.h264.values():
-            stream.close()
-        self.h264.clear()
+    seats: tuple[SeatSource, ...]
+    frames: SceneFrames
 
 
 class RenderWorker:
@@ -103,19 +84,24 @@ class RenderWorker:
         """Load the scene's avatars now (a broken package fails the join, not a frame)."""
         self._scene(scene_id, seats)
 
-    def render(self, scene_id: str, seats: tuple[SeatSource, ...], job: RoomFrameJob,
-               owner: int | None, last_codec: str | None) -> RoomFrame:
+    def render(self, scene_id: str, seats: tuple[SeatSource, ...], job: FrameJob) -> Frame:
         started = time.perf_counter()
         try:
-            return self._scene(scene_id, seats).make(job, owner, last_codec)
+            return self._scene(scene_id, seats).frames.make_one(job)
         finally:
             self.frames += 1
             self.busy_s += time.perf_counter() - started
 
+    def release(self, scene_id: str, participant: object) -> None:
+        """A participant left: its encoders' state goes."""
+        scene = self._scenes.get(scene_id)
+        if scene is not None:
+            scene.frames.release(participant)
+
     def close(self, scene_id: str) -> None:
         scene = self._scenes.pop(scene_id, None)
         if scene is not None:
-            scene.close()
+            scene.frames.close()
 
     def stats(self) -> dict:
         return {"scenes": len(self._scenes), "frames": self.frames, "busy_s": self.busy_s,
@@ -127,9 +113,11 @@ class RenderWorker:
         scene = self._scenes.get(scene_id)
         if scene is None or scene.seats != seats:
             if scene is not None:
-                scene.close()
+                scene.frames.close()
             posers = [SeatPoser(*self._animator(seat), seat.placement) for seat in seats]
-            scene = self._scenes[scene_id] = WorkerScene(posers, seats, self.config)
+            encoders = FrameEncoders(max_streams=self.config.max_streams_per_scene)
+            frames = SceneFrames(posers, self.config.backend, encoders)
+            scene = self._scenes[scene_id] = WorkerScene(seats, frames)
         return scene
 
     def _animator(self, seat: SeatSource) -> tuple[AvatarAnimator, dict]:

@@ -23,7 +23,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from ..scheduler import limit_threads
+from ..stream.scheduler import limit_threads
 from .store import JobStore, SQLiteJobStore
 
 EXIT_OK, EXIT_FAILED, EXIT_CANCELLED, EXIT_INTERRUPTED = 0, 1, 3, 4

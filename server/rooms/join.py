@@ -1,7 +1,9 @@
-"""``/v1/stream?room=ID``: authenticate, pick the role and seat, admit, then run a participant.
+"""``/v1/stream``: authenticate, pick the room, role and seat, admit, then run a session.
 
-In a room the first message is always a ``hello`` (it carries the role and seat), also when
-the token came in the ``Authorization`` header or a ticket stood in for it. The token is the
+``?avatar=ID`` (or nothing: the demo) is a plain session: a private room of one seat, made for
+it and gone when it ends, which it performs. ``?room=ID`` joins that room. In a room the first
+message is always a ``hello`` (it carries the role and seat), also when the token came in the
+``Authorization`` header or a ticket stood in for it. The token is the
 room owner's (or an admin's) bearer token, which may take any role and seat, or an invitation
 token (``tsr_...``) of this room, which takes its scope (a perform invitation: its seat only).
 Refusals: ``unauthorized`` 4401 (bad, expired or revoked token), ``forbidden`` 4403 (wrong
@@ -12,18 +14,18 @@ scope, another room's invitation, a seat taken), ``not_found`` 4404 (no such roo
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
+import time
 import uuid
-from collections.abc import Callable
 from typing import Any
 
 from fastapi import WebSocket
-from starlette.websockets import WebSocketDisconnect
+from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from protocol import (
     PROTOCOL_MINOR,
     AvatarInfo,
-    Hello,
     Request,
     RoomWelcome,
     View,
@@ -34,48 +36,29 @@ from protocol.messages import CODECS, Orbit
 
 from ..auth import Principal
 from ..context import ServerContext
-from ..encoders import encoders_info
-from ..handshake import (
-    CLOSE_BUSY,
+from ..registry import AvatarNotFound, AvatarRecord
+from ..stream.admission import Admitted, admit
+from ..stream.encoders import encoders_info
+from ..stream.gate import (
     CLOSE_FORBIDDEN,
     CLOSE_INTERNAL,
     CLOSE_NOT_FOUND,
     CLOSE_TOO_MANY,
     CLOSE_UNAUTHORIZED,
     Refusal,
+    authenticate,
     default_request,
     inbound_limits,
-    lift_preauth,
-    read_credentials,
     refuse,
 )
-from ..session import SessionConfig, StreamSession
+from ..stream.session import Session, SessionConfig
+from ..stream.transport import Transport, WebSocketTransport
 from .live import CLOSE_GONE, JoinRefused, LiveRoom
-from .participant import RoomParticipant
-from .registry import Invitation, Room, RoomError, is_invitation
+from .registry import Invitation, Room, RoomError, SeatSpec
 
 log = logging.getLogger(__name__)
 
 JOIN_CLOSE_CODES = {"busy": CLOSE_TOO_MANY, "forbidden": CLOSE_FORBIDDEN, "gone": CLOSE_GONE}
-
-
-async def _credentials(ws: WebSocket, ctx: ServerContext
-                       ) -> tuple[Hello, Principal | None, Invitation | None]:
-    """The hello and who sent it: a principal (bearer token or ticket) or an invitation."""
-    credentials = await read_credentials(ws, ctx, hello=True)
-    principal, invitation, token = credentials.principal, None, credentials.token
-    if principal is None:
-        if is_invitation(token):
-            invitation = ctx.rooms.resolve(token)
-            if invitation is None:
-                raise Refusal("unauthorized", "invalid, expired or revoked invitation",
-                              CLOSE_UNAUTHORIZED)
-        else:
-            principal = ctx.tokens.principal(token)
-            if principal is None:
-                raise Refusal("unauthorized", "invalid token", CLOSE_UNAUTHORIZED)
-    lift_preauth(ws)
-    return credentials.hello, principal, invitation
 
 
 def _room(ctx: ServerContext, room_id: str) -> Room:
@@ -83,6 +66,30 @@ def _room(ctx: ServerContext, room_id: str) -> Room:
         return ctx.rooms.get(room_id)
     except RoomError:
         raise Refusal("not_found", f"no room {room_id!r}", CLOSE_NOT_FOUND) from None
+
+
+def _avatar(ctx: ServerContext, principal: Principal, avatar_id: str) -> AvatarRecord:
+    if not principal.has("stream"):
+        raise Refusal("forbidden", "this token lacks the 'stream' scope", CLOSE_FORBIDDEN)
+    try:
+        record = ctx.registry.get(avatar_id)
+    except AvatarNotFound:
+        raise Refusal("not_found", f"no avatar {avatar_id!r}", CLOSE_NOT_FOUND) from None
+    if not principal.can_see(record.owner):
+        raise Refusal("forbidden", f"avatar {avatar_id!r} belongs to another owner",
+                      CLOSE_FORBIDDEN)
+    return record
+
+
+def private_room(ctx: ServerContext, principal: Principal | None, avatar_id: str) -> Room:
+    """A plain session's room: one seat of ``avatar_id``, one participant (its owner), never
+    listed; it goes when the session ends."""
+    if principal is None:  # an invitation names a room, never an avatar
+        raise Refusal("unauthorized", "invalid token", CLOSE_UNAUTHORIZED)
+    record = _avatar(ctx, principal, avatar_id)
+    room_id = uuid.uuid4().hex[:12]
+    return Room(room_id, f"session {room_id[:6]}", principal.subject,
+                [SeatSpec(0, record.id)], time.time(), private=True)
 
 
 def choose_role(room: Room, asked_role: str | None, asked_seat: int | None,
@@ -115,55 +122,51 @@ def choose_role(room: Room, asked_role: str | None, asked_seat: int | None,
 
 
 async def open_live(ctx: ServerContext, room: Room) -> LiveRoom:
-    """The room's runtime, made at its first join: each seat's avatar loaded once (here or
-    on a render worker)."""
+    """The room's runtime, made at its first join: its scene, each seat's avatar loaded once
+    (here or on a render worker)."""
     async with room.opening:
         if room.live is None:
-            frames = await ctx.render.room_frames(ctx, room)  # render_backend's
-            room.live = LiveRoom(room, frames, ctx.settings)
+            kind = "session" if room.private else "room"
+            scene = await ctx.render.open_scene(ctx, room, kind)
+            room.live = LiveRoom(room, scene, ctx.settings)
         return room.live
 
 
-async def join_room(ws: WebSocket, ctx: ServerContext, room_id: str) -> None:
-    subject = None  # holds a per-user slot while set
-    slot = False
+async def join_stream(ws: WebSocket, ctx: ServerContext, avatar_id: str,
+                      room_id: str | None) -> None:
+    """``/v1/stream``: authenticate, pick the room (a named one, or a private one of
+    ``avatar_id``), its role and seat, admit, then run the session until it ends."""
+    admitted: Admitted | None = None
     try:
-        hello, principal, invitation = await _credentials(ws, ctx)
-        room = _room(ctx, room_id)
-        role, seat = choose_role(room, hello.role, hello.seat, principal, invitation)
-        if not ctx.slots.try_acquire():
-            raise Refusal("busy", f"server busy: {ctx.slots.limit} sessions are open; try "
-                                  "again later", CLOSE_BUSY)
-        slot = True
-        if principal is not None and not principal.is_admin:
-            if ctx.admission.sessions.try_acquire(principal.subject) is not None:
-                raise Refusal("busy", f"{principal.subject!r} has "
-                                      f"{ctx.settings.max_sessions_per_user} sessions open, the "
-                                      "most one user may have; close one first", CLOSE_TOO_MANY)
-            subject = principal.subject
-        ctx.metrics.sessions.set(ctx.slots.count)
-        ctx.metrics.sessions_total.inc()
-        await _serve(ws, ctx, room, role, seat, hello.client)
+        who = await authenticate(ws, ctx, hello=room_id is not None)
+        if room_id is None:
+            room, (role, seat) = private_room(ctx, who.principal, avatar_id), ("perform", 0)
+        else:
+            room = _room(ctx, room_id)
+            role, seat = choose_role(room, who.hello.role, who.hello.seat, who.principal,
+                                     who.invitation)
+        admitted = admit(ctx, who.principal, who.invitation)
+        client = None if who.hello is None else who.hello.client
+        session, welcome = await seat_participant(ctx, room, role, seat, client,
+                                                  WebSocketTransport(ws))
+        await serve(ctx, session, encode(welcome))
     except Refusal as refusal:
         await refuse(ws, refusal, ctx)
     except WebSocketDisconnect:
-        return  # left before joining
+        return  # left before its session ran
     finally:
-        if slot:
-            ctx.slots.release()
-            ctx.metrics.sessions.set(ctx.slots.count)
-        if subject is not None:
-            ctx.admission.sessions.release(subject)
+        if admitted is not None:
+            admitted.release()
+        if ws.application_state == WebSocketState.CONNECTED:
+            with contextlib.suppress(Exception):
+                await ws.close(1000)
 
 
 async def seat_participant(ctx: ServerContext, room: Room, role: str, seat: int,
-                           client: str | None, ws: Any, *,
-                           factory: Callable[..., RoomParticipant] = RoomParticipant,
-                           request: Request | None = None,
-                           ) -> tuple[RoomParticipant, Welcome]:
-    """A participant made and admitted to the room (Refusal otherwise), and the welcome it
-    is owed. ``ws`` is its message channel (a WebSocket, or what stands in for one);
-    ``request`` updates the default request (already checked against the limits)."""
+                           client: str | None, transport: Transport, *,
+                           request: Request | None = None) -> tuple[Session, Welcome]:
+    """A session made and admitted to the room (Refusal otherwise), and the welcome it is
+    owed. ``request`` updates the default request (already checked against the limits)."""
     s = ctx.settings
     spec = next(x for x in room.seats if x.index == seat)
     try:
@@ -172,48 +175,61 @@ async def seat_participant(ctx: ServerContext, room: Room, role: str, seat: int,
         tracker = await asyncio.to_thread(ctx.session_tracker, spec.avatar)
     except Exception as exc:  # noqa: BLE001 - a broken package must not take the server down
         log.exception("cannot open room %s", room.id)
-        raise Refusal("internal", f"cannot open room {room.id!r}: {exc}",
-                      CLOSE_INTERNAL) from None
+        if room.private and room.live is not None:
+            room.live.close("the session did not start")  # empty: its scene goes now
+        what = f"avatar {spec.avatar!r}" if room.private else f"room {room.id!r}"
+        raise Refusal("internal", f"cannot {'load' if room.private else 'open'} {what}: "
+                                  f"{exc}", CLOSE_INTERNAL) from None
     effective = default_request(ctx, record)
     if request is not None:
-        effective = StreamSession.merged_request(effective, request, s.limits)
+        effective = Session.merged_request(effective, request, s.limits)
     name = client or f"{'performer' if role == 'perform' else 'viewer'}-{uuid.uuid4().hex[:4]}"
-    participant = factory(
-        ws, live, role, seat, name, tracker=tracker, scheduler=ctx.scheduler,
+    session = Session(
+        transport, live, role=role, seat_index=seat, name=name, tracker=tracker,
         track_scheduler=ctx.track_scheduler, metrics=ctx.metrics,
         config=SessionConfig(s.limits, s.jpeg_quality, s.jpeg_quality_moving,
                              s.stats_interval_s, inbound_limits(s)),
         request=effective, view=View(orbit=Orbit()), session_count=lambda: ctx.slots.count)
     try:
-        live.join(participant)
+        live.join(session)
     except JoinRefused as exc:
-        participant.tracking.close()
+        tracker.close()
+        if room.private:
+            live.close(exc.message)
         raise Refusal(exc.code, exc.message, JOIN_CLOSE_CODES[exc.code]) from None
     try:
-        info = AvatarInfo(id=record.id, name=record.name, num_gaussians=record.num_gaussians,
-                          sh_degree=record.sh_degree, owner=record.owner,
-                          metadata=record.metadata)
-        welcome = Welcome(session=participant.id, minor=PROTOCOL_MINOR, avatar=info,
-                          limits=s.limits, codecs=list(CODECS), request=effective,
-                          encoders=encoders_info(),
-                          room=RoomWelcome(id=room.id, name=room.name, role=role,
-                                           seat=seat if role == "perform" else None))
+        welcome = _welcome(session, record, room, role, seat, effective, s)
     except Exception:
-        live.leave(participant)  # admitted, never run: out again
-        participant.tracking.close()
+        live.leave(session)  # admitted, never run: out again
+        session.release()
         raise
-    return participant, welcome
+    return session, welcome
 
 
-async def _serve(ws: WebSocket, ctx: ServerContext, room: Room, role: str, seat: int,
-                 client: str | None) -> None:
-    participant, welcome = await seat_participant(ctx, room, role, seat, client, ws)
-    live = participant.live
+def _welcome(session: Session, record: AvatarRecord, room: Room, role: str, seat: int,
+             request: Request, s: Any) -> Welcome:
+    info = AvatarInfo(id=record.id, name=record.name, num_gaussians=record.num_gaussians,
+                      sh_degree=record.sh_degree, owner=record.owner, metadata=record.metadata)
+    if room.private:  # a plain session: no room in its welcome
+        return Welcome(session=session.id, avatar=info, limits=s.limits, codecs=list(CODECS),
+                       request=request, encoders=encoders_info())
+    return Welcome(session=session.id, minor=PROTOCOL_MINOR, avatar=info, limits=s.limits,
+                   codecs=list(CODECS), request=request, encoders=encoders_info(),
+                   room=RoomWelcome(id=room.id, name=room.name, role=role,
+                                    seat=seat if role == "perform" else None))
+
+
+async def serve(ctx: ServerContext, session: Session, welcome: bytes | None = None) -> None:
+    """Send the welcome (where the transport has not) and run the session until it ends;
+    then out of its room."""
+    live = session.live
     try:
-        await ws.send_bytes(encode(welcome))
-        live.broadcast(live.presence("join", participant))
-        ctx.sessions[participant.id] = participant
-        await participant.run()
+        if welcome is not None:
+            await session.transport.send(welcome)
+        live.broadcast(live.presence("join", session))
+        ctx.sessions[session.id] = session
+        await session.run()
     finally:
-        ctx.sessions.pop(participant.id, None)
-        live.leave(participant)
+        ctx.sessions.pop(session.id, None)
+        live.leave(session)
+        session.release()

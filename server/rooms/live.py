@@ -17,12 +17,12 @@ import numpy as np
 
 from protocol import Presence, SeatPresence
 
-from ..drive import DriveState
-from .frames import RoomFrames
+from ..stream.drive import DriveState
+from ..stream.scene import Scene
 from .registry import Room, SeatSpec
 
 if TYPE_CHECKING:
-    from .participant import RoomParticipant
+    from ..stream.session import Session
 
 log = logging.getLogger(__name__)
 
@@ -35,7 +35,7 @@ CLOSE_GONE = 4410
 class Seat:
     spec: SeatSpec
     drive: DriveState = field(default_factory=DriveState)
-    performer: RoomParticipant | None = None
+    performer: Session | None = None
     holding: bool = False
     release: asyncio.Task | None = None  # hold, then ease to rest
 
@@ -51,12 +51,12 @@ class JoinRefused(Exception):
 
 
 class LiveRoom:
-    def __init__(self, room: Room, frames: RoomFrames, settings) -> None:
+    def __init__(self, room: Room, scene: Scene, settings) -> None:
         self.room = room
-        self.frames = frames
+        self.scene = scene
         self.settings = settings
         self.seats = [Seat(spec) for spec in room.seats]
-        self.participants: list[RoomParticipant] = []
+        self.participants: list[Session] = []
         self.closed = False
         self._closing: set[asyncio.Task] = set()
 
@@ -75,7 +75,7 @@ class LiveRoom:
 
     # -- joining and leaving ----------------------------------------------------------------------
 
-    def join(self, participant: RoomParticipant) -> None:
+    def join(self, participant: Session) -> None:
         if self.closed:
             raise JoinRefused("gone", f"room {self.room.id!r} was closed")
         if len(self.participants) >= self.settings.max_participants_per_room:
@@ -92,7 +92,7 @@ class LiveRoom:
         self.participants.append(participant)
         self.room.empty_since = None
 
-    def leave(self, participant: RoomParticipant) -> None:
+    def leave(self, participant: Session) -> None:
         if participant not in self.participants:
             return
         self.participants.remove(participant)
@@ -103,11 +103,14 @@ class LiveRoom:
                 self._start_release(seat)
         if not self.participants:
             self.room.empty_since = time.monotonic()
+            if self.closed or self.room.private:  # nobody comes back: the scene goes
+                self.closed = True
+                participant.after_work(self._dispose)
         self.broadcast(self.presence("leave", participant))
 
     # -- presence -------------------------------------------------------------------------------
 
-    def presence(self, event: str = "update", who: RoomParticipant | None = None) -> Presence:
+    def presence(self, event: str = "update", who: Session | None = None) -> Presence:
         seats = [SeatPresence(index=s.index, avatar=s.spec.avatar,
                               performer=None if s.performer is None else s.performer.name,
                               holding=s.holding) for s in self.seats]
@@ -117,6 +120,8 @@ class LiveRoom:
                         role=None if who is None else who.role)
 
     def broadcast(self, message: Presence) -> None:
+        if self.room.private:
+            return  # a plain session: nobody else to tell
         for p in self.participants:
             p.send_control(message)
 
@@ -162,11 +167,14 @@ class LiveRoom:
         for seat in self.seats:
             if seat.release is not None:
                 seat.release.cancel()
+        if not self.participants:
+            self._dispose()
         for p in list(self.participants):
-            task = asyncio.get_running_loop().create_task(p.close_gone(message))
+            task = asyncio.get_running_loop().create_task(
+                p.close_with("gone", message, CLOSE_GONE))
             self._closing.add(task)
             task.add_done_callback(self._closing.discard)
 
-    def forget(self, scheduler) -> None:
-        scheduler.forget(self.frames.share_key)
-
+    def _dispose(self) -> None:
+        """Closed and empty: the scene goes (here, or on its render worker)."""
+        self.scene.close()

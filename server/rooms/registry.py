@@ -17,12 +17,11 @@ import uuid
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Literal
 
-from ..auth import Principal
+from ..auth import INVITATION_PREFIX, Principal, is_invitation  # noqa: F401 - re-exported
 
 if TYPE_CHECKING:
     from .live import LiveRoom
 
-INVITATION_PREFIX = "tsr_"
 Scope = Literal["perform", "watch"]
 
 
@@ -71,6 +70,7 @@ class Room:
     seats: list[SeatSpec]
     created: float
     pinned: bool = False  # never closed for idleness (the start-up room)
+    private: bool = False  # a plain session's room of one: never listed, gone when it ends
     invitations: dict[str, Invitation] = field(default_factory=dict)
     live: LiveRoom | None = None  # the runtime while anyone is (or was recently) in it
     empty_since: float | None = None  # monotonic; None while someone is in it
@@ -183,7 +183,3 @@ class RoomRegistry:
                     if hmac.compare_digest(inv.digest, digest):
                         return inv if inv.valid(now) else None
         return None
-
-
-def is_invitation(token: str | None) -> bool:
-    return bool(token) and token.startswith(INVITATION_PREFIX)

@@ -153,11 +153,10 @@ def _owned_room(ctx: ServerContext, principal: Principal, room_id: str) -> Room:
 
 
 def close_room(ctx: ServerContext, room: Room, why: str) -> None:
-    """Out of the registry already: everyone in it is told and closed, its render account
-    forgotten (on the event loop)."""
+    """Out of the registry already: everyone in it is told and closed, and its scene goes
+    once they have left (on the event loop)."""
     if room.live is not None:
         room.live.close(why)
-        room.live.forget(ctx.scheduler)
 
 
 def sweep_idle_rooms(ctx: ServerContext) -> int:

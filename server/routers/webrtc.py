@@ -24,9 +24,10 @@ from protocol import ProtocolError, Request
 from ..auth import Principal, bearer_token
 from ..context import ServerContext
 from ..dependencies import Context
-from ..handshake import Refusal
 from ..rooms.join import choose_role
-from ..rooms.registry import Invitation, Room, RoomError, is_invitation
+from ..rooms.registry import Invitation, Room, RoomError
+from ..stream.admission import admit
+from ..stream.gate import Refusal
 from .avatars import ErrorOut
 
 router = APIRouter(prefix="/v1/rooms", tags=["webrtc"])
@@ -42,7 +43,8 @@ ERRORS: dict[int | str, dict[str, Any]] = {
     404: {"model": ErrorOut, "description": "No such room or seat"},
     413: {"model": ErrorOut, "description": "SDP larger than webrtc_max_sdp_bytes"},
     415: {"model": ErrorOut, "description": "Content-Type is not application/sdp"},
-    429: {"model": ErrorOut, "description": "webrtc_max_peers_per_user reached"},
+    429: {"model": ErrorOut, "description": "webrtc_max_peers_per_user or "
+                                            "max_sessions_per_user reached"},
     503: {"model": ErrorOut, "description": "webrtc_max_peers or max_sessions reached"},
 }
 OFFER_BODY = {"requestBody": {"required": True, "content": {SDP_TYPE: {
@@ -58,11 +60,7 @@ def _digest(token: str) -> str:
 def _credentials(ctx: ServerContext, request: HttpRequest
                  ) -> tuple[str, Principal | None, Invitation | None]:
     token = bearer_token(request.headers.get("authorization"))
-    principal = invitation = None
-    if token and is_invitation(token):
-        invitation = ctx.rooms.resolve(token)
-    elif token:
-        principal = ctx.tokens.principal(token)
+    principal, invitation = ctx.credential(token)
     if principal is None and invitation is None:
         raise HTTPException(401, "missing or invalid bearer token (a stream token or a room "
                                  "invitation)", headers={"WWW-Authenticate": "Bearer"})
@@ -142,16 +140,17 @@ async def _open(kind: Literal["whep", "whip"], room_id: str, request: HttpReques
         resource = ctx.webrtc_peers.reserve(holder, principal is not None and principal.is_admin)
     except PeerRefused as exc:
         raise HTTPException(exc.status, str(exc)) from None
-    if not ctx.slots.try_acquire():
-        ctx.webrtc_peers.release(resource)
-        raise HTTPException(503, f"server busy: {ctx.slots.limit} sessions are open "
-                                 "(max_sessions); try again later")
-    ctx.metrics.sessions.set(ctx.slots.count)
-    ctx.metrics.sessions_total.inc()
     try:
-        peer = WebRTCPeer(ctx, kind, resource, room, _digest(token))
+        admitted = admit(ctx, principal, invitation)  # the one admission of every entry
+    except Refusal as refusal:
+        ctx.webrtc_peers.release(resource)
+        raise HTTPException(REFUSAL_STATUS.get(refusal.close_code, 503),
+                            f"{refusal.message} (max_sessions / max_sessions_per_user)"
+                            ) from None
+    try:
+        peer = WebRTCPeer(ctx, kind, resource, room, _digest(token), admitted)
     except Exception:
-        ctx.slots.release()
+        admitted.release()
         ctx.webrtc_peers.release(resource)
         raise
     ctx.webrtc_peers.add(peer)

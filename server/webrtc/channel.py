@@ -1,11 +1,10 @@
-"""The data channel as the message socket of a room participant.
+"""The data channel that carries a WebRTC session's messages (server/webrtc/transport.py).
 
-A StreamSession talks to its client through ``receive`` / ``send_bytes`` / ``close`` (a
-WebSocket's); :class:`DataChannelSocket` offers the same over the peer's data channel labelled
-``telesplat``, so the participant's receiver, rate limits, decoding and control sender are the
-WebSocket path's. Messages are the WebSocket protocol's msgpack messages. The ``welcome`` goes
-first, as soon as the channel opens. A peer without a data channel still gets its video; its
-control messages wait (the participant's bounded control queue drops past its size).
+:class:`DataChannel` is the peer's data channel labelled ``telesplat``: the session's
+receiver, rate limits, decoding and control sender are the WebSocket path's. Messages are the
+WebSocket protocol's msgpack messages. The ``welcome`` goes first, as soon as the channel
+opens. A peer without a data channel still gets its video; its control messages wait (the
+session's bounded control queue drops past its size).
 
 The channel ends the session only when the peer ends (``disconnect``): a client that closes
 just its channel keeps watching.
@@ -24,13 +23,12 @@ log = logging.getLogger(__name__)
 LABEL = "telesplat"
 INBOX = 64                   # messages received, not yet read; past it new ones are dropped
 MAX_BUFFERED_BYTES = 2**20   # unsent bytes on the channel past which a message is dropped
-DISCONNECT = {"type": "websocket.disconnect", "code": 1000}
 
 
-class DataChannelSocket:
+class DataChannel:
     def __init__(self, on_close: Callable[[str], None]) -> None:
         self._on_close = on_close
-        self._inbox: asyncio.Queue[dict[str, Any]] = asyncio.Queue(INBOX)
+        self._inbox: asyncio.Queue[bytes | str | None] = asyncio.Queue(INBOX)  # None: gone
         self._ready = asyncio.Event()  # open, or disconnected
         self._channel: Any = None
         self.welcome: bytes | None = None  # set before the channel can open
@@ -63,20 +61,19 @@ class DataChannelSocket:
     def _message(self, data: bytes | str) -> None:
         if self.disconnected:
             return
-        item = ({"type": "websocket.receive", "bytes": bytes(data)}
-                if isinstance(data, (bytes, bytearray)) else
-                {"type": "websocket.receive", "text": data})
+        item = bytes(data) if isinstance(data, (bytes, bytearray)) else data
         try:
             self._inbox.put_nowait(item)
         except asyncio.QueueFull:
             self.dropped_in += 1  # the participant reads slower than the client sends
 
-    # -- what StreamSession calls ---------------------------------------------------------------
+    # -- what the session's transport calls -----------------------------------------------------
 
-    async def receive(self) -> dict[str, Any]:
+    async def receive(self) -> bytes | str | None:
+        """The next message; None once the peer is gone."""
         return await self._inbox.get()
 
-    async def send_bytes(self, data: bytes) -> None:
+    async def send(self, data: bytes) -> None:
         await self._ready.wait()
         if self.disconnected:
             raise ConnectionResetError("the WebRTC peer is closed")
@@ -88,9 +85,9 @@ class DataChannelSocket:
             return
         channel.send(data)
 
-    async def close(self, code: int = 1000, reason: str = "") -> None:
-        """The participant ends the peer (its room closed)."""
-        self._on_close(reason or f"closed ({code})")
+    def close(self, reason: str) -> None:
+        """The session ends the peer (its room closed)."""
+        self._on_close(reason)
 
     # -- the peer's side ------------------------------------------------------------------------
 
@@ -101,7 +98,7 @@ class DataChannelSocket:
         self.disconnected = True
         while not self._inbox.empty():
             self._inbox.get_nowait()
-        self._inbox.put_nowait(DISCONNECT)
+        self._inbox.put_nowait(None)
         self._ready.set()
         if self._channel is not None:
             with contextlib.suppress(Exception):

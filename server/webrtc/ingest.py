@@ -15,7 +15,7 @@ from aiortc.mediastreams import MediaStreamError
 
 from protocol.messages import MAX_SEQ
 
-from ..tracking import DecodedImage
+from ..stream.tracking import DecodedImage
 
 log = logging.getLogger(__name__)
 

@@ -1,78 +1,52 @@
-"""One WebRTC peer: an aiortc peer connection around a room participant.
+"""One WebRTC peer: an aiortc peer connection around a room's session.
 
-The participant is a :class:`PeerParticipant`: the room participant's session (latest-wins
-render loop, pacing, fair share, seat and presence) whose frames are raw RGB arrays handed to
-a :class:`~.track.LatestFrameTrack` and whose messages use the data channel. aiortc encodes
-in its own threads; rendering stays on the render scheduler. A peer ends on DELETE, when its
-room closes, when its transport fails or never connects (``webrtc_connect_timeout_s``), and
-at server shutdown; each path goes through :meth:`WebRTCPeer.close`.
+The session is the stream's own (server/stream/session.py: latest-wins render loop, pacing,
+fair share, seat and presence) composed with a :class:`~.transport.WebRTCTransport`: its
+frames are raw RGB arrays handed to a :class:`~.track.LatestFrameTrack` and its messages use
+the data channel. aiortc encodes in its own threads; rendering stays where the scene's frames
+are made. A peer ends on DELETE, when its room closes, when its transport fails or never
+connects (``webrtc_connect_timeout_s``), and at server shutdown; each path goes through
+:meth:`WebRTCPeer.close`.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import dataclasses
-import functools
 import logging
 from typing import Any
 
 from aiortc import RTCPeerConnection
 
 from protocol import Request, encode
-from protocol.stamp import stamp as stamp_frame
 
 from ..context import ServerContext
-from ..rooms.frames import RoomFrame, RoomFrameJob
-from ..rooms.join import seat_participant
-from ..rooms.participant import RoomParticipant
+from ..rooms.join import seat_participant, serve
 from ..rooms.registry import Room
-from .channel import DataChannelSocket
+from ..stream.admission import Admitted
+from ..stream.session import Session
+from .channel import DataChannel
 from .encoders import install_encoder
 from .ingest import ingest
 from .negotiate import Kind, Offer, answer, configuration
 from .track import LatestFrameTrack
+from .transport import WebRTCTransport
 
 log = logging.getLogger(__name__)
 
-CLOSE_WAIT_S = 5.0  # teardown waits this long for the participant's tasks
-
-
-class PeerParticipant(RoomParticipant):
-    """A room participant whose frames go to a video track (None: a WHIP peer that only
-    publishes, and so renders nothing)."""
-
-    def __init__(self, ws: Any, live: Any, role: str, seat_index: int, name: str, *,
-                 track: LatestFrameTrack | None, stamp: bool, **session: Any) -> None:
-        super().__init__(ws, live, role, seat_index, name, **session)
-        self.track = track
-        self.stamp = stamp
-
-    def _snapshot(self) -> RoomFrameJob:
-        return dataclasses.replace(super()._snapshot(), raw=True)
-
-    async def _render_loop(self) -> None:
-        if self.track is None:
-            await asyncio.get_running_loop().create_future()  # until the session ends
-        await super()._render_loop()
-
-    async def _deliver(self, f: RoomFrame) -> int:
-        rgb = f.rgb  # shared with the room's other raw participants: stamp a copy
-        if self.stamp:
-            rgb = stamp_frame(rgb.copy(), f.seq)
-        await self.track.deliver(rgb)
-        return 0  # the encoded size is aiortc's to know (the client's getStats has it)
+CLOSE_WAIT_S = 5.0  # teardown waits this long for the session's tasks
 
 
 class WebRTCPeer:
     def __init__(self, ctx: ServerContext, kind: Kind, resource: str, room: Room,
-                 token_digest: str) -> None:
+                 token_digest: str, admitted: Admitted) -> None:
         self.ctx, self.kind, self.resource, self.room = ctx, kind, resource, room
+        self.admitted = admitted  # its session slot, given back at teardown
         self.token_digest = token_digest  # DELETE must show the same token (or the owner's)
         self.pc = RTCPeerConnection(configuration(ctx.settings))
-        self.channel = DataChannelSocket(on_close=self._close_soon)
+        self.channel = DataChannel(on_close=self._close_soon)
         self.track: LatestFrameTrack | None = None
-        self.participant: PeerParticipant | None = None
+        self.participant: Session | None = None
         self.codec: str | None = None      # negotiated video codec (MIME type), watching
         self.encoder: Any = None           # our clamped encoder, once installed
         self._connected = asyncio.Event()
@@ -93,10 +67,10 @@ class WebRTCPeer:
         self.pc.on("track", self._on_track)
         self.pc.on("connectionstatechange", self._on_state)
         try:
-            factory = functools.partial(PeerParticipant, track=self.track, stamp=stamp)
+            transport = WebRTCTransport(self.channel, self.track, stamp)
             self.participant, welcome = await seat_participant(
                 self.ctx, self.room, role, seat, f"{self.kind}-{self.resource[:6]}",
-                self.channel, factory=factory, request=request)
+                transport, request=request)
             self.channel.welcome = encode(welcome)
             self._run = self._spawn(self._serve(), "serve")
             sdp, self.codec = await answer(self.pc, offer, self.track)
@@ -118,15 +92,9 @@ class WebRTCPeer:
         return task
 
     async def _serve(self) -> None:
-        p, ctx = self.participant, self.ctx
-        live = p.live
-        live.broadcast(live.presence("join", p))
-        ctx.sessions[p.id] = p
         try:
-            await p.run()
+            await serve(self.ctx, self.participant)  # the welcome: when the channel opens
         finally:
-            ctx.sessions.pop(p.id, None)
-            live.leave(p)
             self._close_soon("the session ended")
 
     def _on_track(self, track: Any) -> None:
@@ -177,6 +145,5 @@ class WebRTCPeer:
             if pending:
                 await asyncio.wait(pending, timeout=CLOSE_WAIT_S)
         finally:
-            self.ctx.slots.release()
-            self.ctx.metrics.sessions.set(self.ctx.slots.count)
+            self.admitted.release()
             self.ctx.webrtc_peers.release(self.resource)

@@ -14,7 +14,7 @@ import threading
 import time
 from collections import Counter
 
-from .auth import Principal
+from ..auth import Principal
 
 TICKET_PREFIX = "tkt_"
 

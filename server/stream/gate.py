@@ -1,6 +1,9 @@
-"""The WebSocket handshake both ``/v1/stream`` paths share (a plain session, a room): the
-refusal codes, the pre-auth admission (a waiting slot per address, one small ``hello`` within a
-deadline, checked before anything is decoded), and refusing with an ``error`` then a close.
+"""The gate of the WebSocket entry (``/v1/stream``, a plain session or a room): the refusal
+codes, the pre-auth admission (a waiting slot per address, one small ``hello`` within a
+deadline, checked before anything is decoded), who the credentials name (a principal or a
+room's invitation), and refusing with an ``error`` then a close. WHEP / WHIP take the same
+credentials from their Authorization header (server/routers/webrtc.py); every entry is
+admitted by the one :func:`server.stream.admission.admit`.
 
 Refusals are sent as an ``error`` message and then a close with one of the codes below, since
 a browser sees neither the status nor the body of a refused WebSocket handshake.
@@ -11,18 +14,22 @@ from __future__ import annotations
 import asyncio
 import contextlib
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from fastapi import WebSocket
 from starlette.websockets import WebSocketDisconnect
 
 from protocol import PROTOCOL_VERSION, Hello, ProtocolError, Request, decode_client, encode
 
-from .auth import Principal, token_from_websocket
-from .context import ServerContext
+from ..auth import Principal, is_invitation, token_from_websocket
+from ..registry import AvatarRecord
 from .inbound import InboundLimits
 from .net import PREAUTH_EXTENSION
-from .registry import AvatarRecord
 from .session import error_message
+
+if TYPE_CHECKING:
+    from ..context import ServerContext
+    from ..rooms.registry import Invitation
 
 # Close codes: 4000 + the HTTP status the refusal would have had; 1013 "try again later".
 CLOSE_BAD_HELLO = 4400
@@ -91,6 +98,30 @@ async def read_credentials(ws: WebSocket, ctx: ServerContext, *, hello: bool) ->
         raise Refusal("unauthorized", "no token: the first message must be a hello with a "
                                       "token", CLOSE_UNAUTHORIZED)
     return Credentials(first, first.token, None)
+
+
+@dataclass(frozen=True)
+class Who:
+    """Whom a connection's credentials name, and its hello when one was read."""
+
+    hello: Hello | None
+    principal: Principal | None    # a bearer token's (or a ticket's) principal
+    invitation: Invitation | None  # else a room's invitation
+
+
+async def authenticate(ws: WebSocket, ctx: ServerContext, *, hello: bool) -> Who:
+    """Who sent the credentials (Refusal ``unauthorized`` for none that are valid); the
+    pre-auth size limit is lifted only then."""
+    credentials = await read_credentials(ws, ctx, hello=hello)
+    principal, invitation = credentials.principal, None
+    if principal is None:
+        principal, invitation = ctx.credential(credentials.token)
+        if principal is None and invitation is None:
+            raise Refusal("unauthorized", "invalid, expired or revoked invitation"
+                          if is_invitation(credentials.token) else "invalid token",
+                          CLOSE_UNAUTHORIZED)
+    lift_preauth(ws)
+    return Who(credentials.hello, principal, invitation)
 
 
 def lift_preauth(ws: WebSocket) -> None:

@@ -1,7 +1,14 @@
-"""One streaming session: a receiver, a render loop and a control sender over one WebSocket.
+"""One participant's session: a receiver, a render loop and a control sender, over a Transport.
+
+A session is the same whatever carries it (a WebSocket, or WebRTC's data channel and video
+track: server/stream/transport.py) and wherever it is (a plain ``/v1/stream?avatar=`` session
+is a private room of one seat; server/rooms/). It performs a seat (its ``drive`` and ``image``
+go to the seat and wake every participant) or watches (those get error ``forbidden``); it has
+its own view, request, pacing and send path, so a participant that stops reading slows only
+itself.
 
 Latest input wins. The receiver applies every message to the session state at once (a drive
-merges into the parameters, a view replaces the camera, a request updates the render
+merges into the seat's parameters, a view replaces the camera, a request updates the render
 settings) and raises a flag; the render loop takes a snapshot of the newest state only, so
 inputs that arrive while a frame is being made are coalesced into the next one, never queued.
 While the loop waits for its frame-rate cap or its fair share of render time, every state
@@ -9,8 +16,8 @@ change wakes it to re-check (a new max_fps applies at once). A frame that fails 
 puts back the last state that rendered, so one bad input never stops the session.
 The render loop sends each frame before it renders the next: with at most one frame in the
 send path, a slow client gets fewer, fresh frames instead of a growing backlog. Control
-messages (errors, pongs, stats) go through a small bounded queue of their own, so the
-receiver never waits on the socket.
+messages (errors, pongs, stats, presence) go through a small bounded queue of their own, so
+the receiver never waits on the transport.
 """
 
 from __future__ import annotations
@@ -18,15 +25,16 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
+import dataclasses
 import logging
 import math
 import statistics
 import time
 import uuid
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from fastapi import WebSocket
 from pydantic import ValidationError
 from starlette.websockets import WebSocketDisconnect
 
@@ -34,7 +42,6 @@ from protocol import (
     PROTOCOL_VERSION,
     Drive,
     Error,
-    Frame,
     Hello,
     Image,
     Limits,
@@ -48,10 +55,11 @@ from protocol import (
 )
 from protocol.messages import Answers
 
+from ..metrics import ServerMetrics
 from .drive import DriveState, fit_drive
+from .encoders import check_request
 from .inbound import InboundDecoder, InboundLimits
-from .metrics import ServerMetrics
-from .renderer import FrameJob, RenderedFrame, SessionRenderer
+from .scene import Frame, FrameJob
 from .scheduler import RenderScheduler
 from .tracking import (
     DecodedImage,
@@ -59,12 +67,15 @@ from .tracking import (
     TrackingInputInvalid,
     TrackingUnavailable,
 )
+from .transport import Transport
+
+if TYPE_CHECKING:
+    from ..rooms.live import LiveRoom
 
 log = logging.getLogger(__name__)
 
 CONTROL_QUEUE = 64        # pending control messages; past it new ones are dropped
 RENDER_MS_WINDOW = 50     # frames in the stats median
-H264_ALIGN = 2            # H.264 wants even sizes
 RATE_NOTICE_S = 1.0       # at most one rate_limited error per this many seconds
 SEND_STALL_S = 0.1        # a frame not sent by then: the client stalls, wants no render time
 
@@ -102,33 +113,41 @@ def error_message(code: str, message: str, answers: dict | None = None) -> Error
                  answers=Answers(**answers) if answers else None)
 
 
-class StreamSession:
-    def __init__(self, ws: WebSocket, renderer: SessionRenderer, tracker: SessionTracker,
-                 scheduler: RenderScheduler, track_scheduler: RenderScheduler,
+class Session:
+    """One participant of ``live`` (its room's runtime), talking over ``transport``."""
+
+    def __init__(self, transport: Transport, live: LiveRoom, *, role: str, seat_index: int,
+                 name: str, tracker: SessionTracker, track_scheduler: RenderScheduler,
                  metrics: ServerMetrics, config: SessionConfig, request: Request, view: View,
-                 session_count: Any) -> None:
+                 session_count: Callable[[], int]) -> None:
         self.id = uuid.uuid4().hex[:12]
-        self.share_key: Any = self.id  # whose render time this is (a room: the room's)
-        self.ws = ws
-        self.renderer = renderer
-        self.scheduler = scheduler
+        self.transport = transport
+        self.live = live
+        self.scene = live.scene
+        self.role = role
+        self.seat_index = seat_index  # performed (watching: whose drive seq frames report)
+        self.name = name
+        self.position = next(i for i, s in enumerate(live.seats) if s.index == seat_index)
+        self.shapes = self.scene.shapes[self.position]
+        self.drive: DriveState = live.seats[self.position].drive  # the seat's, shared
+        self.share_key = self.scene.share_key  # whose render time this is: the scene's
         self.track_scheduler = track_scheduler
         self.metrics = metrics
         self.config = config
         self.limits = config.limits
         self.request = request
         self.view = view
-        self.drive = DriveState()
-        self.shapes = renderer.shapes
         self.session_count = session_count  # () -> int, for stats
         self.bucket = TokenBucket(self.limits.max_messages_per_s)
         self._rate_noticed = -RATE_NOTICE_S  # when the client was last told it is too fast
         self._rate_dropped = 0
         self.inbound = InboundDecoder(self.limits, config.inbound)
         self._dirty = asyncio.Event()
-        self._dirty.set()  # the first frame shows the rest pose
+        self._dirty.set()  # the first frame shows the seats as they are
         self._wake = asyncio.Event()  # any state change: the pacing wait re-checks
         self._good: FrameJob | None = None  # the newest state that rendered
+        self._asked: tuple[int, ...] = ()  # seat versions of the newest snapshot submitted
+        self._last_codec: str | None = None  # of the last frame sent
         self._control: asyncio.Queue = asyncio.Queue(CONTROL_QUEUE)
         self._send_lock = asyncio.Lock()
         self._inflight = None  # concurrent future of the render running now
@@ -151,9 +170,9 @@ class StreamSession:
 
     # -- sending -----------------------------------------------------------------------------
 
-    async def _send(self, data: bytes) -> None:
+    async def send(self, data: bytes) -> None:
         async with self._send_lock:
-            await self.ws.send_bytes(data)
+            await self.transport.send(data)
 
     def send_control(self, message: Any) -> None:
         """Queue a control message; dropped (and counted) if the client is that far behind."""
@@ -168,17 +187,22 @@ class StreamSession:
     async def _control_sender(self) -> None:
         while True:
             data = await self._control.get()
-            await self._send(data)
+            await self.send(data)
+
+    async def close_with(self, code: str, message: str, close_code: int) -> None:
+        """Tell the client why (an ``error``), then close its connection."""
+        with contextlib.suppress(Exception):  # the client may be gone already
+            await self.send(encode(error_message(code, message)))
+            await self.transport.close(close_code, message)
 
     # -- receiving ---------------------------------------------------------------------------
 
     async def _receiver(self) -> None:
         while True:
-            message = await self.ws.receive()
-            if message["type"] == "websocket.disconnect":
-                return
-            data = message.get("bytes")
+            data = await self.transport.receive()
             if data is None:
+                return
+            if not isinstance(data, bytes):
                 self.send_error("bad_message", "messages are binary msgpack frames, not text")
                 continue
             if not self.bucket.take():
@@ -206,6 +230,10 @@ class StreamSession:
 
     def handle(self, msg: Any) -> None:
         """Apply one decoded client message to the session state (never blocks)."""
+        if isinstance(msg, (Drive, Image)) and self.role != "perform":
+            raise ProtocolError("forbidden", f"a viewer cannot send '{msg.type}': join with "
+                                             "a perform invitation to drive a seat",
+                                {"type": msg.type, "seq": msg.seq})
         if isinstance(msg, Drive):
             fitted = fit_drive(msg, self.shapes)  # ProtocolError before anything changes
             self.drive.apply(msg, fitted)
@@ -239,17 +267,14 @@ class StreamSession:
     def merged_request(current: Request, update: Request, limits: Limits) -> Request:
         fields = update.model_dump(exclude_none=True, exclude={"type"})
         merged = current.model_copy(update=fields)
-        if merged.codec == "h264":
-            if merged.width % H264_ALIGN or merged.height % H264_ALIGN:
-                raise ProtocolError("unsupported", f"h264 needs an even frame size, got "
-                                                   f"{merged.width}x{merged.height}",
-                                    {"type": "request", "seq": None})
-            if "alpha" in merged.outputs:
-                raise ProtocolError("unsupported", "h264 frames carry no alpha; ask for png",
-                                    {"type": "request", "seq": None})
+        check_request(merged)  # what the codec can give
         if merged.max_fps > limits.max_fps:
             merged = merged.model_copy(update={"max_fps": limits.max_fps})
         return merged
+
+    def wake(self) -> None:
+        """A seat changed (this participant's or another's): render the new state."""
+        self._changed()
 
     def _changed(self) -> None:
         self._pending_inputs += 1
@@ -257,8 +282,8 @@ class StreamSession:
         self._wake.set()
 
     def _drive_changed(self) -> None:
-        """The drive state changed (a drive, a tracked image); a room wakes everyone in it."""
-        self._changed()
+        """The seat's drive changed (a drive, a tracked image): everyone in the room renders."""
+        self.live.seat_changed()  # this participant included
 
     # -- rendering ---------------------------------------------------------------------------
 
@@ -274,14 +299,16 @@ class StreamSession:
         self.metrics.coalesced.inc(max(0, self._pending_drives - 1))
         self._pending_inputs = self._pending_drives = 0
         track_ms, self._track_ms = self._track_ms, 0.0
-        return FrameJob(self.drive.copy(), self.view, req, quality, track_ms)
+        return FrameJob(self.live.snapshot(), self.view, req, quality, participant=self.id,
+                        previous_codec=self._last_codec, track_ms=track_ms,
+                        raw=self.transport.raw_frames)
 
     def _next_frame_at(self, started: float) -> float:
         """When the next frame may start: the frame-rate cap and the fair share of render
         time, both read now (a request or another session may have changed them)."""
         now = asyncio.get_running_loop().time()  # time.monotonic, as the scheduler's
         return max(started + 1.0 / self.request.max_fps,
-                   now + self.scheduler.pace_s(self.share_key))
+                   now + self.scene.workers.pace_s(self.share_key))
 
     async def _pace(self, started: float) -> None:
         """Wait until the next frame may start; inputs keep coalescing meanwhile."""
@@ -292,6 +319,8 @@ class StreamSession:
                 await asyncio.wait_for(self._wake.wait(), delay)
 
     async def _render_loop(self) -> None:
+        if not self.transport.renders:
+            await asyncio.get_running_loop().create_future()  # until the session ends
         started = -math.inf
         while True:
             await self._dirty.wait()
@@ -299,7 +328,8 @@ class StreamSession:
             self._dirty.clear()
             job = self._snapshot()
             started = asyncio.get_running_loop().time()
-            future = self._submit(job)
+            self._asked = job.versions
+            future = self.scene.submit(job)
             self._inflight = future  # kept after a cancel: teardown waits for it to finish
             try:
                 frame = await asyncio.wrap_future(future)
@@ -307,7 +337,7 @@ class StreamSession:
                 self._restore(job, drive_only=True)
                 self.send_error("invalid", f"cannot pose these parameters: {exc}; the session "
                                            "keeps its last parameters that rendered",
-                                {"type": "drive", "seq": job.drive.seq})
+                                {"type": "drive", "seq": job.seats[self.position].seq})
                 continue
             except Exception as exc:  # noqa: BLE001 - the session goes on
                 log.exception("render failed in session %s", self.id)
@@ -318,15 +348,13 @@ class StreamSession:
             self._good = job
             await self._send_watched(frame)
 
-    def _submit(self, job: FrameJob):
-        """The render of ``job`` (a concurrent future); a room may share one between many."""
-        return self.renderer.submit(self.scheduler, job, self)
-
     def _restore(self, failed: FrameJob, drive_only: bool) -> None:
         """Put back the last state that rendered wherever the failed frame's state is still
         current (newer inputs stay: they get their own try)."""
         good = self._good
-        self.drive.restore(failed.drive, good.drive if good is not None else DriveState())
+        seat = self.position
+        self.drive.restore(failed.seats[seat],
+                           good.seats[seat] if good is not None else DriveState())
         if good is None or drive_only:
             return
         if self.view is failed.view:
@@ -366,20 +394,25 @@ class StreamSession:
             self._pending_drives += 1
             self._drive_changed()
 
-    async def _send_watched(self, frame: RenderedFrame) -> None:
+    async def _send_watched(self, frame: Frame) -> None:
         """Send a frame; while its client does not take it, the session leaves the render
         time to the others (it is not counted among the active sessions)."""
         send = asyncio.create_task(self._send_frame(frame))
         try:
             done, _ = await asyncio.wait({send}, timeout=SEND_STALL_S)
             if not done:
-                self.scheduler.stalled(self.share_key)
+                self.scene.workers.stalled(self.share_key)
             await send
         finally:
             send.cancel()  # the session ends: the send goes with it
 
-    async def _send_frame(self, f: RenderedFrame) -> None:
-        sent = await self._deliver(f)
+    async def _send_frame(self, f: Frame) -> None:
+        if f.seat_seqs:
+            f = dataclasses.replace(f, seq=f.seat_seqs[self.position])
+        if f.versions != self._asked:
+            self._dirty.set()  # it joined an older render: its own state comes next
+        self._last_codec = f.codec
+        sent = await self.transport.deliver(f, self.frames)
         self.frames += 1
         self.bytes_sent += sent
         self._render_ms.append(f.timings.render)
@@ -388,15 +421,6 @@ class StreamSession:
         m.bytes_sent.inc(sent)
         for stage in ("pose", "render", "encode"):
             m.stage_ms.labels(stage).observe(getattr(f.timings, stage))
-
-    async def _deliver(self, f: RenderedFrame) -> int:
-        """Hand one frame to the client (here: a ``frame`` message on the socket); the bytes
-        sent. A WebRTC peer hands it to its video track instead."""
-        data = encode(Frame(seq=f.seq, frame=self.frames, codec=f.codec, width=f.width,
-                            height=f.height, data=f.data, depth=f.depth, keyframe=f.keyframe,
-                            timings=f.timings))
-        await self._send(data)
-        return len(data)
 
     # -- stats ---------------------------------------------------------------------------------
 
@@ -417,7 +441,7 @@ class StreamSession:
     # -- lifetime ------------------------------------------------------------------------------
 
     async def run(self) -> None:
-        """Until the client leaves (or the socket fails); then everything is torn down."""
+        """Until the client leaves (or the transport fails); then everything is torn down."""
         tasks = [asyncio.create_task(coro, name=f"{self.id}:{coro.__name__}") for coro in (
             self._receiver(), self._render_loop(), self._control_sender(), self._stats_loop(),
             self._track_loop())]
@@ -432,25 +456,32 @@ class StreamSession:
             for task in tasks:
                 task.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)
-            self._release_renderer()
-            self._release_share()
             self.track_scheduler.forget(self.id)
             self.closed.set()
 
-    def _release_share(self) -> None:
-        """No longer counted among the render scheduler's active sessions."""
-        self.scheduler.forget(self.share_key)
+    def after_work(self, fn: Callable[[], Any]) -> None:
+        """``fn()`` once no thread works for this session any more (a running render or
+        tracking job finishes first; a queued one was cancelled with its task)."""
+        pending = [f for f in (self._inflight, self._track_inflight)
+                   if f is not None and not f.done()]
+        if not pending:
+            fn()
+            return
+        left = [len(pending)]
 
-    def _release_renderer(self) -> None:
-        """Close the encoder and the tracker once no thread uses them (a running job finishes
-        first; a queued one was cancelled with its task)."""
-        tracking = self._track_inflight
-        if tracking is not None and not tracking.done():
-            tracking.add_done_callback(lambda _: self.tracking.close())
-        else:
+        def one_done(_: Any) -> None:
+            left[0] -= 1
+            if not left[0]:
+                fn()
+
+        for future in pending:
+            future.add_done_callback(one_done)
+
+    def release(self) -> None:
+        """Free what the session held: its tracker and its encoders' state (once no thread
+        uses them)."""
+        def free() -> None:
             self.tracking.close()
-        future = self._inflight
-        if future is not None and not future.done():
-            future.add_done_callback(lambda _: self.renderer.close())
-        else:
-            self.renderer.close()
+            self.scene.release(self.id)
+
+        self.after_work(free)

@@ -1,0 +1,319 @@
+"""A scene's frame work: one pose per seat per drive update, one render per distinct (seat
+versions, view, request), one encode per render, all seats in one ``render_views`` call.
+
+A scene is what a room shows (a plain session is a room of one seat and one participant).
+:class:`SceneFrames` makes frames, on a render thread or on a render worker: a seat's world
+Gaussians (placement applied) are cached per drive version under the seat's lock.
+:class:`Scene` shares them between participants, on the event loop's side: a frame's
+concurrent future is kept under its key, so a second participant asking the same picture gets
+the same future (or the finished frame) instead of a render of its own. While the performer
+drives, participants snapshot at slightly different moments and so at different versions: one
+asking while a render of its group (same view and request) is in flight joins that render
+instead of starting another, and asks again once it has it (``Frame.versions`` tells it the
+frame is older than its snapshot). So a group has at most one render in flight, and the
+newest state is always rendered next. Whether a participant's encoded frame may be shared at
+all is the encoders' to say (:meth:`FrameEncoders.output_key`). Where a frame is made is the
+scene's workers' to decide (server/stream/workers.py: the local render threads, or a render
+worker on Ray).
+"""
+
+from __future__ import annotations
+
+import collections
+import concurrent.futures
+import threading
+import time
+from collections.abc import Hashable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import torch
+
+from avatar_core.body.lbs import rodrigues
+from avatar_core.body.models import MANOModel
+from avatar_core.gaussians.animate import AvatarAnimator
+from avatar_core.gaussians.placement import place, union
+from avatar_core.render.camera import Camera, orbit
+from avatar_core.render.camera_path import framing_target
+from avatar_core.render.types import GaussianSet, RenderRequest, to_uint8
+from avatar_core.render.views import render_views
+from protocol import Request, Timings, View
+
+from .batching import DeviceCopies, ViewBatches, render_device
+from .drive import DriveState, drive_shapes
+from .encoders import FrameEncoders, frame_rgb
+
+if TYPE_CHECKING:
+    from .workers import FrameWorkers
+
+RAW_CODEC = "raw"  # a frame's codec when the job asked for the RGB array itself
+POSED_VERSIONS = 2  # per seat: the version being rendered and the one before
+
+
+@dataclass(frozen=True)
+class FrameJob:
+    """What one participant's frame shows: every seat's drive state, from its view, as its
+    request asks."""
+
+    seats: tuple[DriveState, ...]
+    view: View
+    request: Request                  # effective: every field set
+    jpeg_quality: int                 # already lowered when the view moves
+    participant: Hashable = None      # whose frame (encoders keep per-participant state)
+    previous_codec: str | None = None  # the codec of the participant's last frame
+    track_ms: float = 0.0             # tracking time of the webcam image it first shows
+    raw: bool = False                 # the RGB array itself, not encoded (a WebRTC track)
+
+    @property
+    def versions(self) -> tuple[int, ...]:
+        return tuple(d.version for d in self.seats)
+
+
+@dataclass
+class Frame:
+    seq: int                          # the first seat's drive seq (a participant: its seat's)
+    codec: str
+    width: int
+    height: int
+    data: bytes
+    depth: bytes | None
+    keyframe: bool
+    timings: Timings
+    seat_seqs: tuple[int, ...] = ()   # each seat's newest drive seq
+    versions: tuple[int, ...] = ()    # each seat's drive version this frame shows
+    rgb: np.ndarray | None = None     # [H, W, 3] uint8, raw frames only
+
+
+@dataclass
+class FrameCounters:
+    """What the scene did, for tests and benchmarks: shared work shows as fewer of these than
+    participants x frames."""
+
+    poses: int = 0           # seat posings (one per seat per drive version)
+    renders: int = 0         # render_views calls (all seats in one)
+    encodes: int = 0         # encoded images
+    shared: int = 0          # frames a participant got from another's render
+    batched: int = 0         # renders that shared a render_views call with other views
+
+
+def view_camera(view: View, width: int, height: int, default_target: np.ndarray) -> Camera:
+    """The camera of a view; an orbit without a target looks at ``default_target``."""
+    if view.camera is not None:
+        c = view.camera
+        cam = Camera(np.asarray(c.K), np.asarray(c.R), np.asarray(c.t), c.width, c.height)
+        return cam if cam.size == (width, height) else cam.resized(width, height)
+    o = view.orbit
+    target = default_target if o.target is None else np.asarray(o.target, dtype=np.float64)
+    return orbit(target, o.yaw_deg, o.pitch_deg, o.distance, width=width, height=height,
+                 fov_y_deg=o.fov_y_deg)
+
+
+class SeatPoser:
+    """One seat's avatar: its animator (used by one thread at a time, under the lock) and
+    its world Gaussians of the newest drive versions posed."""
+
+    def __init__(self, animator: AvatarAnimator, manos: dict[str, MANOModel],
+                 placement: Any) -> None:
+        self.animator, self.manos = animator, manos
+        model = animator.body_model
+        self.shapes = drive_shapes(model, manos)
+        dtype, device = model.dtype, model.device
+        rot = np.asarray(placement.rotation, dtype=np.float64)
+        trans = np.asarray(placement.translation, dtype=np.float64)
+        self.rotation = (None if not rot.any() else
+                         rodrigues(torch.as_tensor(rot, dtype=dtype, device=device)))
+        self.translation = (None if not trans.any() else
+                            torch.as_tensor(trans, dtype=dtype, device=device))
+        chest = np.asarray(framing_target(model.joint_template), dtype=np.float64)
+        if self.rotation is not None:
+            chest = self.rotation.double().cpu().numpy() @ chest
+        self.chest = chest + trans  # where an orbit without a target looks
+        self._lock = threading.Lock()
+        self._worlds: collections.OrderedDict[int, GaussianSet] = collections.OrderedDict()
+
+    def world(self, drive: DriveState, counters: FrameCounters) -> GaussianSet:
+        with self._lock:
+            world = self._worlds.get(drive.version)
+            if world is None:
+                params = drive.smplx_params(self.animator.body_model, self.manos)
+                posed = self.animator.pose(params)
+                world = place(posed.gaussians, self.rotation, self.translation)
+                self._worlds[drive.version] = world
+                if len(self._worlds) > POSED_VERSIONS:
+                    self._worlds.popitem(last=False)
+                counters.poses += 1
+            return world
+
+
+class SceneFrames:
+    """Makes a scene's frames: pose (once per seat version) -> render_views -> encode. Runs
+    where the scene's workers put it: a render thread here, or a render worker on Ray."""
+
+    def __init__(self, posers: list[SeatPoser], backend: str,
+                 encoders: FrameEncoders | None = None) -> None:
+        self.posers = posers
+        self.backend = backend
+        self.encoders = encoders if encoders is not None else FrameEncoders()
+        self.counters = FrameCounters()
+        self._on_device = DeviceCopies(render_device(backend))  # CUDA: one upload a state
+
+    @property
+    def chest(self) -> np.ndarray:
+        return self.posers[0].chest
+
+    def make_one(self, job: FrameJob) -> Frame:
+        """One view: a batch of one (``render_views`` of one camera is ``rasterize``)."""
+        return self.make([job])[0]
+
+    def make(self, jobs: list[FrameJob]) -> list[Frame]:
+        """Views of one state and request: one posing, one ``render_views`` call, an encode
+        each (none for a raw frame)."""
+        c = self.counters
+        req = jobs[0].request
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            gaussians = self._on_device.get(jobs[0].versions, union([
+                poser.world(drive, c) for poser, drive in zip(self.posers, jobs[0].seats,
+                                                              strict=True)]))
+            t1 = time.perf_counter()
+            cams = [view_camera(job.view, req.width, req.height, self.chest) for job in jobs]
+            outputs = tuple(dict.fromkeys(("rgb", *req.outputs)))
+            budget = None if req.quality >= 1.0 else float(req.quality)
+            outs = render_views(gaussians, cams, RenderRequest(
+                outputs=outputs, background=tuple(req.background),
+                sh_degree=min(req.sh_degree, gaussians.sh_degree), budget=budget,
+                backend=self.backend))
+            c.renders += 1
+            c.batched += len(jobs) if len(jobs) > 1 else 0
+            alpha_asked = "alpha" in req.outputs
+            images = [(frame_rgb(o.rgb, req.codec, alpha_asked),
+                       None if o.alpha is None else to_uint8(o.alpha),
+                       None if o.depth is None else o.depth.cpu().numpy()) for o in outs]
+        t2 = time.perf_counter()
+        frames = []
+        for job, cam, (rgb, alpha, depth) in zip(jobs, cams, images, strict=True):
+            t3 = time.perf_counter()
+            if job.raw:  # a WebRTC track encodes it
+                codec, data, keyframe, depth_png = RAW_CODEC, b"", True, None
+            else:
+                out = self.encoders.encode(job.participant, job.previous_codec, rgb, alpha,
+                                           depth, req, job.jpeg_quality)
+                codec, data, keyframe, depth_png = out.codec, out.data, out.keyframe, out.depth
+                c.encodes += 1
+            timings = Timings(track=job.track_ms, pose=(t1 - t0) * 1e3,
+                              render=(t2 - t1) * 1e3,
+                              encode=(time.perf_counter() - t3) * 1e3)
+            seqs = tuple(d.seq for d in job.seats)
+            frames.append(Frame(seqs[0], codec, cam.width, cam.height, data, depth_png,
+                                keyframe, timings, seat_seqs=seqs, versions=job.versions,
+                                rgb=rgb if job.raw else None))
+        return frames
+
+    def release(self, participant: Hashable) -> None:
+        self.encoders.release(participant)
+
+    def close(self) -> None:
+        self.encoders.close()
+
+
+class Scene:
+    """A scene as its participants see it: frames shared between them, made by ``workers``.
+
+    ``frames`` is the frame maker where frames are made in this process (None where the
+    workers make them elsewhere); ``shapes`` each seat's parameter shapes, which drives are
+    checked against before any frame is asked."""
+
+    def __init__(self, scene_id: str, shapes: list[dict], workers: FrameWorkers, *,
+                 frames: SceneFrames | None = None, max_frames: int = 64,
+                 batch_views: int = 1, kind: str = "room") -> None:
+        self.id = scene_id
+        self.kind = kind
+        self.shapes = shapes
+        self.workers = workers
+        self.frames = frames
+        self.share_key = scene_id  # the scene's account at the fair scheduler
+        self.max_frames = max_frames  # frames kept for sharing (distinct views at once)
+        self.remote: Any = None  # the workers' handle of it (a render worker's scene)
+        self.batches = (ViewBatches(frames.make, batch_views)
+                        if frames is not None and batch_views > 1 else None)
+        self.shared = 0  # frames a participant got from another's render
+        self.closed = False
+        self._lock = threading.Lock()
+        self._frames: collections.OrderedDict[Hashable, concurrent.futures.Future] = (
+            collections.OrderedDict())
+        self._inflight: dict[Hashable, concurrent.futures.Future] = {}  # group -> render
+
+    @property
+    def counters(self) -> FrameCounters:
+        """What this process did for the scene (tests, benchmarks)."""
+        counters = self.frames.counters if self.frames is not None else FrameCounters()
+        counters.shared = self.shared
+        return counters
+
+    def submit(self, job: FrameJob) -> concurrent.futures.Future:
+        """The frame of ``job``: shared with every participant asking the same one. The
+        future returned is the caller's own (cancelling it leaves the shared render alone)."""
+        versions = job.versions
+        owner = FrameEncoders.output_key(job.participant, job.request)
+        group = (job.view.model_dump_json(exclude={"moving"}), job.request.model_dump_json(),
+                 job.jpeg_quality, owner, job.raw)
+        key = (versions, *group)
+        with self._lock:
+            shared = self._frames.get(key)
+            if shared is None or _failed(shared):
+                shared = self._inflight.get(group)  # an older state of this group, rendering
+                if shared is not None and shared.done():
+                    shared = None  # finished: this participant's newer state renders now
+            if shared is not None and not _failed(shared):
+                self.shared += 1
+            else:
+                shared = self.workers.run(self, job)
+                self._frames[key] = self._inflight[group] = shared
+                self._evict(versions)
+        if owner is not None:
+            return shared  # a participant's own encoded frame: nobody else waits on it
+        return _relay(shared)
+
+    def _evict(self, versions: tuple[int, ...]) -> None:
+        """Finished frames of older drive states go (nobody asks for them again), and the
+        oldest past ``max_frames`` (lock held)."""
+        for key in [k for k, f in self._frames.items() if k[0] != versions and f.done()]:
+            del self._frames[key]
+        while len(self._frames) > self.max_frames:
+            self._frames.popitem(last=False)
+        for group in [g for g, f in self._inflight.items() if f.done()]:
+            del self._inflight[group]
+
+    def release(self, participant: Hashable) -> None:
+        """The participant left: what its frames kept (stateful encoders) goes."""
+        self.workers.release(self, participant)
+
+    def close(self) -> None:
+        """Nobody watches any more: the scene's state goes (here, or on its render worker)."""
+        if not self.closed:
+            self.closed = True
+            self.workers.close(self)
+
+
+def _failed(future: concurrent.futures.Future) -> bool:
+    return future.done() and (future.cancelled() or future.exception() is not None)
+
+
+def _relay(shared: concurrent.futures.Future) -> concurrent.futures.Future:
+    """A future of one's own that follows ``shared``: a participant that leaves cancels its
+    own, never the render the others wait for."""
+    own: concurrent.futures.Future = concurrent.futures.Future()
+
+    def copy(done: concurrent.futures.Future) -> None:
+        if not own.set_running_or_notify_cancel():
+            return  # cancelled by its participant
+        if done.cancelled():
+            own.set_exception(concurrent.futures.CancelledError())
+        elif done.exception() is not None:
+            own.set_exception(done.exception())
+        else:
+            own.set_result(done.result())
+
+    shared.add_done_callback(copy)
+    return own

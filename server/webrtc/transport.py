@@ -1,0 +1,41 @@
+"""A session's WebRTC transport: messages on the ``telesplat`` data channel, frames on the
+video track (raw RGB arrays, which aiortc encodes in its own threads)."""
+
+from __future__ import annotations
+
+from protocol.stamp import stamp as stamp_frame
+
+from ..stream.scene import Frame
+from .channel import DataChannel
+from .track import LatestFrameTrack
+
+
+class WebRTCTransport:
+    raw_frames = True
+
+    def __init__(self, channel: DataChannel, track: LatestFrameTrack | None,
+                 stamp: bool) -> None:
+        self.channel = channel
+        self.track = track  # None: a WHIP peer that only publishes, and so renders nothing
+        self.stamp = stamp  # each frame's drive seq in its top-left corner (latency tests)
+
+    @property
+    def renders(self) -> bool:
+        return self.track is not None
+
+    async def receive(self) -> bytes | str | None:
+        return await self.channel.receive()
+
+    async def send(self, data: bytes) -> None:
+        await self.channel.send(data)
+
+    async def deliver(self, frame: Frame, number: int) -> int:
+        rgb = frame.rgb  # shared with the room's other raw participants: stamp a copy
+        if self.stamp:
+            rgb = stamp_frame(rgb.copy(), frame.seq)
+        await self.track.deliver(rgb)
+        return 0  # the encoded size is aiortc's to know (the client's getStats has it)
+
+    async def close(self, code: int, reason: str) -> None:
+        """The session ends the peer (its room closed)."""
+        self.channel.close(reason or f"closed ({code})")
