@@ -277,3 +277,60 @@ def test_known_lazy_cycles_are_still_there():
     cycles = _cycles(_module_graph(lazy=True))
     gone = [sorted(c) for c in KNOWN_LAZY_CYCLES if c not in cycles]
     assert gone == [], f"gone, remove from KNOWN_LAZY_CYCLES: {gone}"
+
+
+# -- one stream path (issue 24) -------------------------------------------------------------
+
+# The modules the server's root may hold: the app, its settings, auth, avatars, metrics and
+# the cluster connection. Streaming (gate, session, transports, scene, scheduler, batching,
+# encoders, drive, tracking) lives in server/stream/.
+SERVER_ROOT = {"server", "server.__main__", "server.app", "server.auth", "server.cli",
+               "server.cluster", "server.config", "server.context", "server.dependencies",
+               "server.logsafe", "server.metrics", "server.private", "server.quotas",
+               "server.registry", "server.uploads"}
+BUILT_ON_STREAM = ("server.rooms", "server.webrtc", "server.cluster_render")
+ENCODERS = "server.stream.encoders"
+# Where a codec may be named outside the encoders: the protocol (its codec list) and WebRTC's
+# own video codecs, which aiortc negotiates with the browser and encodes per peer (they never
+# reach a scene).
+CODEC_NAMERS = ("protocol", "server.webrtc.encoders", "server.webrtc.negotiate")
+
+
+def test_the_server_root_holds_no_streaming_module():
+    root = {name for name in MODULES if name.count(".") <= 1 and _within(name, "server")
+            and not any(_within(name, f"server.{pkg}") for pkg in (
+                "stream", "rooms", "webrtc", "cluster_render", "jobs", "routers"))}
+    assert root == SERVER_ROOT
+
+
+def test_stream_imports_nothing_that_builds_on_it():
+    found = [f"{i.importer}:{i.line} imports {i.target}" for i in IMPORTS
+             if _within(i.importer, "server.stream")
+             and any(_within(i.target, pkg) for pkg in BUILT_ON_STREAM)]
+    assert found == []
+
+
+def _stateful_codecs() -> set[str]:
+    from server.stream.encoders import STATEFUL
+
+    assert STATEFUL, "the rule below would check nothing"
+    return set(STATEFUL)
+
+
+def test_only_the_encoders_know_a_codec_is_stateful():
+    """Outside server/stream/encoders nobody imports an encoder's stream state, nor names a
+    stateful codec: the scene, the frame sharing and Ray pass codecs through as names."""
+    stateful = _stateful_codecs()
+    private = (f"{ENCODERS}.h264", f"{ENCODERS}.STATEFUL", f"{ENCODERS}.H264Stream",
+               f"{ENCODERS}.H264Encoder")
+    found = [f"{i.importer}:{i.line} imports {i.target}" for i in IMPORTS
+             if _within(i.importer, "server") and not _within(i.importer, ENCODERS)
+             and any(_within(i.target, p) for p in private)]
+    for name, path in MODULES.items():
+        if (not _within(name, "server") or _within(name, ENCODERS)
+                or any(_within(name, c) for c in CODEC_NAMERS)):
+            continue
+        for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+            if isinstance(node, ast.Constant) and node.value in stateful:
+                found.append(f"{name}:{node.lineno} names the codec {node.value!r}")
+    assert found == []
