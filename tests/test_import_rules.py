@@ -174,6 +174,15 @@ def test_allowed_imports_stay_lazy():
             assert not imp.module_level, f"{imp.importer}:{imp.line} must import lazily"
 
 
+def test_no_module_imports_the_renderers_private_names():
+    # what two render entries share is public in one module (render.checks), not borrowed
+    found = [f"{i.importer}:{i.line} imports {i.target}" for i in IMPORTS
+             if _within(i.target, "avatar_core.render") and _module_of(i.target) != i.target
+             and i.target.rsplit(".", 1)[-1].startswith("_")
+             and not i.target.rsplit(".", 1)[-1].startswith("__")]
+    assert found == []
+
+
 def test_protocol_imports_none_of_ours_nor_torch():
     forbidden = ("avatar_core", "server", "client", "torch")
     assert _violations(lambda n: _within(n, "protocol"), forbidden) == []
