@@ -278,9 +278,9 @@ class AvatarRegistry:
                 return self.add_package(src, PUBLIC_OWNER, avatar_id=DEMO_ID,
                                         source=f"demo:{spec}")
         if spec == "trained":
-            from avatar_core.demo import ensure_demo_avatar  # the lead's; trains once, cached
+            from avatar_core.studio_entry import trained_demo_avatar  # trains once, cached
 
-            path = Path(ensure_demo_avatar())
+            path = trained_demo_avatar()
             return self.add_package(path, PUBLIC_OWNER, avatar_id=DEMO_ID, source="demo:trained")
         # a path: re-added at every start (cheap), and never shown to clients
         return self.add_package(Path(spec), PUBLIC_OWNER, avatar_id=DEMO_ID,

@@ -54,8 +54,10 @@ def test_the_synthetic_family_is_the_last_resort(tmp_path, monkeypatch, syntheti
 def test_resolving_a_folder_does_not_load_the_studio(tmp_path):
     # The studio is imported only when the synthetic family is asked for.
     code = ("import sys\nfrom avatar_core.body.model_paths import resolve_body_models\n"
+            "import avatar_core.studio_entry\n"  # the entry itself loads it lazily too
             f"resolve_body_models({str(tmp_path)!r})\n"
-            "assert not any(m.startswith('avatar_core.synth') for m in sys.modules)\n")
+            "assert not any(m.startswith('avatar_core.synth') for m in sys.modules)\n"
+            "assert 'avatar_core.demo' not in sys.modules\n")
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=120, cwd=Path(__file__).resolve().parent.parent)
     assert run.returncode == 0, run.stderr

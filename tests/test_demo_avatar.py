@@ -5,8 +5,10 @@ import json
 
 import numpy as np
 
+import avatar_core.demo
 from avatar_core.demo import DEMO_VERSION, DemoRecipe, ensure_demo_avatar
 from avatar_core.gaussians.loading import load_avatar
+from avatar_core.gaussians.package import save_package
 from avatar_core.pipeline import render_frames
 from avatar_core.render.camera import orbit
 from avatar_core.render.types import RenderRequest
@@ -38,6 +40,28 @@ def test_demo_avatar_built_once_then_cached(tmp_path, synthetic_files):
                 fov_y_deg=30.0)
     (img,) = render_frames(loaded, [{}], [cam], RenderRequest())
     assert img.shape == (64, 64, 3) and np.ptp(img) > 50  # the avatar is in the picture
+
+
+def test_the_servers_trained_demo_comes_from_the_demo_builder(tmp_path, monkeypatch,
+                                                             synthetic_files):
+    """`demo_avatar = "trained"`: the registry asks the studio's entry point, which asks the
+    demo-avatar builder (here a stand-in returning an untrained package, no training)."""
+    from server.registry import DEMO_ID, AvatarRegistry
+
+    package = save_package(load_avatar("synthetic", synthetic_files.root).package,
+                           tmp_path / "built")
+    calls = []
+
+    def built(*args, **kwargs):
+        calls.append((args, kwargs))
+        return package
+
+    monkeypatch.setattr(avatar_core.demo, "ensure_demo_avatar", built)
+    registry = AvatarRegistry(tmp_path / "avatars", body_models=synthetic_files.root)
+    record = registry.register_demo("trained")
+    assert calls == [((), {})]  # the default cache, as `telesplat demo-avatar` builds it
+    assert record.id == DEMO_ID and record.owner == "public"
+    assert record.source == "demo:trained"
 
 
 def test_demo_preset_is_a_compressed_quick_schedule():

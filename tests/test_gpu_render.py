@@ -1,6 +1,7 @@
 """render_views (several cameras, one call) and the batched gsplat mapping; the gsplat-vs-cpu
 checks of the shared scenes run only on CUDA (marked ``gpu``)."""
 
+import dataclasses
 import math
 
 import pytest
@@ -52,6 +53,67 @@ def test_views_reject_what_rasterize_rejects():
     gs.means[0, 0] = float("nan")
     with pytest.raises(ValueError):
         render_views(gs, _cams(2), RenderRequest(backend="cpu"))
+
+
+@pytest.fixture
+def gsplat_batches(monkeypatch):
+    """The batched gsplat path up to its kernel, on the CPU: ``render_views`` sees "gsplat" and
+    each batch (Gaussians, cameras, request, sh degree) is recorded instead of rendered."""
+    import avatar_core.render.rasterize_gsplat as rg
+    import avatar_core.render.views as views
+
+    batches = []
+
+    def record(gaussians, cameras, request, sh_degree, t_start):
+        batches.append((gaussians, list(cameras), request, sh_degree))
+        return [f"picture of {cam.size}" for cam in cameras]
+
+    monkeypatch.setattr(views, "resolve_backend", lambda name, device: "gsplat")
+    monkeypatch.setattr(rg, "rasterize_gsplat_views", record)
+    return batches
+
+
+@pytest.mark.parametrize("bad", [
+    dict(request=RenderRequest(outputs=("normals",)), match="outputs"),
+    dict(request=RenderRequest(budget=1.5), match="budget fraction"),
+    dict(request=RenderRequest(sh_degree=4), match="sh_degree"),
+    dict(nan=True, match="NaN or Inf"),
+    dict(drop_sh=True, match="gaussians.sh"),
+])
+def test_batched_views_reject_what_rasterize_rejects(gsplat_batches, bad):
+    """The batched path and the one-camera path share their checks: the same message."""
+    gs = random_scene(6, 0)
+    if bad.get("nan"):
+        gs.opacities[2] = float("nan")
+    if bad.get("drop_sh"):
+        gs = GaussianSet(gs.means, gs.quats, gs.scales, gs.opacities, gs.sh[:, :2])
+    req = bad.get("request", RenderRequest())
+    with pytest.raises(ValueError, match=bad["match"]):
+        rasterize(gs, _cams(1)[0], dataclasses.replace(req, backend="cpu"))
+    with pytest.raises(ValueError, match=bad["match"]):
+        render_views(gs, _cams(2), req)
+    assert gsplat_batches == []
+
+
+def test_batched_views_prepare_as_rasterize_does(gsplat_batches):
+    """One batch per image size, in camera order; opacities clamped to [0, 1], cameras resized
+    to the request, the SH degree capped by what the Gaussians carry."""
+    gs = random_scene(8, 1)  # SH degree 3
+    gs.opacities[0], gs.opacities[1] = 7.0, -2.0
+    wide, narrow = _cams(2, width=40), _cams(1, width=24)
+    outs = render_views(gs, [wide[0], narrow[0], wide[1]], RenderRequest(sh_degree=2))
+    assert outs == ["picture of (40, 32)", "picture of (24, 32)", "picture of (40, 32)"]
+    assert [[c.size for c in cams] for _, cams, _, _ in gsplat_batches] == [
+        [(40, 32), (40, 32)], [(24, 32)]]
+    clamped = gsplat_batches[0][0].opacities
+    assert clamped[0] == 1.0 and clamped[1] == 0.0 and torch.equal(clamped[2:], gs.opacities[2:])
+    assert gsplat_batches[0][3] == 2
+
+    gsplat_batches.clear()
+    render_views(random_scene(8, 1, sh_degree=1), _cams(2),
+                 RenderRequest(width=20, height=16, sh_degree=3))
+    assert [c.size for c in gsplat_batches[0][1]] == [(20, 16), (20, 16)]
+    assert gsplat_batches[0][3] == 1
 
 
 def test_batched_gsplat_arguments_mask_each_camera():

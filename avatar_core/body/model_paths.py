@@ -12,11 +12,12 @@ of that seed (the given folder when it holds that family, else the generated one
 other model the given folder, and when none is given a `BodyModelsMissing` that says which
 official files to put where.
 
-Generating the synthetic family is the studio's work, so `synthetic_body_models` imports
-`avatar_core.synth.model_writer` inside the function: the one import of the studio from a
-production package, lazy so that importing `body` never loads the studio, and listed as an
-allowed exception in tests/test_import_rules.py. (A generator injected by the caller was the
-alternative; every caller would then import the studio itself, which is what this avoids.)
+Generating the synthetic family is the studio's work, so `synthetic_body_models` asks the
+studio's one entry point (`avatar_core.studio_entry`, also the server's way to the trained
+demo avatar) inside the function: lazy, so that importing `body` never loads the studio, and
+named in tests/test_import_rules.py as that entry's start-up caller. (A generator injected by
+the caller was the alternative; every caller would then import the studio itself, which is
+what this avoids.)
 """
 
 from __future__ import annotations
@@ -208,6 +209,6 @@ def models_for_reference(reference: str, folder: str | Path | None = None, *,
 def synthetic_body_models(folder: str | Path | None = None, seed: int = 0) -> BodyModelFiles:
     """The synthetic family of `seed` in `folder` (default: the user cache), written there
     first if missing or written by another generator version."""
-    from ..synth.model_writer import ensure_models  # the allowed lazy studio import (above)
+    from .. import studio_entry  # lazy: the studio loads only when this is called (above)
 
-    return ensure_models(None if folder is None else Path(folder), seed=seed)
+    return studio_entry.synthetic_body_models(folder, seed=seed)

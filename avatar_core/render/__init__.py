@@ -1,9 +1,9 @@
 """Cameras and the Gaussian rasterizer.
 
-``rasterize(gaussians, camera, request) -> RenderOutput`` is the one entry point; backends
+``render_views(gaussians, cameras, request) -> list[RenderOutput]`` is the one entry point:
+several cameras of the same Gaussians (one gsplat call on CUDA, a loop elsewhere).
+``rasterize(gaussians, camera, request) -> RenderOutput`` is its one-camera case. Backends
 "torch" (reference), "cpu" (numba) and "gsplat" (CUDA) render the same picture.
-``render_views(gaussians, cameras, request)`` renders several cameras of the same Gaussians
-(one gsplat call on CUDA, a loop elsewhere).
 """
 
 from .rasterize import available_backends, rasterize

@@ -128,8 +128,8 @@ def project_gaussians(
 ) -> Projected:
     """Project Gaussians to the image (see the module docstring for the conventions).
 
-    ``validate`` checks the inputs for NaN/Inf (``ValueError``); :func:`rasterize` checks once
-    itself and passes ``False``.
+    ``validate`` checks the inputs for NaN/Inf (``ValueError``); the render entries check once
+    themselves (:mod:`checks`) and pass ``False``.
     """
     if validate:
         check_finite(means=means, quats=quats, scales=scales, opacities=opacities,

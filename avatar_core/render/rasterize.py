@@ -1,11 +1,16 @@
-"""The one rasterizer entry point: ``rasterize(gaussians, camera, request) -> RenderOutput``.
+"""One camera: ``rasterize(gaussians, camera, request) -> RenderOutput``.
 
-Stages: validate -> project (torch, differentiable) -> keep the visible Gaussians, or the
-``budget`` most important of them -> colour from SH (only when rgb is asked) -> composite on
-the chosen backend -> expected depth (only when asked). Everything before compositing is
-shared, so the torch and cpu backends differ only in the compositing kernel. When nothing
-needs gradients, the cpu backend runs projection and colour with their numba twins
-(:mod:`project_cpu`) as well: same stages, same picture, no per-op tensor overhead.
+The rasterizer's entry point is :func:`avatar_core.render.render_views` (several cameras of
+the same Gaussians); this is its one-camera case, what it runs per camera on the torch and cpu
+backends, and what gsplat runs for a single camera.
+
+Stages: validate (:mod:`checks`, shared with ``render_views``) -> project (torch,
+differentiable) -> keep the visible Gaussians, or the ``budget`` most important of them ->
+colour from SH (only when rgb is asked) -> composite on the chosen backend -> expected depth
+(only when asked). Everything before compositing is shared, so the torch and cpu backends
+differ only in the compositing kernel. When nothing needs gradients, the cpu backend runs
+projection and colour with their numba twins (:mod:`project_cpu`) as well: same stages, same
+picture, no per-op tensor overhead.
 """
 
 from __future__ import annotations
@@ -18,12 +23,18 @@ from torch import Tensor
 
 from .budget import drop_over_budget_np, select_rendered
 from .camera import Camera
+from .checks import (
+    check_gaussians,
+    check_request,
+    clamp_opacities,
+    rendered_sh_degree,
+    sized_camera,
+)
 from .contract import NEAR_PLANE
-from .projection import check_finite, depth_key, project_gaussians
+from .projection import depth_key, project_gaussians
 from .sh import sh_to_rgb
 from .types import (
     BACKENDS,
-    OUTPUTS,
     GaussianSet,
     RenderOutput,
     RenderRequest,
@@ -56,40 +67,6 @@ def resolve_backend(name: str, device: torch.device) -> str:
     return "cpu" if device.type == "cpu" else "torch"
 
 
-def _check_request(request: RenderRequest) -> None:
-    outs = tuple(request.outputs)
-    if not outs or any(o not in OUTPUTS for o in outs):
-        raise ValueError(f"outputs must be a non-empty subset of {OUTPUTS}, got {outs!r}")
-    budget = request.budget
-    if budget is not None:
-        if isinstance(budget, bool) or not isinstance(budget, (int, float)):
-            raise ValueError(f"budget must be an int count or a float fraction, got {budget!r}")
-        if isinstance(budget, int) and budget < 0:
-            raise ValueError(f"budget count must be >= 0, got {budget}")
-        if isinstance(budget, float) and not 0.0 < budget <= 1.0:
-            raise ValueError(f"budget fraction must be in (0, 1], got {budget}")
-    if request.sh_degree is not None and not 0 <= request.sh_degree <= 3:
-        raise ValueError(f"sh_degree must be in 0..3, got {request.sh_degree}")
-    if len(request.background) != 3:
-        raise ValueError(f"background must be an RGB triple, got {request.background!r}")
-
-
-def _check_gaussians(g: GaussianSet, finite: bool = True) -> None:
-    n = g.means.shape[0] if g.means.ndim == 2 else -1
-    shapes = {"means": (n, 3), "quats": (n, 4), "scales": (n, 3), "opacities": (n,)}
-    for name, shape in shapes.items():
-        t = getattr(g, name)
-        if tuple(t.shape) != shape:
-            raise ValueError(f"gaussians.{name} must have shape {shape}, got {tuple(t.shape)}")
-    if g.sh.ndim != 3 or g.sh.shape[0] != n or g.sh.shape[2] != 3 \
-            or g.sh.shape[1] not in (1, 4, 9, 16):
-        raise ValueError(f"gaussians.sh must be [N, K in (1, 4, 9, 16), 3], got "
-                         f"{tuple(g.sh.shape)}")
-    if finite:
-        check_finite(means=g.means, quats=g.quats, scales=g.scales, opacities=g.opacities,
-                     sh=g.sh)
-
-
 def _ms(t0: float) -> float:
     return (time.perf_counter() - t0) * 1e3
 
@@ -97,7 +74,8 @@ def _ms(t0: float) -> float:
 def rasterize(gaussians: GaussianSet, camera: Camera,
               request: RenderRequest = RenderRequest(),  # noqa: B008
               *, check_finite: bool = True) -> RenderOutput:
-    """Render ``gaussians`` seen by ``camera`` (see :mod:`avatar_core.render.types`).
+    """Render ``gaussians`` seen by ``camera`` (see :mod:`avatar_core.render.types`): what
+    ``render_views(gaussians, [camera], request)[0]`` returns.
 
     Differentiable with respect to the Gaussians on every backend. Raises ``ValueError`` for
     NaN/Inf inputs, bad shapes or a bad request. ``check_finite=False`` skips the NaN/Inf
@@ -105,20 +83,15 @@ def rasterize(gaussians: GaussianSet, camera: Camera,
     themselves (the trainer's device-side step guard).
     """
     t_start = time.perf_counter()
-    _check_request(request)
-    _check_gaussians(gaussians, check_finite)
-    # the contract's [0, 1], enforced: a huge opacity times a vanishing Gaussian overflows the
-    # gradients (Inf * 0); the clamp's gradient is 1 inside, so training is unaffected
-    gaussians = GaussianSet(gaussians.means, gaussians.quats, gaussians.scales,
-                            gaussians.opacities.clamp(0.0, 1.0), gaussians.sh)
-    if request.width is not None or request.height is not None:
-        camera = camera.resized(request.width or camera.width, request.height or camera.height)
+    check_request(request)
+    check_gaussians(gaussians, check_finite)
+    gaussians = clamp_opacities(gaussians)
+    camera = sized_camera(camera, request)
     width, height = camera.width, camera.height
     outputs = set(request.outputs)
     device, dtype = gaussians.means.device, gaussians.means.dtype
     backend = resolve_backend(request.backend, device)
-    sh_degree = gaussians.sh_degree if request.sh_degree is None \
-        else min(request.sh_degree, gaussians.sh_degree)
+    sh_degree = rendered_sh_degree(gaussians, request)
 
     if backend == "gsplat":
         from .rasterize_gsplat import rasterize_gsplat

@@ -22,7 +22,7 @@ class GaussianSet:
     means: Tensor       # [N, 3] world positions
     quats: Tensor       # [N, 4] (w, x, y, z), normalised inside the rasterizer
     scales: Tensor      # [N, 3] linear standard deviations (not log)
-    opacities: Tensor   # [N] in [0, 1] (rasterize clamps them there)
+    opacities: Tensor   # [N] in [0, 1] (rendering clamps them there)
     sh: Tensor          # [N, K, 3] SH coefficients, K = (degree + 1) ** 2, K in {1, 4, 9, 16}
 
     @property

@@ -30,10 +30,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
-from avatar_core.body.lbs import rodrigues
 from avatar_core.body.models import MANOModel
 from avatar_core.gaussians.animate import AvatarAnimator
-from avatar_core.gaussians.placement import place, union
+from avatar_core.gaussians.placement import place, placed_point, seat_transform, union
 from avatar_core.render.camera import Camera, orbit
 from avatar_core.render.camera_path import framing_target
 from avatar_core.render.types import GaussianSet, RenderRequest, to_uint8
@@ -118,17 +117,12 @@ class SeatPoser:
         self.animator, self.manos = animator, manos
         model = animator.body_model
         self.shapes = drive_shapes(model, manos)
-        dtype, device = model.dtype, model.device
-        rot = np.asarray(placement.rotation, dtype=np.float64)
-        trans = np.asarray(placement.translation, dtype=np.float64)
-        self.rotation = (None if not rot.any() else
-                         rodrigues(torch.as_tensor(rot, dtype=dtype, device=device)))
-        self.translation = (None if not trans.any() else
-                            torch.as_tensor(trans, dtype=dtype, device=device))
-        chest = np.asarray(framing_target(model.joint_template), dtype=np.float64)
-        if self.rotation is not None:
-            chest = self.rotation.double().cpu().numpy() @ chest
-        self.chest = chest + trans  # where an orbit without a target looks
+        self.rotation, self.translation = seat_transform(
+            placement.rotation, placement.translation, model.dtype, model.device)
+        # where an orbit without a target looks: the chest, placed (translation in float64)
+        self.chest = placed_point(framing_target(model.joint_template), self.rotation,
+                                  np.asarray(placement.translation, dtype=np.float64)
+                                  if self.translation is not None else None)
         self._lock = threading.Lock()
         self._worlds: collections.OrderedDict[int, GaussianSet] = collections.OrderedDict()
 
