@@ -71,6 +71,7 @@ def serve(args: argparse.Namespace) -> int:
 
     from .app import create_app
     from .config import load_settings
+    from .stream.gate import handshake_check
     from .stream.net import listen_socket, websocket_protocol
 
     cluster = {} if not getattr(args, "cluster", None) else {
@@ -93,7 +94,8 @@ def serve(args: argparse.Namespace) -> int:
     host = f"[{settings.host}]" if ":" in settings.host else settings.host
     _announce(app, f"http://{host}:{sock.getsockname()[1]}")
     config = uvicorn.Config(app, log_level=args.log_level, lifespan="on",
-                            ws=websocket_protocol(settings.hello_max_bytes),
+                            ws=websocket_protocol(
+                                settings.hello_max_bytes, handshake_check(app.state.ctx)),
                             ws_max_size=settings.limits.max_message_bytes + 1024,
                             timeout_graceful_shutdown=5)
     uvicorn.Server(config).run(sockets=[sock])

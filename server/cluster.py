@@ -6,12 +6,15 @@ render backends; :func:`connect` is idempotent.
 
 Authentication is Ray's own: Ray 2.60 runs token auth by default (``RAY_AUTH_MODE=token``); the
 head and every client read the token from ``RAY_AUTH_TOKEN``, ``RAY_AUTH_TOKEN_PATH`` or
-``~/.ray/auth_token`` (docs/scale.md).
+``~/.ray/auth_token`` (docs/scale.md). A private Ray ('auto') listens on every interface and
+runs whatever it is sent, so it is refused without token auth unless the setting
+``cluster_allow_no_auth`` says otherwise; an external cluster without it gets a warning.
 """
 
 from __future__ import annotations
 
 import importlib.util
+import logging
 import os
 import threading
 from typing import TYPE_CHECKING
@@ -19,7 +22,14 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from server.config import Settings
 
+log = logging.getLogger(__name__)
+
 NAMESPACE = "telesplat"
+AUTH_MODE_ENV = "RAY_AUTH_MODE"
+
+
+class ClusterAuthDisabled(RuntimeError):
+    """A private Ray would run without token auth, and the settings do not allow it."""
 LOCAL_ADDRESS = "auto"  # cluster_address that starts a private Ray on this machine
 
 _lock = threading.Lock()
@@ -55,14 +65,45 @@ def connect(settings: Settings) -> None:
                   "configure_logging": False, "ignore_reinit_error": True}
         _token_auth_if_token_available()
         if address == LOCAL_ADDRESS:
+            _refuse_no_auth(settings)
             # A fresh single-machine cluster owned by this process. Ray listens on every
             # interface (it advertises the machine's address even when asked for 127.0.0.1):
             # its token auth, on by default, is what keeps others out.
             ray.init(address="local", include_dashboard=False,
                      object_store_memory=settings.cluster_object_store_bytes, **common)
+            if not token_auth_enabled() and not settings.cluster_allow_no_auth:
+                ray.shutdown()
+                raise ClusterAuthDisabled(_NO_AUTH)
         else:
             ray.init(address=address, **common)
+            if not token_auth_enabled():
+                log.warning("the Ray cluster at %s runs without token auth: anyone who can "
+                            "reach it can run code there and read its data (set "
+                            "RAY_AUTH_MODE=token on the head and here; docs/scale.md)", address)
         _connected_to = address
+
+
+_NO_AUTH = ("refusing to start a private Ray (cluster_address 'auto') without token auth: it "
+            "listens on every interface and runs whatever it is sent. Unset "
+            f"{AUTH_MODE_ENV} (Ray's default is token auth) or set it to 'token'; or set "
+            "cluster_allow_no_auth = true to accept the risk on a closed network.")
+
+
+def _refuse_no_auth(settings: Settings) -> None:
+    """Before a private Ray starts: an explicit RAY_AUTH_MODE other than token is refused
+    unless cluster_allow_no_auth (Ray's default, unset, is token auth)."""
+    mode = os.environ.get(AUTH_MODE_ENV)
+    if mode is not None and mode.lower() != "token" and not settings.cluster_allow_no_auth:
+        raise ClusterAuthDisabled(_NO_AUTH)
+    if mode is not None and mode.lower() != "token":
+        log.warning("starting a private Ray without token auth (cluster_allow_no_auth)")
+
+
+def token_auth_enabled() -> bool:
+    """Whether this process runs Ray with token auth (after ray.init)."""
+    from ray._private.authentication.authentication_utils import is_token_auth_enabled
+
+    return bool(is_token_auth_enabled())
 
 
 def _token_auth_if_token_available() -> None:

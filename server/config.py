@@ -40,6 +40,13 @@ class Settings(BaseModel):
         4, ge=1, description="Concurrent streaming sessions per token subject (admin tokens "
                              "are exempt); past it a new session gets error 'busy', close "
                              "code 4429.")
+    max_sessions_per_invitation: int = Field(
+        4, ge=1, description="Concurrent sessions (WebSocket and WebRTC) one room invitation "
+                             "may hold; past it 'busy', close code 4429 (WHEP/WHIP 429).")
+    reserved_sessions: int = Field(
+        2, ge=0, description="Of max_sessions, how many only token holders (room owners, "
+                             "admins) may take: invitation holders get busy (1013, WHEP 503) "
+                             "once max_sessions - reserved_sessions are open.")
     hello_timeout_s: float = Field(
         5.0, gt=0, description="Seconds a WebSocket without a token in its header or URL may "
                                "take to send its 'hello'; then error 'unauthorized', close 4408.")
@@ -213,6 +220,10 @@ class Settings(BaseModel):
         None, description="Path every cluster node can reach (shared filesystem): job "
                           "datasets, checkpoints and finished packages. Default: data_dir "
                           "(one machine).")
+    cluster_allow_no_auth: bool = Field(
+        False, description="Let cluster_address 'auto' start a private Ray without token "
+                           "auth (RAY_AUTH_MODE set to something else); refused otherwise, "
+                           "since Ray listens on every interface and runs what it is sent.")
     cluster_object_store_bytes: int = Field(
         256 * 2**20, ge=78 * 2**20, description="Object store of the local Ray that "
                                                 "cluster_address 'auto' starts, bytes.")

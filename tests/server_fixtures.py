@@ -27,6 +27,7 @@ import uvicorn
 
 from server.app import create_app
 from server.config import Settings
+from server.stream.gate import handshake_check
 from server.stream.net import listen_socket, websocket_protocol
 
 START_TIMEOUT_S = 180.0  # the first warm-up compiles numba kernels (cached afterwards)
@@ -82,7 +83,8 @@ def run_server(data_dir: Path, *, ws: Any = None, **overrides: Any) -> Iterator[
     sock = listen_socket("127.0.0.1", 0, settings.send_buffer_bytes)
     port = sock.getsockname()[1]
     config = uvicorn.Config(app, log_level="warning", lifespan="on",
-                            ws=ws or websocket_protocol(settings.hello_max_bytes),
+                            ws=ws or websocket_protocol(
+                                settings.hello_max_bytes, handshake_check(app.state.ctx)),
                             ws_max_size=settings.limits.max_message_bytes + 1024,
                             timeout_graceful_shutdown=5)
     server = uvicorn.Server(config)

@@ -61,15 +61,17 @@ class KeyedSlots:
 class Admission:
     """The server's WebSocket admission state (see Settings for the limits)."""
 
-    waiting: KeyedSlots   # per client address, and in total, until authenticated
-    sessions: KeyedSlots  # per token subject
-    tickets: TicketBook   # single-use stand-ins for a token in a WebSocket URL
+    waiting: KeyedSlots      # per client address, and in total, until authenticated
+    sessions: KeyedSlots     # per token subject
+    invitations: KeyedSlots  # per room invitation (an invitation is a principal of its own)
+    tickets: TicketBook      # single-use stand-ins for a token in a WebSocket URL
 
     @classmethod
     def from_settings(cls, settings) -> Admission:
         return cls(waiting=KeyedSlots(settings.max_unauthenticated_per_address,
                                       settings.max_unauthenticated),
                    sessions=KeyedSlots(settings.max_sessions_per_user),
+                   invitations=KeyedSlots(settings.max_sessions_per_invitation),
                    tickets=TicketBook(settings.ticket_ttl_s, settings.max_tickets_per_user))
 
 
@@ -81,9 +83,10 @@ class SessionSlots:
         self.count = 0
         self._lock = threading.Lock()
 
-    def try_acquire(self) -> bool:
+    def try_acquire(self, reserved: int = 0) -> bool:
+        """A slot, unless fewer than ``reserved`` + 1 are free."""
         with self._lock:
-            if self.count >= self.limit:
+            if self.count >= self.limit - reserved:
                 return False
             self.count += 1
             return True
@@ -94,11 +97,12 @@ class SessionSlots:
 
 
 class Admitted:
-    """A session's place on the server: a ``max_sessions`` slot and, for a principal that is
-    not an admin, one of its ``max_sessions_per_user``. ``release`` gives both back (once)."""
+    """A session's place on the server: a ``max_sessions`` slot and one of its principal's
+    (a token subject's ``max_sessions_per_user``, an invitation's
+    ``max_sessions_per_invitation``). ``release`` gives them back (once)."""
 
-    def __init__(self, ctx: ServerContext, subject: str | None) -> None:
-        self._ctx, self._subject = ctx, subject
+    def __init__(self, ctx: ServerContext, counts: KeyedSlots | None, key: str | None) -> None:
+        self._ctx, self._counts, self._key = ctx, counts, key
         self._held = True
 
     def release(self) -> None:
@@ -107,28 +111,37 @@ class Admitted:
         self._held = False
         ctx = self._ctx
         ctx.slots.release()
-        if self._subject is not None:
-            ctx.admission.sessions.release(self._subject)
+        if self._counts is not None:
+            self._counts.release(self._key)
         ctx.metrics.sessions.set(ctx.slots.count)
 
 
 def admit(ctx: ServerContext, principal: Principal | None,
           invitation: Invitation | None) -> Admitted:
     """A session slot for whoever the credentials name (Refusal ``busy`` otherwise): the one
-    admission of the WebSocket and WebRTC entries. A principal counts against
-    ``max_sessions_per_user`` (admins exempt); an invitation against the server's total."""
+    admission of the WebSocket and WebRTC entries. A token subject counts against
+    ``max_sessions_per_user`` (admins exempt), an invitation against
+    ``max_sessions_per_invitation``; invitation holders never take the ``reserved_sessions``
+    kept for token holders (a room's owner, an admin)."""
     s = ctx.settings
-    if not ctx.slots.try_acquire():
-        raise Refusal("busy", f"server busy: {ctx.slots.limit} sessions are open; try again "
-                              "later", CLOSE_BUSY)
-    subject = None
-    if principal is not None and not principal.is_admin:
-        if ctx.admission.sessions.try_acquire(principal.subject) is not None:
-            ctx.slots.release()
-            raise Refusal("busy", f"{principal.subject!r} has {s.max_sessions_per_user} "
-                                  "sessions open, the most one user may have; close one "
-                                  "first", CLOSE_TOO_MANY)
-        subject = principal.subject
+    reserved = s.reserved_sessions if invitation is not None else 0
+    if not ctx.slots.try_acquire(reserved):
+        extra = (f" ({reserved} of {ctx.slots.limit} are kept for room owners and admins)"
+                 if reserved else "")
+        raise Refusal("busy", f"server busy: {ctx.slots.limit} sessions are open{extra}; "
+                              "try again later", CLOSE_BUSY)
+    counts, key = None, None
+    if invitation is not None:
+        counts, key = ctx.admission.invitations, invitation.id
+        limit, who = s.max_sessions_per_invitation, "this invitation"
+    elif principal is not None and not principal.is_admin:
+        counts, key = ctx.admission.sessions, principal.subject
+        limit, who = s.max_sessions_per_user, repr(principal.subject)
+    if counts is not None and counts.try_acquire(key) is not None:
+        ctx.slots.release()
+        raise Refusal("busy", f"{who} has {limit} sessions open, the most one "
+                              f"{'invitation' if invitation is not None else 'user'} may "
+                              "have; close one first", CLOSE_TOO_MANY)
     ctx.metrics.sessions.set(ctx.slots.count)
     ctx.metrics.sessions_total.inc()
-    return Admitted(ctx, subject)
+    return Admitted(ctx, counts, key)

@@ -66,41 +66,6 @@ def admit_unauthenticated(ctx: ServerContext, address: str) -> None:
 
 
 @dataclass(frozen=True)
-class Credentials:
-    """What a connection authenticates with, before the caller resolves it."""
-
-    hello: Hello | None           # read when asked for, or when it had to carry the token
-    token: str | None             # a bearer (or a room's invitation) token
-    principal: Principal | None   # a redeemed ``?ticket=``'s
-
-
-async def read_credentials(ws: WebSocket, ctx: ServerContext, *, hello: bool) -> Credentials:
-    """A ``?ticket=``'s principal, else the header's (or a legacy ``?token=``'s) token, else
-    the hello's; with ``hello`` the hello is read in any case (a room's carries role and
-    seat). While a hello that must carry the token is awaited, the connection holds a waiting
-    slot of its address."""
-    ticket = ws.query_params.get("ticket")
-    if ticket:
-        principal = ctx.admission.tickets.redeem(ticket)
-        if principal is None:
-            raise Refusal("unauthorized", "invalid, spent or expired ticket", CLOSE_UNAUTHORIZED)
-        return Credentials(await read_hello(ws, ctx) if hello else None, None, principal)
-    token = token_from_websocket(ws)
-    if token:
-        return Credentials(await read_hello(ws, ctx) if hello else None, token, None)
-    address = client_address(ws)
-    admit_unauthenticated(ctx, address)
-    try:
-        first = await read_hello(ws, ctx)
-    finally:
-        ctx.admission.waiting.release(address)
-    if not first.token:
-        raise Refusal("unauthorized", "no token: the first message must be a hello with a "
-                                      "token", CLOSE_UNAUTHORIZED)
-    return Credentials(first, first.token, None)
-
-
-@dataclass(frozen=True)
 class Who:
     """Whom a connection's credentials name, and its hello when one was read."""
 
@@ -110,18 +75,57 @@ class Who:
 
 
 async def authenticate(ws: WebSocket, ctx: ServerContext, *, hello: bool) -> Who:
-    """Who sent the credentials (Refusal ``unauthorized`` for none that are valid); the
-    pre-auth size limit is lifted only then."""
-    credentials = await read_credentials(ws, ctx, hello=hello)
-    principal, invitation = credentials.principal, None
-    if principal is None:
-        principal, invitation = ctx.credential(credentials.token)
-        if principal is None and invitation is None:
-            raise Refusal("unauthorized", "invalid, expired or revoked invitation"
-                          if is_invitation(credentials.token) else "invalid token",
-                          CLOSE_UNAUTHORIZED)
+    """Who sent the credentials: a ``?ticket=``'s principal, else the header's (or a legacy
+    ``?token=``'s) token, else the hello's. Credentials in the handshake are validated before
+    anything is read: a bad one is refused at once (``unauthorized``), never lifting the
+    pre-auth limits. Without any, the hello must carry a valid token, read under the pre-auth
+    limits while the connection holds a waiting slot of its address. The message size limit
+    is lifted only once the credentials are valid. With ``hello`` the hello is read in any
+    case (a room's carries role and seat)."""
+    ticket = ws.query_params.get("ticket")
+    if ticket:
+        principal = ctx.admission.tickets.redeem(ticket)
+        if principal is None:
+            raise Refusal("unauthorized", "invalid, spent or expired ticket", CLOSE_UNAUTHORIZED)
+        lift_preauth(ws)
+        return Who(await read_hello(ws, ctx) if hello else None, principal, None)
+    token = token_from_websocket(ws)
+    if token:
+        principal, invitation = _valid(ctx, token)
+        lift_preauth(ws)
+        return Who(await read_hello(ws, ctx) if hello else None, principal, invitation)
+    address = client_address(ws)
+    admit_unauthenticated(ctx, address)
+    try:
+        first = await read_hello(ws, ctx)
+    finally:
+        ctx.admission.waiting.release(address)
+    if not first.token:
+        raise Refusal("unauthorized", "no token: the first message must be a hello with a "
+                                      "token", CLOSE_UNAUTHORIZED)
+    principal, invitation = _valid(ctx, first.token)
     lift_preauth(ws)
-    return Who(credentials.hello, principal, invitation)
+    return Who(first, principal, invitation)
+
+
+def _valid(ctx: ServerContext, token: str) -> tuple[Principal | None, Invitation | None]:
+    principal, invitation = ctx.credential(token)
+    if principal is None and invitation is None:
+        raise Refusal("unauthorized", "invalid, expired or revoked invitation"
+                      if is_invitation(token) else "invalid token", CLOSE_UNAUTHORIZED)
+    return principal, invitation
+
+
+def handshake_check(ctx: ServerContext):
+    """For the WebSocket protocol (server/stream/net.py): whether a handshake's credentials
+    are valid, checked before any message is read (a ticket is looked at, not spent)."""
+    def valid(token: str | None, ticket: str | None) -> bool:
+        if ticket:
+            return ctx.admission.tickets.valid(ticket)
+        principal, invitation = ctx.credential(token)
+        return principal is not None or invitation is not None
+
+    return valid
 
 
 def lift_preauth(ws: WebSocket) -> None:

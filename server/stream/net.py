@@ -11,15 +11,20 @@ the app sees it, so an app-level size check still lets every unauthenticated pee
 server read and buffer that much. A connection whose handshake carries no credentials
 (``Authorization`` header, ``?token=``, ``?ticket=``) must authenticate with its first message,
 so until it has, the frame parser's own limit is the hello's size: a larger frame is refused
-from its header (close 1009) and never read. ``/v1/stream`` lifts the limit once the hello's
-token is valid (through the ASGI scope extension ``PREAUTH_EXTENSION``).
+from its header (close 1009) and never read. Credentials in the handshake count only when
+they are valid (``valid_credentials``, checked before any message is read): a garbage
+``Authorization`` header gets the same limit as none. ``/v1/stream`` lifts the limit once the
+credentials are valid (through the ASGI scope extension ``PREAUTH_EXTENSION``).
 """
 
 from __future__ import annotations
 
 import socket
+from collections.abc import Callable
 from typing import Any
 from urllib.parse import parse_qs
+
+from ..auth import bearer_token
 
 PREAUTH_EXTENSION = "telesplat.preauth"  # scope["extensions"][...]["lift"]() -> full size
 
@@ -35,15 +40,26 @@ def listen_socket(host: str, port: int, send_buffer_bytes: int = 0) -> socket.so
     return sock
 
 
-def _carries_credentials(path: str, headers: Any) -> bool:
+CredentialCheck = Callable[[str | None, str | None], bool]  # (token, ticket) -> valid
+
+
+def _handshake_credentials(path: str, headers: Any) -> tuple[str | None, str | None]:
+    """(bearer token, ticket) a WebSocket handshake carries: the Authorization header or a
+    legacy ``?token=``, and ``?ticket=``."""
     query = parse_qs(path.partition("?")[2])
-    return "authorization" in headers or "token" in query or "ticket" in query
+    token = (query["token"][0] if query.get("token") else None) or \
+        bearer_token(headers.get("authorization"))  # as server/auth.py token_from_websocket
+    ticket = query["ticket"][0] if query.get("ticket") else None
+    return token, ticket
 
 
-def websocket_protocol(preauth_max_bytes: int) -> Any:
+def websocket_protocol(preauth_max_bytes: int,
+                       valid_credentials: CredentialCheck | None = None) -> Any:
     """A uvicorn ``ws`` protocol class that bounds the first message of connections without
-    credentials to ``preauth_max_bytes``; ``"auto"`` if uvicorn's websockets-sansio protocol
-    is not there (the app's own length check still refuses, after the read)."""
+    valid credentials to ``preauth_max_bytes`` (``valid_credentials(token, ticket)``; None:
+    every connection is bounded until the app lifts it); ``"auto"`` if uvicorn's
+    websockets-sansio protocol is not there (the app's own length check still refuses, after
+    the read)."""
     try:
         from uvicorn.protocols.websockets.websockets_sansio_impl import (
             WebSocketsSansIOProtocol,
@@ -54,9 +70,12 @@ def websocket_protocol(preauth_max_bytes: int) -> Any:
     class PreAuthBoundedProtocol(WebSocketsSansIOProtocol):
         def handle_connect(self, event: Any) -> None:
             super().handle_connect(event)
-            if self.response.status_code != 101 or _carries_credentials(event.path,
-                                                                        event.headers):
-                return  # refused, or authenticated before any message is read
+            if self.response.status_code != 101:
+                return  # refused
+            token, ticket = _handshake_credentials(event.path, event.headers)
+            if (token or ticket) and valid_credentials is not None and \
+                    valid_credentials(token, ticket):
+                return  # authenticated before any message is read
             full = self.conn.max_message_size
             self.conn.max_message_size = preauth_max_bytes
 

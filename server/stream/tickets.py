@@ -51,6 +51,12 @@ class TicketBook:
             self._tickets[_digest(ticket)] = (principal, now + self.ttl_s)
         return ticket
 
+    def valid(self, ticket: str) -> bool:
+        """Whether the ticket is unspent and unexpired (looked at, not spent)."""
+        with self._lock:
+            entry = self._tickets.get(_digest(ticket))
+        return entry is not None and entry[1] > time.monotonic()
+
     def redeem(self, ticket: str) -> Principal | None:
         """The ticket's principal, once; None when unknown, spent or expired."""
         with self._lock:
