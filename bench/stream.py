@@ -169,8 +169,11 @@ async def run_config(url: str, token: str, sessions: int, size: int, seconds: fl
 
 
 def start_server(data_dir: Path, render_threads: int, max_sessions: int, avatar: str):
+    # A bench's crowd of viewers joins with one watch invitation: it may take every session.
     env = {**os.environ, "TELESPLAT_RENDER_THREADS": str(render_threads),
-           "TELESPLAT_MAX_SESSIONS": str(max_sessions), "PYTHONUNBUFFERED": "1"}
+           "TELESPLAT_MAX_SESSIONS": str(max_sessions),
+           "TELESPLAT_MAX_SESSIONS_PER_INVITATION": str(max_sessions),
+           "TELESPLAT_RESERVED_SESSIONS": "0", "PYTHONUNBUFFERED": "1"}
     proc = subprocess.Popen(
         [sys.executable, "-m", "server", "--port", "0", "--data-dir", str(data_dir),
          "--demo-avatar", avatar, "--log-level", "warning"],
