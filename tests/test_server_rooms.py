@@ -414,6 +414,16 @@ def _small_buffer_socket(srv) -> socket.socket:
     return sock
 
 
+async def _until_stalled(srv, *readers, timeout_s: float = 10.0) -> None:
+    """Until a png participant waits on its client (bounded; ``readers`` keep reading)."""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        if any(s.stalled and s.request.codec == "png" for s in srv.ctx.sessions.values()):
+            return
+        await asyncio.gather(*(_count_frames(r, 0.1) for r in readers))
+    raise AssertionError(f"no png participant stalled within {timeout_s} s")
+
+
 def test_a_stalled_viewer_slows_neither_the_performer_nor_other_viewers(srv):
     room = create_room(srv)
     watch = invite(srv, room["id"], "watch")
@@ -436,6 +446,7 @@ def test_a_stalled_viewer_slows_neither_the_performer_nor_other_viewers(srv):
                 await slow.send(encode(Request(codec="png", width=512, height=512)))
                 await slow.send(encode(View(orbit=Orbit(yaw_deg=30))))
                 await window(performer, viewer)  # until its buffers are full
+                await _until_stalled(srv, performer, viewer)  # longer on a loaded machine
                 stalled = await window(performer, viewer)
             return alone, stalled
 

@@ -150,6 +150,17 @@ def _small_buffer_socket(srv) -> socket.socket:
     return sock
 
 
+async def _until_stalled(srv, reader, codec: str, timeout_s: float = 10.0) -> None:
+    """Until the session asking ``codec`` waits on its client (bounded; ``reader`` keeps
+    reading meanwhile)."""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        if any(s.stalled and s.request.codec == codec for s in srv.ctx.sessions.values()):
+            return
+        await _count_frames(reader, 0.1)
+    raise AssertionError(f"no {codec} session stalled within {timeout_s} s")
+
+
 def test_slow_client_builds_no_lag_and_slows_nobody(srv):
     async def run():
         sock = _small_buffer_socket(srv)
@@ -164,6 +175,7 @@ def test_slow_client_builds_no_lag_and_slows_nobody(srv):
             slow_sender = asyncio.create_task(_drive_for(slow, 2.5))
             fast_sender = asyncio.create_task(_drive_for(fast, 2.5))
             await _count_frames(fast, 1.0)  # until the slow connection's buffers are full
+            await _until_stalled(srv, fast, "png")  # on a loaded machine that takes longer
             shared = await _count_frames(fast, 1.5) / 1.5
             last = await slow_sender
             await fast_sender

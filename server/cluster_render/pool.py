@@ -235,7 +235,7 @@ class RenderPool:
             scene.id, scene.seats, job))
         t = frame.timings
         took = t.pose + t.render + t.encode
-        self.share.add(scene.id, took / 1e3, time.monotonic())
+        self.share.add_if_known(scene.id, took / 1e3, time.monotonic())
         worker.frame_ms = (took if worker.frames == 0 else
                            FRAME_MS_DECAY * worker.frame_ms + (1 - FRAME_MS_DECAY) * took)
         worker.frames += 1

@@ -97,6 +97,12 @@ class FairShare:
         acc.total_s += seconds
         acc.last_seen = now
 
+    def add_if_known(self, key: Hashable, seconds: float, now: float) -> None:
+        """``add`` for an account still kept: a job that finishes after its session was
+        forgotten does not bring the account back (it would never be forgotten again)."""
+        if key in self._accounts:
+            self.add(key, seconds, now)
+
     def usage(self, key: Hashable, now: float) -> float:
         acc = self._accounts.get(key)
         return 0.0 if acc is None else self._decayed(acc, now)
@@ -237,7 +243,7 @@ class RenderScheduler:
             with self._cond:
                 self.running -= 1
                 if job.key is not None:  # accounted before the session sees the result
-                    self.share.add(job.key, took, time.monotonic())
+                    self.share.add_if_known(job.key, took, time.monotonic())
             if error is not None:
                 job.future.set_exception(error)
             else:

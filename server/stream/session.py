@@ -151,6 +151,7 @@ class Session:
         self._control: asyncio.Queue = asyncio.Queue(CONTROL_QUEUE)
         self._send_lock = asyncio.Lock()
         self._inflight = None  # concurrent future of the render running now
+        self.stalled = False  # its client is not taking the frame being sent
         # counters
         self.frames = 0
         self.dropped = 0
@@ -401,9 +402,11 @@ class Session:
         try:
             done, _ = await asyncio.wait({send}, timeout=SEND_STALL_S)
             if not done:
+                self.stalled = True
                 self.scene.workers.stalled(self.share_key)
             await send
         finally:
+            self.stalled = False
             send.cancel()  # the session ends: the send goes with it
 
     async def _send_frame(self, f: Frame) -> None:
@@ -412,7 +415,8 @@ class Session:
         if f.versions != self._asked:
             self._dirty.set()  # it joined an older render: its own state comes next
         self._last_codec = f.codec
-        sent = await self.transport.deliver(f, self.frames)
+        async with self._send_lock:  # one message at a time on the transport
+            sent = await self.transport.deliver(f, self.frames)
         self.frames += 1
         self.bytes_sent += sent
         self._render_ms.append(f.timings.render)

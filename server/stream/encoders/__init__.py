@@ -91,6 +91,7 @@ class FrameEncoders:
         self._lock = threading.Lock()
         self._streams: collections.OrderedDict[tuple[Hashable, str], Any] = (
             collections.OrderedDict())
+        self._closed = False
 
     @staticmethod
     def output_key(participant: Hashable, request: Request) -> Hashable | None:
@@ -120,6 +121,12 @@ class FrameEncoders:
                          rgb: np.ndarray, fps: float) -> tuple[bytes, bool]:
         key = (participant, codec)
         with self._lock:
+            if self._closed:  # a frame still rendering when its scene closed: no state kept
+                stream = STATEFUL[codec]()
+                try:
+                    return stream.encode(rgb, fps)
+                finally:
+                    stream.close()
             stream = self._streams.pop(key, None)
             if stream is None:
                 stream = STATEFUL[codec]()
@@ -144,6 +151,7 @@ class FrameEncoders:
 
     def close(self) -> None:
         with self._lock:
+            self._closed = True
             streams = list(self._streams.values())
             self._streams.clear()
         for stream in streams:
