@@ -324,7 +324,7 @@ STAGES = (
     Stage("gpu", stage_gpu, cap_s=30, min_s=5, cuda=True),
     Stage("wheels", stage_wheels, cap_s=120, min_s=10),
     Stage("imports", stage_imports, cap_s=90, min_s=10, after=("wheels",)),
-    Stage("gsplat-build", stage_gsplat_build, cap_s=330, min_s=60, cuda=True,
+    Stage("gsplat-build", stage_gsplat_build, cap_s=360, min_s=60, cuda=True,
           after=("gpu", "imports")),
     Stage("pytest-gpu", stage_pytest, cap_s=240, min_s=60, after=("gpu", "imports")),
     Stage("bench", stage_bench, cap_s=200, min_s=90, cuda=True,
