@@ -68,15 +68,37 @@ lint: $(VENV)/.installed-dev
 bench: $(VENV)/.installed-dev
 	$(PY) bench/body.py
 
-# The GPU check (docs/gpu.md): on a CUDA machine, its own virtualenv with the cuda extra (pip
-# takes torch's CUDA build from PyPI's default index there; onnxruntime-gpu replaces
+# The GPU check (docs/gpu.md). Online, on a CUDA machine: its own virtualenv with the cuda extra
+# (pip takes torch's CUDA build from PyPI's default index there; onnxruntime-gpu replaces
 # onnxruntime, which installs the same module), the tests marked gpu, then the targets measured
 # into docs/gpu.md. Without an NVIDIA GPU it stops at once.
 GPU_VENV ?= .venv-gpu
 GPU_PY := $(GPU_VENV)/bin/python
 ONNXRUNTIME_GPU ?= onnxruntime-gpu>=1.20,<2
 
-.PHONY: gpu-check
+# Offline, on a CUDA machine that reaches no registry: `make gpu-wheels` here fetches what it
+# lacks (requirements-gpu-offline.txt) into $(WHEELS); carry the tree with that folder, and
+# there `make gpu-check OFFLINE=1 GPU_OUT=DIR` runs bench/gpu_offline.py with the machine's own
+# python3 (its CUDA torch): stages timed within GPU_DEADLINE seconds, results in GPU_OUT.
+# DRY_RUN=1: the same path here, with this venv's CPU torch and the CUDA stages skipped.
+WHEELS ?= .whl
+GPU_OUT ?= $(OUT)/gpu-check
+GPU_DEADLINE ?= 540
+GSPLAT_CACHE ?= .gsplat-cache
+GSPLAT_ARCHIVE ?=
+DRY := $(filter 1,$(DRY_RUN))
+GPU_PYTHON ?= $(if $(DRY),$(PY),$(PYTHON))
+
+.PHONY: gpu-check gpu-wheels
+gpu-wheels:
+	$(PYTHON) bench/gpu_wheels.py --dest $(WHEELS)
+
+ifeq ($(OFFLINE),1)
+gpu-check: $(if $(DRY),$(VENV)/.installed)
+	$(GPU_PYTHON) bench/gpu_offline.py --out $(GPU_OUT) --wheels $(WHEELS) \
+	  --deadline $(GPU_DEADLINE) --gsplat-cache $(GSPLAT_CACHE) \
+	  $(if $(GSPLAT_ARCHIVE),--gsplat-archive $(GSPLAT_ARCHIVE)) $(if $(DRY),--dry-run)
+else
 gpu-check:
 	@nvidia-smi -L 2>/dev/null | grep -q "^GPU" || { \
 	  echo "gpu-check: no CUDA device (nvidia-smi lists no GPU); run it on a CUDA machine" >&2; \
@@ -91,6 +113,7 @@ gpu-check:
 	$(GPU_VENV)/bin/telesplat track fetch-models || echo "tracking models unavailable: their gpu test skips"
 	$(GPU_PY) -m pytest -q -p no:xdist -m gpu -rs
 	$(GPU_PY) bench/gpu_check.py --out docs/gpu.md
+endif
 
 clean:
 	rm -rf $(VENV) $(OUT) .pytest_cache

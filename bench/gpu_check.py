@@ -1,9 +1,11 @@
 """The GPU figures of docs/gpu.md: issue 15's targets, measured on the CUDA machine.
 
-    python bench/gpu_check.py [--out docs/gpu.md] [--seconds 6] [--avatar synthetic]
+    python bench/gpu_check.py [--out docs/gpu.md] [--json FILE] [--seconds 6]
+                              [--avatar synthetic]
     python bench/gpu_check.py --dry-run --out /tmp/gpu.md   # CPU, tiny sizes: the script only
 
-``make gpu-check`` runs it after the ``gpu`` tests. Four measurements, each against its target:
+``make gpu-check`` runs it after the ``gpu`` tests (offline: bench/gpu_offline.py, with
+``--seconds`` from what its deadline leaves). Four measurements, each against its target:
 
 1. render: ``rasterize`` of a 40k-Gaussian avatar-like scene (render/scenes.py, the shared
    test scene; pass ``--package`` for a trained avatar's Gaussians) at 1920x1080 on gsplat,
@@ -19,10 +21,18 @@
    capture, the whole image: no crop to the subject), iterations per second after a warm-up
    (target >= 40).
 
+Beside them, measured in the same run (bench/gpu_ratios.py): gsplat against our cpu backend on
+the same scene, batched against one-by-one views, nvJPEG against OpenCV JPEG, the
+device-resident training step against the host-checked one. ``--seconds`` bounds each timed
+measurement (the two server runs, each training mode, each side of a ratio), so the whole run
+takes about a minute of fixed costs (server start, capture, warm-ups) plus 8 x ``--seconds``.
+
 The result replaces the part of ``--out`` between the gpu-check markers (the rest of the file
 is kept), with the GPU's name (``torch.cuda.get_device_name``) and the date. Without CUDA it
 exits 2 ("no CUDA device") unless ``--dry-run``, which runs every part on the CPU at tiny
-sizes against nothing (targets are not judged) so that the script itself is tested.
+sizes against nothing (targets are not judged) so that the script itself is tested; its ratio
+table compares what exists there (the cpu backend against the torch reference). ``--json``
+also writes every number measured.
 """
 
 from __future__ import annotations
@@ -31,6 +41,7 @@ import argparse
 import asyncio
 import dataclasses
 import datetime
+import json
 import math
 import os
 import sys
@@ -45,6 +56,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
+import gpu_ratios  # noqa: E402
 import rooms as rooms_bench  # noqa: E402
 from stream import motion_frame, percentile, start_server, stop_server  # noqa: E402
 
@@ -71,7 +83,7 @@ class Sizes:
     viewers: int = 32
     train_resolution: int = 512
     train_iterations: int = 200
-    seconds: float = 6.0
+    seconds: float = 6.0  # each timed measurement at most (the frame counts bound them too)
 
     @classmethod
     def dry(cls) -> Sizes:
@@ -79,9 +91,7 @@ class Sizes:
                    viewers=2, train_resolution=32, train_iterations=3, seconds=1.0)
 
 
-def _sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
+_sync = gpu_ratios.sync
 
 
 def _on(g: GaussianSet, device: torch.device) -> GaussianSet:
@@ -96,21 +106,14 @@ def _package_gaussians(path: str) -> GaussianSet:
     return loaded.animator.pose({}).gaussians
 
 
-def measure_render(s: Sizes, device: torch.device, backend: str,
-                   package: str | None) -> dict[str, float]:
-    g = avatar_like_scene(s.gaussians, 0) if package is None else _package_gaussians(package)
-    g = _on(g, device)
+def measure_render(s: Sizes, device: torch.device, backend: str, g: GaussianSet
+                   ) -> dict[str, float]:
     req = RenderRequest(outputs=("rgb",), backend=backend)
     cam = avatar_camera(s.width, s.height)
     with torch.no_grad():
-        for _ in range(3):  # warm-up (kernels compiled / loaded)
+        for _ in range(2):  # warm-up (kernels compiled / loaded)
             rasterize(g, cam, req)
-        _sync(device)
-        t0 = time.perf_counter()
-        for _ in range(s.frames):
-            rasterize(g, cam, req)
-        _sync(device)
-        fps = s.frames / (time.perf_counter() - t0)
+        fps = gpu_ratios.rate(lambda: rasterize(g, cam, req), device, s.frames, s.seconds)
         cams = [orbit((0.0, 0.08, 0.0), -60.0 + 120.0 * i / max(1, s.views - 1), 5.0, 2.0,
                       width=s.view_size, height=s.view_size, fov_y_deg=30.0)
                 for i in range(s.views)]
@@ -184,7 +187,9 @@ def measure_server(s: Sizes, backend: str, avatar: str) -> dict[str, float]:
             "viewer_fps_min": min(fps) if fps else 0.0, "viewers": len(fps)}
 
 
-def measure_training(s: Sizes, device: torch.device) -> dict[str, float]:
+def measure_training(s: Sizes, device: torch.device) -> dict:
+    """it/s of the trainer's default step on ``device`` (device-resident on CUDA) and of the
+    other mode, on one synthetic capture; each timed for ``s.seconds`` at most."""
     from avatar_core.dataset import load_dataset
     from avatar_core.synth.capture import CaptureSpec, capture
     from avatar_core.synth.model_writer import write_synthetic_models
@@ -198,19 +203,38 @@ def measure_training(s: Sizes, device: torch.device) -> dict[str, float]:
                            cross_identity=None)
         data = load_dataset(capture(Path(tmp) / "capture", spec, model_dir=files.root))
         base = preset("default")  # the seed's recipe (its densification starts later)
+        warm = min(20, s.train_iterations)
         config = dataclasses.replace(
-            base, iterations=s.train_iterations + 20, device=device.type,
+            base, iterations=warm + s.train_iterations + 1, device=device.type,
             data=dataclasses.replace(base.data, crop_to_subject=False))
-        trainer = Trainer(data, config, Path(tmp) / "out", body_model=files.root)
-        for _ in range(min(20, s.train_iterations)):  # warm-up: views prepared, frames posed
-            trainer.step()
-        _sync(device)
-        t0 = time.perf_counter()
-        for _ in range(s.train_iterations):
-            trainer.step()
-        _sync(device)
-        its = s.train_iterations / (time.perf_counter() - t0)
-    return {"train_its": its, "train_device_resident": float(trainer.tally is not None)}
+
+        def its_per_s(device_resident: bool) -> float:
+            out = Path(tmp) / f"out-{device_resident}"
+            trainer = Trainer(data, config, out, body_model=files.root,
+                              device_resident=device_resident)
+            for _ in range(warm):  # views prepared, frames posed, kernels loaded
+                trainer.step()
+            return gpu_ratios.rate(trainer.step, device, s.train_iterations, s.seconds)
+
+        ratio = gpu_ratios.training_modes(its_per_s, s.train_resolution)
+    default = ratio.fast_rate if device.type == "cuda" else ratio.slow_rate
+    return {"train_its": default, "train_ratio": ratio}
+
+
+def measure_ratios(s: Sizes, device: torch.device, backend: str, g: GaussianSet,
+                   m: dict) -> list[gpu_ratios.Ratio]:
+    """The render and JPEG pairs, and the two ratios measured with the figures."""
+    cam = avatar_camera(s.width, s.height)
+    slow = "cpu" if backend == "gsplat" else "torch"
+    return [
+        gpu_ratios.render_backends(g, cam, backend, m["render_fps"], slow, s.frames,
+                                   s.seconds),
+        gpu_ratios.Ratio(f"{s.views} views of {s.view_size} px", "one render_views call",
+                         m["views_per_s_batched"], "one rasterize each",
+                         m["views_per_s_single"], "views/s"),
+        gpu_ratios.jpeg_encoders(s.width, s.height, device, s.frames, s.seconds),
+        m["train_ratio"],
+    ]
 
 
 def _row(name: str, target: str, value: float, unit: str, ok: bool | None) -> str:
@@ -220,7 +244,7 @@ def _row(name: str, target: str, value: float, unit: str, ok: bool | None) -> st
     return f"| {name} | {target} | {shown} | {verdict} |"
 
 
-def report(m: dict[str, float], s: Sizes, device_name: str, dry: bool) -> str:
+def report(m: dict, s: Sizes, device_name: str, dry: bool) -> str:
     judge = (lambda ok: None) if dry else (lambda ok: bool(ok))  # noqa: E731
     date = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
     lines = [
@@ -248,6 +272,10 @@ def report(m: dict[str, float], s: Sizes, device_name: str, dry: bool) -> str:
         f"`render_views` call {m['views_per_s_batched']:.0f} views/s against "
         f"{m['views_per_s_single']:.0f} views/s one call each (ratio "
         f"{m['views_per_s_batched'] / m['views_per_s_single']:.2f}).",
+        "",
+        "Ratios measured in the same run, each pair on the same input:",
+        "",
+        *gpu_ratios.table(m["ratios"], dry),
         END,
     ]
     return "\n".join(lines)
@@ -269,7 +297,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", type=Path, default=ROOT / "docs" / "gpu.md")
-    parser.add_argument("--seconds", type=float, default=None, help="per server measurement")
+    parser.add_argument("--json", type=Path, default=None, help="also write every number here")
+    parser.add_argument("--seconds", type=float, default=None,
+                        help="each timed measurement at most (default 6, dry 1)")
     parser.add_argument("--avatar", default="synthetic", help="the server's demo avatar")
     parser.add_argument("--package", default=None, help="render a trained avatar package")
     parser.add_argument("--dry-run", action="store_true",
@@ -285,17 +315,40 @@ def main(argv: list[str] | None = None) -> int:
     device = torch.device("cpu" if args.dry_run else "cuda")
     backend = "cpu" if args.dry_run else "gsplat"
     name = "CPU (dry run)" if args.dry_run else torch.cuda.get_device_name(device)
-    m: dict[str, float] = {}
-    m.update(measure_render(sizes, device, backend, args.package))
-    print(f"render: {m['render_fps']:.1f} fps", flush=True)
+    g = avatar_like_scene(sizes.gaussians, 0) if args.package is None \
+        else _package_gaussians(args.package)
+    g = _on(g, device)
+    m: dict = {}
+    t0 = time.perf_counter()
+    m.update(measure_render(sizes, device, backend, g))
+    print(f"render: {m['render_fps']:.1f} fps ({time.perf_counter() - t0:.0f} s)", flush=True)
     m.update(measure_server(sizes, backend, args.avatar))
-    print(f"server: p95 {m['latency_p95_ms']:.1f} ms, viewers min {m['viewer_fps_min']:.1f} fps",
-          flush=True)
+    print(f"server: p95 {m['latency_p95_ms']:.1f} ms, viewers min {m['viewer_fps_min']:.1f} fps"
+          f" ({time.perf_counter() - t0:.0f} s)", flush=True)
     m.update(measure_training(sizes, device))
-    print(f"training: {m['train_its']:.1f} it/s", flush=True)
+    print(f"training: {m['train_its']:.1f} it/s ({time.perf_counter() - t0:.0f} s)", flush=True)
+    m["ratios"] = measure_ratios(sizes, device, backend, g, m)
+    for r in m["ratios"]:
+        print(f"ratio {r.what}: {r.value:.2f} {r.why_not}".rstrip(), flush=True)
     write_section(args.out, report(m, sizes, name, args.dry_run))
-    print(f"wrote {args.out}")
+    print(f"wrote {args.out} ({time.perf_counter() - t0:.0f} s)")
+    if args.json is not None:
+        write_json(args.json, m, sizes, name, args.dry_run)
+        print(f"wrote {args.json}")
     return 0
+
+
+def write_json(path: Path, m: dict, s: Sizes, device_name: str, dry: bool) -> None:
+    def number(v: float) -> float | None:  # NaN is not JSON: what was not measured is null
+        return None if isinstance(v, float) and math.isnan(v) else v
+
+    figures = {k: number(v) for k, v in m.items() if isinstance(v, int | float)}
+    ratios = [{k: number(v) for k, v in (dataclasses.asdict(r) | {"ratio": r.value}).items()}
+              for r in m["ratios"]]
+    doc = {"device": device_name, "dry_run": dry, "torch": torch.__version__,
+           "sizes": dataclasses.asdict(s), "figures": figures, "targets": TARGETS,
+           "ratios": ratios}
+    path.write_text(json.dumps(doc, indent=1, allow_nan=False) + "\n")
 
 
 if __name__ == "__main__":

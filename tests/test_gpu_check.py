@@ -1,7 +1,9 @@
 """`make gpu-check` and bench/gpu_check.py on a machine without CUDA: both stop at once with
-"no CUDA device"; the bench's dry run (CPU, tiny sizes) writes its section of docs/gpu.md."""
+"no CUDA device"; the bench's dry run (CPU, tiny sizes) writes its section of docs/gpu.md,
+with the ratio table, and every number as JSON."""
 
 import importlib.util
+import json
 import shutil
 import subprocess
 import sys
@@ -67,9 +69,9 @@ def test_the_committed_page_has_the_section_and_says_why_it_is_empty():
 @pytest.mark.slow
 def test_the_dry_run_writes_every_figure(tmp_path):
     """The whole script on the CPU at tiny sizes (a server on loopback included)."""
-    out = tmp_path / "gpu.md"
+    out, numbers = tmp_path / "gpu.md", tmp_path / "figures.json"
     done = subprocess.run([sys.executable, str(ROOT / "bench" / "gpu_check.py"), "--dry-run",
-                           "--out", str(out), "--seconds", "0.5"],
+                           "--out", str(out), "--json", str(numbers), "--seconds", "0.5"],
                           capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stdout + done.stderr
     text = out.read_text()
@@ -77,3 +79,14 @@ def test_the_dry_run_writes_every_figure(tmp_path):
                    "training it/s"):
         assert figure in text
     assert "CPU (dry run)" in text and "n/a" not in text
+    # the ratios: what exists on the CPU measured, nvJPEG said to be missing
+    assert "| render 64x48, 500 Gaussians | cpu: " in text and "| torch: " in text
+    assert "| one render_views call: " in text
+    assert "| device-resident: " in text and "| host-checked: " in text
+    assert "not measured: no nvJPEG here" in text and "Dry run: the CPU" in text
+    doc = json.loads(numbers.read_text())
+    assert doc["dry_run"] and doc["figures"]["render_fps"] > 0
+    ratios = {r["what"].split()[0]: r for r in doc["ratios"]}
+    assert set(ratios) == {"render", "3", "JPEG", "training"}
+    assert ratios["JPEG"]["ratio"] is None and ratios["JPEG"]["slow_rate"] > 0
+    assert all(r["ratio"] > 0 for k, r in ratios.items() if k != "JPEG")
