@@ -273,6 +273,27 @@ class Settings(BaseModel):
     webrtc_connect_timeout_s: float = Field(
         15.0, gt=0, description="Seconds a WebRTC peer may take from its answer to a connected "
                                 "ICE/DTLS transport; then it is closed and its slot freed.")
+    webrtc_max_message_bytes: int = Field(
+        256 * 1024, ge=1024, description="Largest data-channel message, bytes: advertised as "
+                                         "the SDP answer's a=max-message-size and enforced "
+                                         "before reassembly; a peer sending a larger one is "
+                                         "closed. At most limits.max_message_bytes.")
+    webrtc_receive_window_bytes: int = Field(
+        512 * 1024, ge=2048, description="Data-channel bytes a WebRTC peer may have waiting "
+                                         "in reassembly (each chunk counted as at least "
+                                         "1 KiB), advertised as its SCTP receive window; "
+                                         "chunks past it are dropped unacknowledged (the "
+                                         "sender retransmits). At least twice "
+                                         "webrtc_max_message_bytes.")
+    webrtc_max_inbound_bytes_per_s: float = Field(
+        2**20, gt=0, description="Data-channel bytes per second one WebRTC peer may send, "
+                                 "counted per SCTP chunk before reassembly (each at least "
+                                 "1 KiB; burst max(one second, two webrtc_max_message_bytes)); "
+                                 "past it chunks wait, unacknowledged, within "
+                                 "webrtc_receive_window_bytes: the sender slows down.")
+    webrtc_max_sctp_streams: int = Field(
+        16, ge=1, description="SCTP stream ids (data channels) one WebRTC peer may use; "
+                              "chunks on more are dropped.")
     gaussian_ranges: GaussianRanges = Field(
         default_factory=GaussianRanges,
         description="Allowed values of an avatar's Gaussians (count, log-scales, local means, "
@@ -314,6 +335,19 @@ class Settings(BaseModel):
         if self.webrtc_min_bitrate > self.webrtc_max_bitrate:
             raise ValueError(f"webrtc_min_bitrate {self.webrtc_min_bitrate} exceeds "
                              f"webrtc_max_bitrate {self.webrtc_max_bitrate}")
+        return self
+
+    @model_validator(mode="after")
+    def _data_channel(self) -> Settings:
+        if self.webrtc_max_message_bytes > self.limits.max_message_bytes:
+            raise ValueError(f"webrtc_max_message_bytes {self.webrtc_max_message_bytes} "
+                             f"exceeds limits.max_message_bytes "
+                             f"{self.limits.max_message_bytes}")
+        if self.webrtc_receive_window_bytes < 2 * self.webrtc_max_message_bytes:
+            raise ValueError(f"webrtc_receive_window_bytes {self.webrtc_receive_window_bytes} "
+                             f"is less than twice webrtc_max_message_bytes "
+                             f"{self.webrtc_max_message_bytes} (a largest message, in "
+                             "fragments of 512 bytes or more, must fit)")
         return self
 
     @model_validator(mode="after")

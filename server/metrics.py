@@ -37,6 +37,21 @@ class ServerMetrics:
                                     "workers by state (starting, ready)", ["state"], registry=r)
         self.render_workers_lost = Gauge("telesplat_render_workers_lost", "render_backend ray: "
                                          "render workers lost since start-up", registry=r)
+        self.webrtc_dc_dropped_chunks = Counter(
+            "telesplat_webrtc_dc_dropped_chunks", "WebRTC data-channel SCTP chunks dropped "
+            "before reassembly, unacknowledged, by reason (window: past "
+            "webrtc_receive_window_bytes; streams: past webrtc_max_sctp_streams; duplicate: "
+            "a copy of one waiting; closed: the peer refused or closing)", ["reason"],
+            registry=r)
+        self.webrtc_dc_dropped_bytes = Counter(
+            "telesplat_webrtc_dc_dropped_bytes", "User-data bytes of those chunks, by reason",
+            ["reason"], registry=r)
+        self.webrtc_dc_too_large = Counter(
+            "telesplat_webrtc_dc_too_large", "WebRTC peers closed for a data-channel message "
+            "past webrtc_max_message_bytes", registry=r)
+        self.webrtc_dc_inbox_dropped = Counter(
+            "telesplat_webrtc_dc_inbox_dropped", "Reassembled data-channel messages dropped "
+            "because the session had 64 unread", registry=r)
 
     def render_text(self) -> bytes:
         return generate_latest(self.registry)

@@ -8,14 +8,20 @@ room owner's ``stream`` token or an invitation of the room (``watch`` or ``perfo
 needs ``perform``). Everything is checked before the peer is made, in this order: token (401),
 room (404), role and seat (403 / 404), content type (415), size (413, before reading past
 ``webrtc_max_sdp_bytes``), the offer and the query (400), the peer limits (429 / 503).
+
+``DELETE`` checks the credential before it says anything about the resource (no existence
+oracle): the token that opened the peer ends it (even expired or revoked since); any other
+missing or invalid credential is 401 whatever the resource; a valid one that may not end it
+(not the room's owner or an admin) gets the same 404 as a resource that does not exist.
 """
 
 from __future__ import annotations
 
 import hashlib
+import hmac
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, HTTPException, Query, Response, status
+from fastapi import APIRouter, Depends, HTTPException, Query, Response, status
 from fastapi import Request as HttpRequest
 from pydantic import ValidationError
 
@@ -23,7 +29,7 @@ from protocol import ProtocolError, Request
 
 from ..auth import Principal, bearer_token
 from ..context import ServerContext
-from ..dependencies import Context
+from ..dependencies import Context, get_context
 from ..rooms.join import choose_role
 from ..rooms.registry import Invitation, Room, RoomError
 from ..stream.admission import admit
@@ -57,13 +63,15 @@ def _digest(token: str) -> str:
     return hashlib.sha256(token.encode()).hexdigest()
 
 
+UNAUTHORIZED = "missing or invalid bearer token (a stream token or a room invitation)"
+
+
 def _credentials(ctx: ServerContext, request: HttpRequest
                  ) -> tuple[str, Principal | None, Invitation | None]:
     token = bearer_token(request.headers.get("authorization"))
     principal, invitation = ctx.credential(token)
     if principal is None and invitation is None:
-        raise HTTPException(401, "missing or invalid bearer token (a stream token or a room "
-                                 "invitation)", headers={"WWW-Authenticate": "Bearer"})
+        raise HTTPException(401, UNAUTHORIZED, headers={"WWW-Authenticate": "Bearer"})
     return token, principal, invitation
 
 
@@ -166,21 +174,24 @@ async def _open(kind: Literal["whep", "whip"], room_id: str, request: HttpReques
                     headers={"Location": f"/v1/rooms/{room.id}/{kind}/{resource}"})
 
 
-async def _delete(kind: str, room_id: str, resource: str, request: HttpRequest,
-                  ctx: ServerContext) -> Response:
-    token = bearer_token(request.headers.get("authorization"))
-    if not token:
-        raise HTTPException(401, "missing bearer token", headers={"WWW-Authenticate": "Bearer"})
+def _deletable(request: HttpRequest, room_id: str, kind: str, resource: str) -> Any:
+    """The peer ``DELETE`` may end. The credential is checked before anything about the
+    resource is told: 401 for a missing or invalid one whatever the resource, and the same
+    404 for a peer this credential may not end as for one that does not exist."""
+    ctx = get_context(request)
+    token = bearer_token(request.headers.get("authorization")) or ""
+    digest = _digest(token)
     peer = ctx.webrtc_peers.get(resource)
-    if peer is None or peer.kind != kind or peer.room.id != room_id:
-        raise HTTPException(404, f"no {kind.upper()} session {resource!r} in room {room_id!r}")
+    if peer is not None and (peer.kind != kind or peer.room.id != room_id):
+        peer = None
     # The token that opened it ends it, even if it expired or was revoked since.
-    if _digest(token) != peer.token_digest:
-        _, principal, _ = _credentials(ctx, request)
-        if principal is None or not peer.room.visible_to(principal):
-            raise HTTPException(403, "this session was opened with another token")
-    await peer.close("DELETE by the client")
-    return Response(status_code=status.HTTP_204_NO_CONTENT)
+    if token and peer is not None and hmac.compare_digest(digest, peer.token_digest):
+        return peer
+    _, principal, _ = _credentials(ctx, request)  # 401
+    if peer is None or principal is None or not peer.room.visible_to(principal):
+        raise HTTPException(404, f"no {kind.upper()} session {resource!r} in room {room_id!r} "
+                                 "that this token may end")
+    return peer
 
 
 Role = Annotated[Literal["perform", "watch"] | None, Query(
@@ -219,12 +230,20 @@ async def whip(room_id: str, request: HttpRequest, ctx: Context, seat: Seat = No
                        stamp)
 
 
+DELETE_ERRORS: dict[int | str, dict[str, Any]] = {
+    401: ERRORS[401],
+    404: {"model": ErrorOut, "description": "No such session, or not one this token may end "
+                                            "(the same answer)"}}
+
+
 @router.delete("/{room_id}/{kind}/{resource}", status_code=204,
-               summary="End a WHEP / WHIP session", responses=ERRORS)
-async def end(room_id: str, kind: Literal["whep", "whip"], resource: str, request: HttpRequest,
-              ctx: Context) -> Response:
-    """The same token as the POST (or the room owner's) ends the peer and frees its seat."""
-    return await _delete(kind, room_id, resource, request, ctx)
+               summary="End a WHEP / WHIP session", responses=DELETE_ERRORS)
+async def end(room_id: str, kind: Literal["whep", "whip"], resource: str,
+              peer: Annotated[Any, Depends(_deletable)]) -> Response:
+    """The same token as the POST (or the room owner's, or an admin's) ends the peer and frees
+    its seat."""
+    await peer.close("DELETE by the client")
+    return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 
 @router.patch("/{room_id}/{kind}/{resource}", status_code=405, summary="Trickle ICE (not "

@@ -5,6 +5,7 @@ video track instead of a WebSocket and whose messages travel over a data channel
 ``telesplat``; everything else (latest-wins render loop, pacing, seats, presence) is the room
 participant's. ``registry`` holds the peers and their limits; ``negotiate`` the SDP side;
 ``track`` the outgoing video; ``channel`` the data channel; ``encoders`` the bit-rate clamp;
-``ingest`` a WHIP webcam into server-side tracking. aiortc is imported only where a peer is
+``ingest`` a WHIP webcam into server-side tracking; ``sctp`` the data channel's byte and
+message budgets before aiortc reassembles anything. aiortc is imported only where a peer is
 made, so importing the server stays cheap.
 """

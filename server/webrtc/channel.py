@@ -7,7 +7,8 @@ opens. A peer without a data channel still gets its video; its control messages 
 session's bounded control queue drops past its size).
 
 The channel ends the session only when the peer ends (``disconnect``): a client that closes
-just its channel keeps watching.
+just its channel keeps watching. What reaches ``_message`` was reassembled within the peer's
+SCTP budgets (server/webrtc/sctp.py); the inbox bounds the messages waiting for the session.
 """
 
 from __future__ import annotations
@@ -26,8 +27,9 @@ MAX_BUFFERED_BYTES = 2**20   # unsent bytes on the channel past which a message 
 
 
 class DataChannel:
-    def __init__(self, on_close: Callable[[str], None]) -> None:
+    def __init__(self, on_close: Callable[[str], None], metrics: Any = None) -> None:
         self._on_close = on_close
+        self._metrics = metrics
         self._inbox: asyncio.Queue[bytes | str | None] = asyncio.Queue(INBOX)  # None: gone
         self._ready = asyncio.Event()  # open, or disconnected
         self._channel: Any = None
@@ -66,6 +68,8 @@ class DataChannel:
             self._inbox.put_nowait(item)
         except asyncio.QueueFull:
             self.dropped_in += 1  # the participant reads slower than the client sends
+            if self._metrics is not None:
+                self._metrics.webrtc_dc_inbox_dropped.inc()
 
     # -- what the session's transport calls -----------------------------------------------------
 
@@ -84,6 +88,13 @@ class DataChannel:
             self.dropped_out += 1  # the client does not read its channel
             return
         channel.send(data)
+
+    def send_last(self, data: bytes) -> None:
+        """Queue ``data`` at once, ahead of a close (it goes out before the peer's teardown
+        aborts the association); nothing when the channel is not open."""
+        if self.open and not self.disconnected:
+            with contextlib.suppress(Exception):
+                self._channel.send(data)
 
     def close(self, reason: str) -> None:
         """The session ends the peer (its room closed)."""

@@ -7,7 +7,9 @@ those m-lines. The answer carries every ICE candidate (aiortc gathers them all b
 ``setLocalDescription`` returns: no trickle). Codecs: aiortc answers with the common codecs
 in the offer's order (its ``find_common_codecs`` walks the offer's list), so the offer's
 preference between VP8 and H.264 wins. m-lines the peer does not use (audio, extra video)
-are answered inactive, so nothing arrives that no one reads.
+are answered inactive, so nothing arrives that no one reads. The SCTP transport aiortc makes
+for an offered data channel gets its guard (server/webrtc/sctp.py) before the answer is made,
+so the answer advertises its max-message-size and receive window.
 """
 
 from __future__ import annotations
@@ -88,13 +90,17 @@ def configuration(settings) -> RTCConfiguration:
     return RTCConfiguration(iceServers=servers)
 
 
-async def answer(pc: RTCPeerConnection, offer: Offer, track: Any) -> tuple[str, str | None]:
-    """Apply ``offer``, attach ``track`` to its watched m-line, answer; (answer SDP, the
+async def answer(pc: RTCPeerConnection, offer: Offer, track: Any,
+                 guard: Any = None) -> tuple[str, str | None]:
+    """Apply ``offer``, attach ``track`` to its watched m-line, install ``guard`` (a
+    :class:`~.sctp.SctpGuard`) on the data channel's SCTP transport, answer; (answer SDP, the
     negotiated video codec's MIME type on the watched m-line or None)."""
     try:
         await pc.setRemoteDescription(RTCSessionDescription(offer.sdp, "offer"))
     except Exception as exc:  # noqa: BLE001 - aiortc refuses the client's SDP
         raise OfferRefused(f"cannot apply the SDP offer: {type(exc).__name__}: {exc}") from None
+    if guard is not None and pc.sctp is not None:
+        guard.install(pc.sctp)  # before the answer (its a=max-message-size) and the INIT
     for transceiver in pc.getTransceivers():
         watched = transceiver.kind == "video" and transceiver.mid == offer.watch_mid
         published = transceiver.kind == "video" and transceiver.mid == offer.publish_mid

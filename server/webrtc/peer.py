@@ -5,8 +5,9 @@ fair share, seat and presence) composed with a :class:`~.transport.WebRTCTranspo
 frames are raw RGB arrays handed to a :class:`~.track.LatestFrameTrack` and its messages use
 the data channel. aiortc encodes in its own threads; rendering stays where the scene's frames
 are made. A peer ends on DELETE, when its room closes, when its transport fails or never
-connects (``webrtc_connect_timeout_s``), and at server shutdown; each path goes through
-:meth:`WebRTCPeer.close`.
+connects (``webrtc_connect_timeout_s``), when its data channel carries a message past
+``webrtc_max_message_bytes`` (its :class:`~.sctp.SctpGuard`), and at server shutdown; each
+path goes through :meth:`WebRTCPeer.close`.
 """
 
 from __future__ import annotations
@@ -24,11 +25,12 @@ from ..context import ServerContext
 from ..rooms.join import seat_participant, serve
 from ..rooms.registry import Room
 from ..stream.admission import Admitted
-from ..stream.session import Session
+from ..stream.session import Session, error_message
 from .channel import DataChannel
 from .encoders import install_encoder
 from .ingest import ingest
 from .negotiate import Kind, Offer, answer, configuration
+from .sctp import GuardLimits, SctpGuard
 from .track import LatestFrameTrack
 from .transport import WebRTCTransport
 
@@ -44,7 +46,10 @@ class WebRTCPeer:
         self.admitted = admitted  # its session slot, given back at teardown
         self.token_digest = token_digest  # DELETE must show the same token (or the owner's)
         self.pc = RTCPeerConnection(configuration(ctx.settings))
-        self.channel = DataChannel(on_close=self._close_soon)
+        self.channel = DataChannel(on_close=self._close_soon, metrics=ctx.metrics)
+        # Data-channel bytes budgeted before aiortc reassembles them (server/webrtc/sctp.py).
+        self.guard = SctpGuard(GuardLimits.from_settings(ctx.settings), self._too_large,
+                               metrics=ctx.metrics, name=resource)
         self.track: LatestFrameTrack | None = None
         self.participant: Session | None = None
         self.codec: str | None = None      # negotiated video codec (MIME type), watching
@@ -73,7 +78,7 @@ class WebRTCPeer:
                 transport, request=request)
             self.channel.welcome = encode(welcome)
             self._run = self._spawn(self._serve(), "serve")
-            sdp, self.codec = await answer(self.pc, offer, self.track)
+            sdp, self.codec = await answer(self.pc, offer, self.track, self.guard)
         except BaseException:
             await self.close("the offer was refused")
             raise
@@ -108,6 +113,16 @@ class WebRTCPeer:
         elif state in ("failed", "closed"):
             self._close_soon(f"the connection {state}")
 
+    def _too_large(self, size: int) -> None:
+        """A data-channel message grew past webrtc_max_message_bytes (the guard refuses the
+        rest): the client is told, and the peer closed."""
+        limit = self.ctx.settings.webrtc_max_message_bytes
+        self.channel.send_last(encode(error_message(
+            "too_large", f"a data-channel message of more than {limit} bytes (the answer's "
+                         "a=max-message-size, webrtc_max_message_bytes): the peer is closed")))
+        self._close_soon(f"a data-channel message passed {size} bytes "
+                         f"(webrtc_max_message_bytes {limit})")
+
     async def _connect_deadline(self, timeout_s: float) -> None:
         try:
             await asyncio.wait_for(self._connected.wait(), timeout_s)
@@ -131,8 +146,10 @@ class WebRTCPeer:
         await asyncio.shield(self._closing)
 
     async def _teardown(self, reason: str) -> None:
-        log.info("WebRTC peer %s (%s) closing: %s", self.resource, self.kind, reason)
+        log.info("WebRTC peer %s (%s) closing: %s; data channel: %s", self.resource,
+                 self.kind, reason, self.guard.summary())
         try:
+            self.guard.stop()  # nothing more reaches the session
             self.channel.disconnect()  # the participant's receiver returns: run() ends
             if self.track is not None:
                 self.track.stop()
