@@ -6,7 +6,7 @@ the same input: our GPU path against the CPU (or host) path it replaces.
 * views: ``render_views`` of N cameras in one call against N ``rasterize`` calls (measured by
   ``gpu_check.measure_render``);
 * JPEG: a rendered float frame on the device to JPEG bytes as the server does it
-  (``server.encoders``: ``select_encoders``, ``frame_rgb``, ``encode_jpeg``), nvJPEG against
+  (``server.stream.encoders``: ``select_encoders``, ``frame_rgb``, ``encode_jpeg``), nvJPEG against
   OpenCV (which copies the frame to the host first);
 * training: the device-resident step against the host-checked step
   (``Trainer(device_resident=...)``), on the same capture.
@@ -81,7 +81,7 @@ def jpeg_encoders(width: int, height: int, device: torch.device, max_n: int,
                   seconds: float) -> Ratio:
     """A smooth float frame on ``device`` to JPEG bytes, through the server's encoders with
     nvJPEG and with OpenCV chosen in turn."""
-    from server.encoders import encode_jpeg, frame_rgb, probe_nvjpeg, select_encoders
+    from server.stream.encoders import encode_jpeg, frame_rgb, probe_nvjpeg, select_encoders
 
     y, x = torch.meshgrid(torch.linspace(0, 1, height), torch.linspace(0, 1, width),
                           indexing="ij")
