@@ -71,6 +71,7 @@ def serve(args: argparse.Namespace) -> int:
 
     from .app import create_app
     from .config import load_settings
+    from .rooms.restart import RestartingServer
     from .stream.net import listen_socket, websocket_protocol
 
     cluster = {} if not getattr(args, "cluster", None) else {
@@ -96,7 +97,8 @@ def serve(args: argparse.Namespace) -> int:
                             ws=websocket_protocol(settings.hello_max_bytes),
                             ws_max_size=settings.limits.max_message_bytes + 1024,
                             timeout_graceful_shutdown=5)
-    uvicorn.Server(config).run(sockets=[sock])
+    # SIGTERM: participants get error 'restarting' and close 1012 first (server/restart.py)
+    RestartingServer(config, app.state.ctx).run(sockets=[sock])
     return 0
 
 
