@@ -154,7 +154,8 @@ def create_app(settings: Settings) -> FastAPI:
             await ctx.render.stop()
         await asyncio.to_thread(ctx.scheduler.shutdown)
         await asyncio.to_thread(ctx.track_scheduler.shutdown)
-        ctx.rooms.store.close()
+        if ctx.rooms.store is not None:
+            ctx.rooms.store.close()
 
     app = FastAPI(title="Telesplat", version="0.1.0", lifespan=lifespan,
                   description="Hosts 3D-Gaussian upper-body avatars and drives them live over "
