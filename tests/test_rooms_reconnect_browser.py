@@ -101,10 +101,19 @@ def test_the_page_reconnects_into_the_same_room_after_a_restart(tmp_path):
             pages["ws"].get(link.replace("/?room=", "/?transport=ws&room=", 1))
             pages["webrtc"].get(link)  # WebRTC: both ends can
             for transport, page in pages.items():
-                wait_for(page, f"window.telesplat.transport === '{transport}' && "
-                               f"window.telesplat.room?.id === '{room}' && "
-                               "window.telesplat.framesShown > 2", WAIT_S,
-                         f"the {transport} page's first frames")
+                try:
+                    wait_for(page, f"window.telesplat.transport === '{transport}' && "
+                                   f"window.telesplat.room?.id === '{room}' && "
+                                   "window.telesplat.framesShown > 2", WAIT_S,
+                             f"the {transport} page's first frames")
+                except TimeoutError as exc:
+                    seen = page.execute_script(
+                        "const t = window.telesplat; return JSON.stringify({transport: "
+                        "t.transport, room: t.room, shown: t.framesShown, errors: t.errors, "
+                        "status: document.getElementById('status').textContent})")
+                    raise AssertionError(f"{exc}\npage: {seen}\nperformer: "
+                                         f"{performer_errors}\n" + "".join(srv.output)
+                                         ) from None
             before = {t: p.execute_script("return window.telesplat.framesShown")
                       for t, p in pages.items()}
 
