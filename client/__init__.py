@@ -7,9 +7,9 @@ image is first decoded.
 from .images import decode_depth, decode_image, save_frame
 from .motion_file import Motion, load_motion
 from .rest import ApiError, RestClient, SseEvent, parse_sse
-from .stream import StreamClient, StreamError, stream_url
+from .stream import Backoff, StreamClient, StreamError, stream_url
 
 __all__ = [
-    "ApiError", "Motion", "RestClient", "SseEvent", "StreamClient", "StreamError",
+    "ApiError", "Backoff", "Motion", "RestClient", "SseEvent", "StreamClient", "StreamError",
     "decode_depth", "decode_image", "load_motion", "parse_sse", "save_frame", "stream_url",
 ]

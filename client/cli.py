@@ -91,6 +91,21 @@ async def stream_motion(server: str, token: str | None, avatar: str, motion_path
     return written
 
 
+def _backoff(args: argparse.Namespace):
+    """--reconnect N: rejoin by itself, at most N tries in a row (0: never)."""
+    from .stream import Backoff
+
+    return Backoff(attempts=args.reconnect) if args.reconnect > 0 else None
+
+
+def _reconnect_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--reconnect", type=int, default=10, metavar="TRIES",
+                        help="after a server restart or a dropped connection, rejoin the same "
+                             "room and seat by itself: waits of 0.25 s doubling to 4 s "
+                             "(jittered), at most TRIES tries in a row (default %(default)s; "
+                             "0: end instead); a deleted room ends it at once")
+
+
 def cmd_stream(args: argparse.Namespace) -> int:
     written = asyncio.run(stream_motion(args.server, args.token, args.avatar, args.motion,
                                         args.out, fps=args.fps, size=args.size,
@@ -114,7 +129,7 @@ def cmd_drive(args: argparse.Namespace) -> int:
             args.server, args.token, args.avatar, source, room=args.room, seat=args.seat,
             max_frames=args.frames,
             fov_x_deg=args.fov, out=args.out, timeout=args.timeout, progress=not args.quiet,
-            body_models=args.body_models))
+            body_models=args.body_models, reconnect=_backoff(args)))
     except (OSError, RuntimeError, ValueError) as exc:
         print(f"telesplat-client: error: {exc}", file=sys.stderr)
         return 2
@@ -138,8 +153,11 @@ def cmd_watch(args: argparse.Namespace) -> int:
         return 0
     result = asyncio.run(watch_room(args.server, args.token, args.room, args.out,
                                     seconds=args.seconds, max_frames=args.frames, view=view,
-                                    size=args.size, timeout=args.timeout))
-    print(f"wrote {result['frames']} frames of room {args.room} to {args.out}")
+                                    size=args.size, timeout=args.timeout,
+                                    reconnect=_backoff(args)))
+    down = ", ".join(f"{r['downtime_s']:.1f}" for r in result["reconnections"])
+    again = f" (reconnected after {down} s)" if down else ""
+    print(f"wrote {result['frames']} frames of room {args.room} to {args.out}{again}")
     return 0
 
 
@@ -338,6 +356,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, default=None, help="save the returned frames here")
     p.add_argument("--timeout", type=float, default=30.0, help="seconds to wait per frame")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    _reconnect_argument(p)
     p.set_defaults(func=cmd_drive)
 
     p = sub.add_parser("watch", help="join a room as a viewer and save the frames it gets")
@@ -357,6 +376,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="--webrtc: the codec to prefer in the offer (default: aiortc's, VP8)")
     p.add_argument("--stamp", action="store_true",
                    help="--webrtc: ask for frame stamps and record each frame's drive seq")
+    _reconnect_argument(p)
     p.set_defaults(func=cmd_watch)
 
     p = sub.add_parser("rooms", help="live rooms: one performer per seat, viewers watch")

@@ -10,18 +10,22 @@ from __future__ import annotations
 import asyncio
 from pathlib import Path
 
+from .stream import Backoff
+
 
 async def drive_from_camera(server: str, token: str | None, avatar: str | None,
                             source: str | int, *, room: str | None = None,
                             seat: int | None = None, max_frames: int | None = None,
                             fov_x_deg: float = 60.0, out: Path | None = None,
                             timeout: float = 30.0, progress: bool = True,
-                            body_models: Path | None = None) -> dict[str, float]:
+                            body_models: Path | None = None,
+                            reconnect: Backoff | None = None) -> dict[str, float]:
     """Track ``source`` (a webcam index or a video path) and drive ``avatar`` with the fit, or
     perform ``seat`` of ``room`` (then viewers of the room see it). Returns counts and the
     mean tracking time. ``body_models``: the body-model folder to fit (the resolver's order:
     this, ``$TELESPLAT_BODY_MODELS``, else the synthetic family); use the server's models, so
-    that the fitted parameters mean the same there."""
+    that the fitted parameters mean the same there. ``reconnect``: rejoin the same seat by
+    itself after a server restart (client/stream.py); drives sent meanwhile wait for it."""
     from tqdm import tqdm
 
     from avatar_core.track.fit.video import default_sequence_fit, frames_from, tracked_frames
@@ -42,6 +46,7 @@ async def drive_from_camera(server: str, token: str | None, avatar: str | None,
         role = "perform" if room is not None else None
         async with await StreamClient.connect(server, avatar, token, room=room, role=role,
                                               seat=seat, timeout=timeout,
+                                              reconnect=reconnect,
                                               client_name="telesplat-client drive") as client:
             with tqdm(total=max_frames, unit="frame", disable=not progress,
                       desc="driving") as bar:

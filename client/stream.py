@@ -8,6 +8,16 @@
 A reader task demultiplexes what the server sends: frames go to a bounded queue (the oldest is
 dropped when the consumer falls behind, so memory stays flat), ``stats`` and ``error`` messages
 are kept on the client, ``pong`` answers :meth:`ping`.
+
+With ``reconnect=Backoff()`` the client reconnects by itself after error ``restarting``, a
+connection closed with 1012 (service restart), 1001 (going away) or 1006 (dropped, as after a
+``kill -9``), and after each failed try: waits of 0.25 s doubling to 4 s, each shortened by
+a random part of up to half (jitter), at most ``attempts`` tries in a row. It joins the same
+room with the same token, role and seat, then sends its last ``request`` and ``view`` again;
+frames keep coming through the same queue, and sends made meanwhile wait for the new
+connection. A room that is gone (``not_found`` 4404, ``gone`` 4410) or a token no longer
+valid ends the retries at once with that error. :attr:`StreamClient.reconnections` records
+each one (why, when the connection was lost, when it was back, how many tries).
 """
 
 from __future__ import annotations
@@ -15,8 +25,11 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
+import logging
+import random
 import time
 from collections.abc import AsyncIterator, Callable, Mapping
+from dataclasses import dataclass
 from typing import Any
 from urllib.parse import urlencode, urlsplit, urlunsplit
 
@@ -49,7 +62,54 @@ from protocol import (
 # A viewer's drive or image gets `forbidden` with `answers` set and the session goes on: only
 # a refusal that answers nothing closes it.
 FATAL_CODES = frozenset({"unauthorized", "forbidden", "not_found", "busy", "version", "gone"})
+# Refusals that end reconnecting: the room, the token or the seat will not come back by waiting
+# (``busy`` may: a full server is tried again).
+FINAL_CODES = FATAL_CODES - {"busy"}
+RESTARTING = "restarting"  # error code: the server restarts, the connection closes next
+RECONNECT_CLOSE_CODES = frozenset({1001, 1006, 1012})  # going away, dropped, service restart
 MAX_WIRE_BYTES = 64 * 1024 * 1024
+
+log = logging.getLogger("telesplat.client")
+
+
+@dataclass(frozen=True)
+class Backoff:
+    """How a client reconnects: try ``attempt`` (0-based) waits ``initial_s * 2**attempt``,
+    at most ``max_s``, shortened by a random fraction of up to ``jitter`` (so clients that
+    lost one server do not all come back at once); after ``attempts`` failed tries in a row
+    it gives up. Defaults: 0.25 s, 0.5 s, 1 s, 2 s, 4 s, 4 s, ... for 10 tries (about 28 s
+    at most, fewer with jitter)."""
+
+    attempts: int = 10
+    initial_s: float = 0.25
+    max_s: float = 4.0
+    jitter: float = 0.5
+
+    def __post_init__(self) -> None:
+        if self.attempts < 0 or not 0 < self.initial_s <= self.max_s or \
+                not 0 <= self.jitter < 1:
+            raise ValueError("Backoff wants attempts >= 0, 0 < initial_s <= max_s and "
+                             "0 <= jitter < 1")
+
+    def delay(self, attempt: int, rand: Callable[[], float] = random.random) -> float:
+        """Seconds to wait before try ``attempt`` (0-based)."""
+        base = min(self.max_s, self.initial_s * 2.0 ** min(attempt, 32))
+        return base * (1.0 - self.jitter * rand())
+
+
+@dataclass(frozen=True)
+class Reconnection:
+    """One reconnection: why (``restarting``, or the close code), when the connection was lost
+    and when the new one had its welcome (monotonic seconds), and the tries it took."""
+
+    reason: str
+    lost_at: float
+    back_at: float
+    attempts: int
+
+    @property
+    def downtime_s(self) -> float:
+        return self.back_at - self.lost_at
 
 
 class StreamError(RuntimeError):
@@ -91,6 +151,16 @@ def room_hello(client_name: str, *, room: str | None = None, role: str | None = 
     return Hello.model_validate({"client": client_name, **fields})
 
 
+def _why_not(where: str, refusal: StreamError) -> str:
+    """Why a rejoin will not be tried again, in words."""
+    if refusal.code in ("not_found", "gone"):
+        return f"{where} is gone"
+    if refusal.code == "unauthorized":  # an invitation dies with its room
+        return (f"cannot rejoin {where}: the token is no longer valid (revoked or expired, or "
+                "an invitation of a room that was deleted)")
+    return f"cannot rejoin {where}"
+
+
 def _float32(values: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
     # float32 halves the bytes on the wire; the renderer works in float32 anyway.
     return {k: np.asarray(v, dtype=np.float32) for k, v in values.items()}
@@ -105,8 +175,16 @@ def _model(cls: type[BaseModel], value: Any) -> BaseModel | None:
 class StreamClient:
     """One session. Make it with :meth:`connect`; use it as an async context manager."""
 
-    def __init__(self, ws: Any, welcome: Welcome, queue_size: int = 64) -> None:
-        self._ws = ws
+    def __init__(self, ws: Any, welcome: Welcome, queue_size: int = 64, *,
+                 join: dict[str, Any] | None = None, reconnect: Backoff | None = None) -> None:
+        self._ws: Any = ws  # None while reconnecting
+        self._join = dict(join or {})  # what _open needs to join the same room and seat again
+        self._backoff = reconnect if join is not None else None
+        self.reconnections: list[Reconnection] = []
+        self._restart_notice = False  # error `restarting` on the current connection
+        self._changed = asyncio.Event()  # set (and replaced) when the connection changes
+        self._request_fields: dict[str, Any] = {}  # every request's fields, merged: replayed
+        self._view: View | None = None              # the last view: replayed
         self.welcome = welcome
         self.limits = welcome.limits
         self.stats: Stats | None = None       # the latest stats message
@@ -122,6 +200,7 @@ class StreamClient:
         self.room: RoomWelcome | None = welcome.room  # None outside rooms
         self.presence: Presence | None = None  # the latest presence message (rooms only)
         self._presence_event = asyncio.Event()
+        self._keep_seat(welcome)
         self._reader = asyncio.create_task(self._read())
 
     # -- connecting -----------------------------------------------------------------------
@@ -130,11 +209,23 @@ class StreamClient:
     async def connect(cls, server: str, avatar: str | None = None, token: str | None = None,
                       *, room: str | None = None, role: str | None = None,
                       seat: int | None = None, client_name: str = "telesplat-python",
-                      timeout: float = 30.0, queue_size: int = 64) -> StreamClient:
+                      timeout: float = 30.0, queue_size: int = 64,
+                      reconnect: Backoff | None = None) -> StreamClient:
         """Open a session on ``avatar``, or join ``room`` (``role`` "perform" or "watch" and
         ``seat``; both default to what the token allows); returns once ``welcome`` arrived
         (StreamError if the server refuses). ``server`` is the base URL (http://host:port) or
-        a full ws:// URL."""
+        a full ws:// URL. ``reconnect``: reconnect by itself after a restart or a dropped
+        connection (see the module); None: the session ends with its connection."""
+        join = {"server": server, "avatar": avatar, "token": token, "room": room,
+                "role": role, "seat": seat, "client_name": client_name, "timeout": timeout}
+        ws, welcome = await cls._open(**join)
+        return cls(ws, welcome, queue_size, join=join, reconnect=reconnect)
+
+    @classmethod
+    async def _open(cls, server: str, avatar: str | None, token: str | None, room: str | None,
+                    role: str | None, seat: int | None, client_name: str,
+                    timeout: float) -> tuple[Any, Welcome]:
+        """A connection and its welcome."""
         hello = room_hello(client_name, room=room, role=role, seat=seat)
         from websockets.asyncio.client import connect
         from websockets.exceptions import ConnectionClosed
@@ -152,7 +243,14 @@ class StreamClient:
         except BaseException:
             await ws.close()
             raise
-        return cls(ws, welcome, queue_size)
+        return ws, welcome
+
+    def _keep_seat(self, welcome: Welcome) -> None:
+        """Rejoin as what the server made of us: the role it gave, a performer's seat."""
+        if welcome.room is not None:
+            self._join["role"] = welcome.room.role
+            if welcome.room.role == "perform":
+                self._join["seat"] = welcome.room.seat
 
     @staticmethod
     async def _first(ws: Any) -> Welcome:
@@ -178,14 +276,43 @@ class StreamClient:
         self._reader.cancel()
         with contextlib.suppress(asyncio.CancelledError, Exception):
             await self._reader
-        await self._ws.close()
+        if self._ws is not None:
+            await self._ws.close()
+
+    @property
+    def reconnecting(self) -> bool:
+        """Between a lost connection and the next welcome."""
+        return self._ws is None and self.closed is None
+
+    def _notify(self) -> None:
+        self._changed.set()
+        self._changed = asyncio.Event()
+
+    async def _until(self, ready: Callable[[], bool]) -> None:
+        """Until ``ready()``; bounded by the reader, which notifies every change and gives up
+        after its bounded tries (then ``closed`` is set)."""
+        while not ready():
+            await self._changed.wait()
 
     # -- sending --------------------------------------------------------------------------
 
     async def _send(self, message: BaseModel) -> None:
-        if self.closed is not None:
-            raise self.closed
-        await self._ws.send(encode(message))
+        from websockets.exceptions import ConnectionClosed
+
+        data = encode(message)
+        for _ in range(3):  # a connection lost under the send: again on the next one
+            await self._until(lambda: self.closed is not None or self._ws is not None)
+            if self.closed is not None:
+                raise self.closed
+            ws = self._ws
+            try:
+                await ws.send(data)
+                return
+            except ConnectionClosed:
+                if self._backoff is None:
+                    raise
+                await self._until(lambda ws=ws: self.closed is not None or self._ws is not ws)
+        raise StreamError("internal", "the connection was lost while sending, three times")
 
     def _next_seq(self) -> int:
         self._seq += 1
@@ -224,12 +351,15 @@ class StreamClient:
                    camera: CameraSpec | Mapping[str, Any] | None = None,
                    moving: bool = False) -> None:
         """Look from an orbit (yaw_deg, pitch_deg, distance, fov_y_deg, target) or a camera."""
-        await self._send(View(orbit=_model(Orbit, orbit), camera=_model(CameraSpec, camera),
-                              moving=moving))
+        self._view = View(orbit=_model(Orbit, orbit), camera=_model(CameraSpec, camera),
+                          moving=moving)
+        await self._send(self._view)
 
     async def request(self, **fields: Any) -> None:
         """Change what is rendered: width, height, outputs, background, quality, codec, ..."""
-        await self._send(Request.model_validate(fields, context={"limits": self.limits}))
+        message = Request.model_validate(fields, context={"limits": self.limits})
+        self._request_fields.update(fields)
+        await self._send(message)
 
     async def image(self, data: bytes, format: str = "jpeg") -> int:
         """Send an encoded webcam frame for server-side tracking; returns its seq."""
@@ -256,20 +386,83 @@ class StreamClient:
         from websockets.exceptions import ConnectionClosed
 
         try:
-            async for raw in self._ws:
-                self._dispatch(decode_server(raw))
-        except ConnectionClosed as exc:
-            self.closed = StreamError("internal", f"connection closed: {exc}")
-        except ProtocolError as exc:
-            self.closed = StreamError(exc.code, f"bad message from the server: {exc.message}")
-        else:
-            self.closed = StreamError("internal", "connection closed")
+            while True:  # one pass per connection; reconnections end after bounded tries
+                ws, lost = self._ws, None
+                self._restart_notice = False
+                try:
+                    async for raw in ws:
+                        self._dispatch(decode_server(raw))
+                except ConnectionClosed as exc:
+                    lost = StreamError("internal", f"connection closed: {exc}")
+                except ProtocolError as exc:
+                    self.closed = StreamError(exc.code,
+                                              f"bad message from the server: {exc.message}")
+                    return
+                lost_at = time.monotonic()
+                code = ws.close_code or 1006
+                if self.closed is not None or self._backoff is None or not (
+                        self._restart_notice or code in RECONNECT_CLOSE_CODES):
+                    if self.closed is None:
+                        self.closed = lost or StreamError("internal", "connection closed")
+                    return
+                reason = RESTARTING if self._restart_notice else f"closed {code}"
+                if not await self._reconnect(reason, lost_at):
+                    return
         finally:
             if self.closed is None:
                 self.closed = StreamError("internal", "connection closed")
             self._put(None)
             self._frame_event.set()
             self._presence_event.set()
+            self._notify()
+
+    async def _reconnect(self, reason: str, lost_at: float) -> bool:
+        """Join the same room and seat again (see the module); False (``closed`` set) when
+        the room is gone, the token refused, or every try failed."""
+        self._ws = None
+        self._notify()
+        where = f"room {self._join['room']}" if self._join.get("room") else "the session"
+        tries, last = self._backoff.attempts, "no try allowed"
+        for attempt in range(tries):
+            delay = self._backoff.delay(attempt)
+            log.warning("%s: connection lost (%s); reconnecting in %.2f s (try %d of %d)",
+                        where, reason, delay, attempt + 1, tries)
+            await asyncio.sleep(delay)
+            try:
+                ws, welcome = await self._open(**self._join)
+            except StreamError as exc:
+                if exc.code in FINAL_CODES:
+                    self.closed = StreamError(exc.code, f"{_why_not(where, exc)}: "
+                                                        f"{exc.message}; not reconnecting")
+                    return False
+                last = str(exc)
+            except Exception as exc:  # noqa: BLE001 - refused, reset, timed out, HTTP 5xx...
+                last = f"{type(exc).__name__}: {exc}"  # ...: tried again, a bounded number
+            else:
+                await self._adopt(ws, welcome)
+                self.reconnections.append(Reconnection(reason, lost_at, time.monotonic(),
+                                                       attempt + 1))
+                log.warning("%s: reconnected after %.2f s (%d tries)", where,
+                            time.monotonic() - lost_at, attempt + 1)
+                return True
+        self.closed = StreamError("internal", f"could not reconnect to {where} in {tries} "
+                                              f"tries ({reason}); the last: {last}")
+        return False
+
+    async def _adopt(self, ws: Any, welcome: Welcome) -> None:
+        """The new connection: its welcome, then our last request and view again."""
+        from websockets.exceptions import ConnectionClosed
+
+        self.welcome, self.limits, self.room = welcome, welcome.limits, welcome.room
+        self._keep_seat(welcome)
+        with contextlib.suppress(ConnectionClosed, ValidationError, ProtocolError):
+            if self._request_fields:
+                await ws.send(encode(Request.model_validate(
+                    self._request_fields, context={"limits": self.limits})))
+            if self._view is not None:
+                await ws.send(encode(self._view))
+        self._ws = ws
+        self._notify()
 
     def _dispatch(self, message: Any) -> None:
         if isinstance(message, Frame):
@@ -289,6 +482,8 @@ class StreamClient:
             self._presence_event.set()
         elif isinstance(message, Error):
             self.errors.append(message)
+            if message.code == RESTARTING:
+                self._restart_notice = True
             if message.code in FATAL_CODES and message.answers is None:
                 self.closed = StreamError(message.code, message.message)
 

@@ -12,6 +12,8 @@ from typing import Any
 
 from protocol import Frame
 
+from .stream import Backoff
+
 
 def parse_view(text: str) -> dict[str, float]:
     """``--view yaw,pitch,distance`` (degrees, degrees, metres) as orbit fields."""
@@ -55,12 +57,15 @@ def frame_record(frame: Frame, index: int, file: str, received_s: float) -> dict
 async def watch_room(server: str, token: str | None, room: str, out: Path, *,
                      seconds: float | None = 10.0, max_frames: int | None = None,
                      view: dict[str, float] | None = None, size: int = 512,
-                     timeout: float = 30.0, max_stale: int = 8) -> dict[str, Any]:
+                     timeout: float = 30.0, max_stale: int = 8,
+                     reconnect: Backoff | None = None) -> dict[str, Any]:
     """Join ``room`` as a viewer and save its frames in ``out`` until ``seconds`` have passed or
     ``max_frames`` arrived (whichever first; at least one of them must be given).
 
     Up to ``max_stale`` frames rendered before our request landed (not ``size`` square) are
-    skipped; after the first frame of the asked size, or that many, every frame is kept."""
+    skipped; after the first frame of the asked size, or that many, every frame is kept.
+    ``reconnect``: rejoin the room by itself after a server restart (client/stream.py); the
+    recording goes on, and the result lists each reconnection's downtime."""
     from .images import save_frame
     from .stream import StreamClient
 
@@ -69,7 +74,7 @@ async def watch_room(server: str, token: str | None, room: str, out: Path, *,
     out.mkdir(parents=True, exist_ok=True)
     saved = stale = 0
     async with await StreamClient.connect(server, token=token, room=room, role="watch",
-                                          timeout=timeout,
+                                          timeout=timeout, reconnect=reconnect,
                                           client_name="telesplat-client watch") as client:
         await client.request(width=size, height=size, codec="jpeg")
         if view is not None:
@@ -94,8 +99,11 @@ async def watch_room(server: str, token: str | None, room: str, out: Path, *,
                     if max_frames is not None and saved >= max_frames:
                         break
         presence = client.presence
+        reconnections = [{"reason": r.reason, "downtime_s": round(r.downtime_s, 3),
+                          "attempts": r.attempts} for r in client.reconnections]
     return {"frames": saved, "stale_skipped": stale, "room": room,
-            "presence": presence.model_dump() if presence is not None else None}
+            "presence": presence.model_dump() if presence is not None else None,
+            "reconnections": reconnections}
 
 
 async def watch_room_webrtc(server: str, token: str | None, room: str, out: Path, *,

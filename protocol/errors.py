@@ -19,6 +19,8 @@ ERROR_CODES = (
     "internal",          # the server failed; the session goes on
     "reconnecting",      # a notice: the render worker was lost, the session moves to another
                          # (render_backend ray); frames resume, the session's state is kept
+    "restarting",        # the server is restarting: the connection closes next (code 1012);
+                         # reconnect (with backoff) into the same room and seat
 )
 
 

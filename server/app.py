@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import time
 from collections.abc import AsyncIterator
 from pathlib import Path
 
@@ -30,7 +31,9 @@ from .logsafe import install_log_redaction
 from .metrics import ServerMetrics
 from .private import private_dir
 from .registry import DEMO_ID, AvatarRegistry
-from .rooms.registry import Placement, SeatSpec
+from .rooms.registry import Placement, RoomRegistry, SeatSpec
+from .rooms.restart import RESTART_MESSAGE, announce_restart
+from .rooms.store import RoomStore, store_path
 from .routers import avatars, jobs, motions, rooms, stream, system, webrtc
 from .stream.admission import SessionSlots
 from .stream.drive import DriveState
@@ -43,12 +46,11 @@ log = logging.getLogger("telesplat.server")
 
 WEB_DIR = Path(__file__).resolve().parent.parent / "client" / "web"  # served, never imported
 WARMUP_SIZE = 64
+STARTUP_ROOM = "demo"  # the start-up room's name (owner 'local', pinned)
 
 
 def warm_up(ctx: ServerContext) -> float | None:
     """Render one small frame of the demo avatar (compiles the numba kernels). Seconds taken."""
-    import time
-
     try:
         record = ctx.registry.get(DEMO_ID)
     except KeyError:
@@ -65,14 +67,27 @@ def warm_up(ctx: ServerContext) -> float | None:
 
 
 def open_startup_room(ctx: ServerContext) -> None:
-    """The demo room (owner 'local', pinned) and its watch and perform links, for the
-    start-up banner (``ctx.startup_links``)."""
+    """The demo room (owner 'local', pinned) and new watch and perform links to it, for the
+    start-up banner (``ctx.startup_links``). The room is stored: a restart finds it and keeps
+    its id, and the links printed before stay valid until they expire (a token is shown only
+    once, so each start prints new ones). When the room's valid invitations are at
+    ``max_invitations_per_room``, the ones expiring soonest are revoked to make room."""
     try:
         ctx.registry.get(DEMO_ID)
     except KeyError:
         return
     owner = Principal(LOCAL_SUBJECT, frozenset(SCOPES))
-    room = ctx.rooms.create(owner, "demo", [SeatSpec(0, DEMO_ID)], pinned=True)
+    room = next((r for r in ctx.rooms.list(owner) if r.owner == LOCAL_SUBJECT and r.pinned
+                 and r.name == STARTUP_ROOM and [s.avatar for s in r.seats] == [DEMO_ID]), None)
+    if room is None:
+        room = ctx.rooms.create(owner, STARTUP_ROOM, [SeatSpec(0, DEMO_ID)], pinned=True)
+    else:
+        log.info("start-up room %s found in the store", room.id)
+    now = time.time()
+    valid = sorted((i for i in room.invitations.values() if i.valid(now)),
+                   key=lambda i: i.expires_at)
+    for old in valid[:max(0, len(valid) + 2 - ctx.settings.max_invitations_per_room)]:
+        ctx.rooms.revoke(room, old.id)
     links = {"room": room.id}
     for scope in ("watch", "perform"):
         invitation, token = ctx.rooms.invite(room, scope, None, None)
@@ -119,6 +134,7 @@ def create_app(settings: Settings) -> FastAPI:
                                   settings.fair_share, settings.fair_share_window_s),
         track_scheduler=RenderScheduler(settings.track_threads, 1),
         metrics=ServerMetrics(), slots=SessionSlots(settings.max_sessions),
+        rooms=RoomRegistry(settings, RoomStore(store_path(settings.data_dir))),
         local_token=local_token)
     ctx.render = make_frame_workers(settings, ctx.registry, ctx.scheduler)
 
@@ -132,10 +148,14 @@ def create_app(settings: Settings) -> FastAPI:
                 yield
         finally:
             sweeper.cancel()
-            await ctx.webrtc_peers.close_all("the server is shutting down")
+            # Whoever is still in (RestartingServer told the rest before uvicorn closed them)
+            await announce_restart(ctx, settings.restart_notice_s)
+            await ctx.webrtc_peers.close_all(RESTART_MESSAGE)
             await ctx.render.stop()
         await asyncio.to_thread(ctx.scheduler.shutdown)
         await asyncio.to_thread(ctx.track_scheduler.shutdown)
+        if ctx.rooms.store is not None:
+            ctx.rooms.store.close()
 
     app = FastAPI(title="Telesplat", version="0.1.0", lifespan=lifespan,
                   description="Hosts 3D-Gaussian upper-body avatars and drives them live over "

@@ -71,6 +71,7 @@ def serve(args: argparse.Namespace) -> int:
 
     from .app import create_app
     from .config import load_settings
+    from .rooms.restart import RestartingServer
     from .stream.gate import handshake_check
     from .stream.net import listen_socket, websocket_protocol
 
@@ -98,7 +99,8 @@ def serve(args: argparse.Namespace) -> int:
                                 settings.hello_max_bytes, handshake_check(app.state.ctx)),
                             ws_max_size=settings.limits.max_message_bytes + 1024,
                             timeout_graceful_shutdown=5)
-    uvicorn.Server(config).run(sockets=[sock])
+    # SIGTERM: participants get error 'restarting' and close 1012 first (server/rooms/restart.py)
+    RestartingServer(config, app.state.ctx).run(sockets=[sock])
     return 0
 
 

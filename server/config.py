@@ -204,7 +204,14 @@ class Settings(BaseModel):
         2.0, ge=0, description="Seconds a held seat then takes to ease back to the rest pose.")
     startup_room: bool = Field(
         True, description="telesplat serve creates a room 'demo' (owner 'local', one seat of "
-                          "the demo avatar, never closed for idleness) and prints its links.")
+                          "the demo avatar, never closed for idleness) and prints its links; "
+                          "the room is stored, so later starts reuse it (same id) and print "
+                          "new links, the earlier ones staying valid.")
+    restart_notice_s: float = Field(
+        2.0, gt=0, le=30, description="On SIGTERM, seconds the server waits for each "
+                                      "participant to be sent error 'restarting' and close "
+                                      "1012 (clients then reconnect into the same room and "
+                                      "seat) before uvicorn closes what is left.")
     job_backend: Literal["local", "ray"] = Field(
         "local", description="Where training jobs run. local: a worker process on this "
                              "machine; ray: a Ray task per job on the cluster at "

@@ -27,6 +27,7 @@ import uvicorn
 
 from server.app import create_app
 from server.config import Settings
+from server.rooms.restart import RestartingServer
 from server.stream.gate import handshake_check
 from server.stream.net import listen_socket, websocket_protocol
 
@@ -87,7 +88,7 @@ def run_server(data_dir: Path, *, ws: Any = None, **overrides: Any) -> Iterator[
                                 settings.hello_max_bytes, handshake_check(app.state.ctx)),
                             ws_max_size=settings.limits.max_message_bytes + 1024,
                             timeout_graceful_shutdown=5)
-    server = uvicorn.Server(config)
+    server = RestartingServer(config, app.state.ctx)  # as `telesplat serve` runs it
     thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True,
                               name="uvicorn-test")
     thread.start()

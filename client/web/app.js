@@ -7,10 +7,14 @@
 // Transport: WebRTC (webrtc.js: WHEP, a <video>, messages on a data channel) when the browser
 // and the server both can, else the WebSocket (session.js); ?transport=ws forces the latter.
 // Over WebRTC a solo page makes itself a private room and performs its seat 0.
+// When the server restarts (error `restarting`, close 1012) or the connection drops (1006,
+// 1001) the page reconnects by itself into the same room, role and seat (reconnect.js: backoff
+// 0.25 s -> 4 s, jittered, `?reconnect=N` tries); a room that is gone stops it.
 
 import { Controls } from "./controls.js";
 import { MotionPlayer } from "./motions.js";
 import { OrbitControl } from "./orbit.js";
+import { backoffDelay, reconnectDecision, reconnectPolicy, stopReason } from "./reconnect.js";
 import { Session, streamUrl, takeToken } from "./session.js";
 import { canShare, inviteAll, presenceText, showLinks } from "./share.js";
 import { StreamStats, renderStats } from "./stats.js";
@@ -22,12 +26,14 @@ import {
 const $ = (id) => document.getElementById(id);
 const params = new URLSearchParams(location.search);
 const token = takeToken(window);
+const reconnect = reconnectPolicy(location.search);
 
 // Shared with tests and the console: what the page is doing.
 const state = window.telesplat = {
   session: null, stats: new StreamStats(), framesShown: 0, errors: [], avatar: null,
   room: null, presence: null, shareLinks: [],
   transport: null, transportWhy: null, privateRoom: null,  // privateRoom: the solo page's room id
+  reconnecting: false, reconnects: 0, lastReconnect: null,  // {reason, downMs, attempts}
 };
 
 function notify(text, kind = "info") {
@@ -181,9 +187,54 @@ async function pollRtcStats() {
   } catch { /* closed meanwhile */ }
 }
 
-/** `target`: an avatar id (a private session) or {room, role, seat} (join a room). */
-async function connect(target) {
-  state.session?.close();
+// ---- reconnecting: one outage at a time ----------------------------------------------------
+
+let retry = null;  // {attempt: tries made, lostAt, reason, timer} while reconnecting
+
+function cancelRetry() {
+  if (retry?.timer) clearTimeout(retry.timer);
+  retry = null;
+  state.reconnecting = false;
+}
+
+/** A session ended (`outcome`: {closeCode, errorCode} or {failure}): schedule the next try at
+ *  `target`, or say why not. False when there is nothing to do (an ordinary end). */
+function sessionEnded(target, outcome) {
+  const decision = reconnect.attempts > 0 ? reconnectDecision(outcome) : null;
+  if (decision === "stop") {
+    cancelRetry();
+    const why = stopReason(outcome);
+    $("status").textContent = `disconnected: ${why}; not reconnecting`;
+    notify(`not reconnecting: ${why}`, "error");
+    return true;
+  }
+  if (decision !== "retry") return false;
+  const attempt = retry?.attempt ?? 0;
+  if (attempt >= reconnect.attempts) {
+    cancelRetry();
+    $("status").textContent = `could not reconnect in ${reconnect.attempts} tries: reload the page to try again`;
+    return true;
+  }
+  const reason = retry?.reason ?? (outcome.errorCode === "restarting" ? "the server is restarting"
+    : `the connection was lost (${outcome.closeCode ?? outcome.failure?.message})`);
+  const delay = backoffDelay(attempt, reconnect);
+  if (!retry) notify(`${reason}: reconnecting`, "error");
+  retry = {
+    attempt: attempt + 1, lostAt: retry?.lostAt ?? performance.now(), reason,
+    timer: setTimeout(() => { retry.timer = null; connect(target, { retrying: true }); }, delay),
+  };
+  state.reconnecting = true;
+  $("status").textContent = `${reason}: reconnecting in ${(delay / 1000).toFixed(1)} s (try ${attempt + 1} of ${reconnect.attempts})`;
+  return true;
+}
+
+/** `target`: an avatar id (a private session) or {room, role, seat} (join a room).
+ *  `retrying`: a try of the reconnection in progress (else a new connection ends it). */
+async function connect(target, { retrying = false } = {}) {
+  if (!retrying) cancelRetry();
+  const previous = state.session;
+  state.session = null;
+  previous?.close();
   player.stop();
   const inRoom = typeof target !== "string";
   state.avatar = inRoom ? null : target;
@@ -195,17 +246,25 @@ async function connect(target) {
     session = state.transport === "webrtc" ? await whepSession(target)
       : new Session(streamUrl(target), token, inRoom ? target : {});
   } catch (err) {
+    if (retrying && sessionEnded(target, { failure: err })) return;
     if (!fallBack(err, target)) $("status").textContent = `could not connect: ${err.message}`;
     return;
   }
   state.session = session;
+  let rejoin = null;      // after the welcome: the same room, role and seat
+  let lastError = null;   // the last error that answered nothing (restarting, gone, ...)
   session.addEventListener("presence", (e) => showPresence(e.detail));
   session.addEventListener("frame", (e) => showFrame(e.detail));
-  session.addEventListener("servererror", (e) => onServerError(e.detail));
+  session.addEventListener("servererror", (e) => {
+    if (!e.detail.answers) lastError = e.detail.code;
+    onServerError(e.detail);
+  });
   session.addEventListener("stats", (e) => { state.stats.server = e.detail; });
   session.addEventListener("pong", (e) => { state.stats.rttMs = e.detail.rttMs; });
   session.addEventListener("close", (e) => {
-    if (state.session === session) $("status").textContent = `disconnected (${e.detail.code}) ${e.detail.reason}`;
+    if (state.session !== session) return;
+    if (rejoin && sessionEnded(rejoin, { closeCode: e.detail.code, errorCode: lastError })) return;
+    $("status").textContent = `disconnected (${e.detail.code}) ${e.detail.reason}`;
   });
   try {
     const welcome = await session.ready;
@@ -226,8 +285,22 @@ async function connect(target) {
     sendRequest();
     session.view({ ...orbit.orbit }, false);
     session.ping();
+    rejoin = solo ? target : {
+      room: state.room.id, role: state.room.role,
+      seat: state.room.role === "perform" ? state.room.seat : target.seat,
+    };
+    if (retry) {
+      state.reconnects += 1;
+      state.lastReconnect = {
+        reason: retry.reason, downMs: performance.now() - retry.lostAt, attempts: retry.attempt,
+      };
+      notify(`reconnected after ${(state.lastReconnect.downMs / 1000).toFixed(1)} s`);
+      cancelRetry();
+    }
   } catch (err) {
-    if (state.session === session && fallBack(err, target)) return;
+    if (state.session !== session) return;
+    if (retrying && sessionEnded(target, { failure: err })) return;
+    if (fallBack(err, target)) return;
     $("status").textContent = `could not connect: ${err.code ? `${err.code}: ` : ""}${err.message}`;
   }
 }

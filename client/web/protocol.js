@@ -42,7 +42,8 @@ export const ERROR_CODES = Object.freeze([
   "gone",
   "busy",
   "internal",
-  "reconnecting"
+  "reconnecting",
+  "restarting"
 ]);
 
 export const WIRE_DTYPES = Object.freeze([

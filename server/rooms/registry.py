@@ -1,8 +1,13 @@
-"""Rooms and their invitations, in memory, behind one lock.
+"""Rooms and their invitations, in memory behind one lock, written through to a store.
 
 An invitation is a bearer token (``tsr_...``) for one room with one scope: ``perform`` (one
 seat) or ``watch``. Only its sha256 is kept. An expired or revoked invitation no longer admits
 anyone; participants already in stay.
+
+With a :class:`~.store.RoomStore` (the server's: server/app.py) every change is committed to
+it before it shows in memory (a failed write changes nothing and is a 503), and the rooms are
+loaded from it when the registry is made: rooms and links survive a restart, ``kill -9``
+included. A plain session's private room never reaches the registry, so it is never stored.
 """
 
 from __future__ import annotations
@@ -10,7 +15,9 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import hmac
+import logging
 import secrets
+import sqlite3
 import threading
 import time
 import uuid
@@ -21,6 +28,9 @@ from ..auth import INVITATION_PREFIX, Principal, is_invitation  # noqa: F401 - r
 
 if TYPE_CHECKING:
     from .live import LiveRoom
+    from .store import RoomStore
+
+log = logging.getLogger(__name__)
 
 Scope = Literal["perform", "watch"]
 
@@ -85,10 +95,26 @@ def _digest(token: str) -> str:
 
 
 class RoomRegistry:
-    def __init__(self, settings) -> None:
+    """``store`` None: in memory only (tests of the registry alone)."""
+
+    def __init__(self, settings, store: RoomStore | None = None) -> None:
         self.settings = settings
+        self.store = store
         self._rooms: dict[str, Room] = {}
         self._lock = threading.Lock()
+        if store is not None:  # after a restart nobody is in a room: idle from now on
+            self._rooms = {room.id: room for room in store.load(time.monotonic())}
+
+    def _stored(self, write: str, *args) -> None:
+        """The store's ``write(*args)`` (no store: nothing to do); a failure is a RoomError
+        503, and the caller makes no change."""
+        if self.store is None:
+            return
+        try:
+            getattr(self.store, write)(*args)
+        except sqlite3.Error as exc:
+            log.error("the room store refused a write: %s", exc)
+            raise RoomError(503, "rooms cannot be stored right now; try again") from None
 
     # -- rooms ----------------------------------------------------------------------------------
 
@@ -106,6 +132,7 @@ class RoomRegistry:
             room_id = uuid.uuid4().hex[:12]
             room = Room(room_id, name or f"room {room_id[:6]}", principal.subject, seats,
                         time.time(), pinned, empty_since=time.monotonic())
+            self._stored("add_room", room)
             self._rooms[room_id] = room
         return room
 
@@ -122,6 +149,8 @@ class RoomRegistry:
 
     def remove(self, room_id: str) -> Room | None:
         with self._lock:
+            if room_id in self._rooms:
+                self._stored("remove_rooms", [room_id])
             return self._rooms.pop(room_id, None)
 
     def idle_rooms(self, now: float) -> list[Room]:
@@ -130,6 +159,10 @@ class RoomRegistry:
         with self._lock:
             idle = [r for r in self._rooms.values() if not r.pinned
                     and r.empty_since is not None and now - r.empty_since >= timeout]
+            try:
+                self._stored("remove_rooms", [r.id for r in idle])
+            except RoomError:
+                return []  # kept, in memory and stored alike: the next sweep tries again
             for room in idle:
                 del self._rooms[room.id]
         return idle
@@ -158,12 +191,15 @@ class RoomRegistry:
         now = time.time()
         with self._lock:
             live = [i for i in room.invitations.values() if i.valid(now)]
-            room.invitations = {i.id: i for i in live}  # expired / revoked ones pruned
             if len(live) >= s.max_invitations_per_room:
                 raise RoomError(429, f"room {room.id!r} has {len(live)} valid invitations, the "
                                      "most it may have (max_invitations_per_room)")
             inv = Invitation(uuid.uuid4().hex[:12], room.id, _digest(token), scope, seat,
                              now + ttl)
+            pruned = [i for i in room.invitations if not room.invitations[i].valid(now)]
+            if room.id in self._rooms:  # not deleted meanwhile
+                self._stored("add_invitation", inv, pruned)
+            room.invitations = {i.id: i for i in live}  # expired / revoked ones pruned
             room.invitations[inv.id] = inv
         return inv, token
 
@@ -172,6 +208,8 @@ class RoomRegistry:
             inv = room.invitations.get(invitation_id)
             if inv is None:
                 raise RoomError(404, f"room {room.id!r} has no invitation {invitation_id!r}")
+            if room.id in self._rooms:
+                self._stored("revoke_invitation", invitation_id)
             inv.revoked = True
 
     def resolve(self, token: str) -> Invitation | None:

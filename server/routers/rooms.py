@@ -3,8 +3,8 @@
 Every route needs a bearer token with the ``stream`` scope; a room is its owner's (an admin
 sees and manages all). ``GET /v1/rooms/{id}`` also answers an invitation token of that room,
 so an invited page can show the room. Invitation tokens (``tsr_...``) are shown once, at
-creation; they join ``/v1/stream?room=ID`` with their scope. Rooms live in memory: they do not
-survive a restart.
+creation; they join ``/v1/stream?room=ID`` with their scope. Rooms and invitations are stored
+(server/rooms/store.py): a restart keeps them, and clients reconnect into the same room.
 """
 
 from __future__ import annotations
