@@ -116,6 +116,18 @@ class Settings(BaseModel):
         2.0, gt=0, le=60, description="fair_share time: half-life of the recent render time, "
                                       "and how long a session counts as active after its "
                                       "last frame.")
+    max_tile_pairs: int = Field(
+        2**20, ge=0, description="Most (Gaussian, tile) pairs one frame composites (its "
+                                     "render cost, counted from the projection before anything "
+                                     "per pair is allocated); past it the least important "
+                                     "splats are dropped until the rest fit (the frame is "
+                                     "degraded, stats count it). Bounds a frame's time and "
+                                     "memory whatever the avatar.")
+    max_avatar_tile_pairs: int = Field(
+        2**20, ge=0, description="Most (Gaussian, tile) pairs a frame of an avatar at its "
+                                     "rest pose, from the default orbit at the largest output "
+                                     "(limits.max_width x max_height), may need; checked at "
+                                     "upload (422) and when a stored avatar is opened.")
     render_batch_views: int | None = Field(
         None, ge=1, le=256, description="Most views of one room state (same request) rendered "
                                         "in one rasterizer call while they wait together; "
@@ -304,8 +316,10 @@ class Settings(BaseModel):
     gaussian_ranges: GaussianRanges = Field(
         default_factory=GaussianRanges,
         description="Allowed values of an avatar's Gaussians (count, log-scales, local means, "
-                    "opacity logits, SH, quaternion norms), checked on upload (422) and when a "
-                    "stored avatar is opened; a [gaussian_ranges] table or JSON in "
+                    "opacity logits, SH, quaternion norms, and at the rest pose each splat's "
+                    "3-sigma radius over the body's bounding-box diagonal, "
+                    "max_splat_body_ratio), checked on upload (422) and when a stored avatar "
+                    "is opened; a [gaussian_ranges] table or JSON in "
                     "TELESPLAT_GAUSSIAN_RANGES.")
 
     @field_validator("body_models", mode="before")

@@ -9,6 +9,13 @@ is stateful) over the shared, read-only model tensors.
 Everything stored is private to the server's user (folders 0700, files 0600), and no server
 path reaches a client: path-like strings are scrubbed from a package's manifest and record
 (a trainer records its dataset's folder), and a demo avatar from a path is "demo:package".
+
+Beyond its value ranges, an avatar is checked at its rest pose, at upload and when a stored
+one is opened (:meth:`AvatarRegistry.check_at_rest`): no splat larger than the body
+(``gaussian_ranges.max_splat_body_ratio``, ``validate.check_splat_extent``), and a frame of
+it from the default orbit at the largest output the server allows needs at most
+``max_avatar_tile_pairs`` (Gaussian, tile) pairs (``render.cost``), so that an avatar whose
+every value is in range cannot be a render bomb.
 """
 
 from __future__ import annotations
@@ -27,6 +34,9 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+import torch
+
 from avatar_core.body.cache import StageCache
 from avatar_core.body.errors import ModelFileError
 from avatar_core.body.model_paths import BodyModelsMissing, models_for_reference
@@ -38,6 +48,7 @@ from avatar_core.gaussians.loading import (
     check_binding,
     load_avatar,
     upper_body_faces,
+    upper_body_model,
 )
 from avatar_core.gaussians.package import (
     GAUSSIANS,
@@ -48,10 +59,14 @@ from avatar_core.gaussians.package import (
     load_package,
     save_package,
 )
-from avatar_core.gaussians.validate import GaussianRanges
+from avatar_core.gaussians.validate import GaussianRanges, RangeError, check_splat_extent
+from avatar_core.render.camera_path import framing_target
+from avatar_core.render.cost import frame_tile_pairs
+from protocol import Orbit, View
 
 from .auth import PUBLIC_OWNER
 from .private import make_private, private_dir
+from .stream.scene import view_camera
 
 log = logging.getLogger(__name__)
 RECORD, PACKAGE_DIR = "record.json", "package"
@@ -96,6 +111,17 @@ class AvatarRecord:
         return asdict(self)
 
 
+@dataclass(frozen=True)
+class RestFrameLimit:
+    """A frame of an avatar at its rest pose, from the default orbit (``View(orbit=Orbit())``,
+    what a session starts with) at ``width`` x ``height`` (the largest output), may need at
+    most ``max_tile_pairs`` (Gaussian, tile) pairs."""
+
+    max_tile_pairs: int
+    width: int
+    height: int
+
+
 def _dir_size(path: Path) -> int:
     return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
 
@@ -106,12 +132,14 @@ class AvatarRegistry:
     def __init__(self, root: str | Path, *, max_package_bytes: int = MAX_PACKAGE_BYTES,
                  npz_limits: NpzLimits | None = None,
                  ranges: GaussianRanges | None = None,
-                 body_models: str | Path | None = None) -> None:
+                 body_models: str | Path | None = None,
+                 rest_frame: RestFrameLimit | None = None) -> None:
         self.root = private_dir(root)
         # the setting body_models, which already ranks file < TELESPLAT_BODY_MODELS < flag, so
         # it goes to the resolver as the explicit folder (None: the resolver's own order)
         self.body_models = body_models
         self.ranges = ranges  # None: GaussianRanges' defaults
+        self.rest_frame = rest_frame  # None: a rest frame's pairs are not checked
         self.max_package_bytes = max_package_bytes
         self.npz_limits = npz_limits  # None: load_package's, from max_package_bytes
         self._lock = threading.RLock()
@@ -127,10 +155,12 @@ class AvatarRegistry:
         limits = NpzLimits(max_array_bytes=settings.max_npz_array_bytes,
                            max_total_bytes=settings.max_npz_bytes,
                            max_ratio=settings.max_unpack_ratio)
+        rest_frame = RestFrameLimit(settings.max_avatar_tile_pairs, settings.limits.max_width,
+                                    settings.limits.max_height)
         # the files together may be larger than the zip, and hold the arrays and the manifest
         return cls(settings.avatars_dir, npz_limits=limits, ranges=settings.gaussian_ranges,
                    max_package_bytes=max(4 * settings.max_upload_bytes, settings.max_npz_bytes),
-                   body_models=settings.body_models)
+                   body_models=settings.body_models, rest_frame=rest_frame)
 
     # -- records ---------------------------------------------------------------------------
 
@@ -185,6 +215,10 @@ class AvatarRegistry:
         package = load_package(src, max_bytes=self.max_package_bytes,
                                npz_limits=self.npz_limits, ranges=self.ranges)  # PackageError
         self._check_body(package)
+        model = upper_body_model(models_for_reference(package.body.model, self.body_models))
+        self.check_at_rest(AvatarAnimator(model, package.avatar,
+                                          betas=np.asarray(package.body.betas),
+                                          cache=StageCache(enabled=False)))
         avatar_id = avatar_id or secrets.token_hex(8)
         if not ID_PATTERN.match(avatar_id):
             raise ValueError(f"bad avatar id {avatar_id!r}")
@@ -235,6 +269,29 @@ class AvatarRegistry:
             log.warning("avatar package refused: %s", exc)
             raise PackageError(f"it is bound to body model {package.body.model!r}, which this "
                                "server does not have") from None
+
+    def check_at_rest(self, animator: AvatarAnimator) -> None:
+        """PackageError unless the avatar, posed at rest by ``animator``, has no splat larger
+        than the body (``ranges.max_splat_body_ratio``) and, with ``rest_frame``, a frame of it
+        from the default orbit at the largest output fits ``rest_frame.max_tile_pairs``."""
+        with torch.no_grad():
+            posed = animator.pose()
+        try:
+            check_splat_extent(posed.gaussians.scales, posed.vertices, self.ranges)
+        except RangeError as exc:
+            raise PackageError(str(exc)) from None
+        limit = self.rest_frame
+        if limit is None:
+            return
+        chest = framing_target(animator.body_model.joint_template)
+        camera = view_camera(View(orbit=Orbit()), limit.width, limit.height, chest)
+        pairs = frame_tile_pairs(posed.gaussians, camera)
+        if pairs > limit.max_tile_pairs:
+            raise PackageError(
+                f"a frame of it at rest from the default view at {limit.width}x{limit.height} "
+                f"(the largest output) needs {pairs} (Gaussian, tile) pairs, more than "
+                f"max_avatar_tile_pairs {limit.max_tile_pairs}: its splats are too large or "
+                "too many to render")
 
     def _remove_dir(self, path: Path) -> None:
         # Rename first so the id is free at once; then delete at leisure.
@@ -310,6 +367,11 @@ class AvatarRegistry:
                 except BodyModelsMissing as exc:
                     log.error("avatar %s: %s", avatar_id, exc)
                     raise BodyModelsMissing(f"avatar {avatar_id}: {exc.public}") from None
+                try:  # stored under other limits, or before this check existed
+                    self.check_at_rest(loaded.animator)
+                except PackageError as exc:
+                    log.error("avatar %s: %s", avatar_id, exc)
+                    raise PackageError(f"avatar {avatar_id}: {exc}") from None
                 with self._lock:
                     if avatar_id in self._records:
                         self._loaded[avatar_id] = loaded
@@ -343,4 +405,4 @@ def _extract_members(src: Path, target: Path) -> None:
 
 
 __all__ = ["DEMO_ID", "AvatarNotFound", "AvatarRecord", "AvatarRegistry", "PackageError",
-           "StorageQuotaExceeded", "scrub_paths"]
+           "RestFrameLimit", "StorageQuotaExceeded", "scrub_paths"]

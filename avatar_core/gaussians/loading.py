@@ -29,7 +29,7 @@ from .animate import AvatarAnimator, synthetic_package
 from .package import AvatarPackage, BodyReference, PackageError, faces_fingerprint, load_package
 
 __all__ = ["BodyModelMismatch", "LoadedAvatar", "check_binding", "load_avatar", "mano_models",
-           "upper_body_faces"]
+           "upper_body_faces", "upper_body_model"]
 
 
 class BodyModelMismatch(PackageError):
@@ -94,10 +94,25 @@ def upper_body_faces(files: BodyModelFiles) -> np.ndarray:
 
 @functools.lru_cache(maxsize=8)  # a server sees its folder and a synthetic family or two
 def _faces(root: str, stamp: tuple[int, ...]) -> np.ndarray:
-    files = BodyModelFiles(Path(root))
-    faces = UpperBodyModel.load(files.smplx_npz, files.segmentation).faces.cpu().numpy()
+    faces = _model(root, stamp).faces.cpu().numpy().copy()
     faces.flags.writeable = False  # shared by every caller
     return faces
+
+
+def upper_body_model(files: BodyModelFiles) -> UpperBodyModel:
+    """The upper-body model of ``files``, cached while the files are unchanged and shared by
+    every caller (read-only: pose it through an ``AvatarAnimator`` with a stage cache of its
+    own). Checking an upload at its rest pose need not load the model each time (seconds for
+    an SMPL-X-sized one)."""
+    files.require()
+    stamp = tuple(p.stat().st_mtime_ns for p in (files.smplx_npz, files.segmentation))
+    return _model(str(files.root.resolve()), stamp)
+
+
+@functools.lru_cache(maxsize=2)  # a server's folder and the synthetic family
+def _model(root: str, stamp: tuple[int, ...]) -> UpperBodyModel:
+    files = BodyModelFiles(Path(root))
+    return UpperBodyModel.load(files.smplx_npz, files.segmentation)
 
 
 def mano_models(loaded: LoadedAvatar) -> dict[str, MANOModel]:

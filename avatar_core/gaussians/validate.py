@@ -24,6 +24,16 @@ The defaults, and why they hold for trained avatars (``avatar_core.train``; meas
   [1e-6, 1e6] (the zero quaternion, the identity by convention, is allowed too).
 * count: the trainer's default cap is 200,000 (``DensifyConfig.max_gaussians``). Allowed:
   1,000,000.
+
+Those ranges are in the avatar's own units, so each is loose on purpose; what they allow
+together can still be absurd for the body they dress: 16k splats of log-scale 6 are in range,
+each hundreds of metres wide, and a frame of them costs a renderer seconds and gigabytes.
+:func:`check_splat_extent` ties the splats' size to the body's: at the rest pose (world
+units), no Gaussian's 3-sigma radius (3 x its largest standard deviation, the rasterizer's
+extent, ``RADIUS_SIGMAS``) may exceed ``max_splat_body_ratio`` times the diagonal of the rest
+mesh's bounding box. Default 1.0: a splat as large as the whole body. Trained splats are far
+smaller (densification prunes any wider than a tenth of the scene; the synthetic avatar's
+largest is 0.11 m against a 1.9 m diagonal).
 """
 
 from __future__ import annotations
@@ -33,7 +43,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-__all__ = ["GaussianRanges", "RangeError", "check_gaussian_ranges"]
+from ..render.contract import RADIUS_SIGMAS
+
+__all__ = ["GaussianRanges", "RangeError", "check_gaussian_ranges", "check_splat_extent"]
 
 
 class RangeError(ValueError):
@@ -52,6 +64,8 @@ class GaussianRanges:
     max_abs_sh: float = 100.0
     quat_norm_min: float = 1e-6   # below it (and above 0) the rotation is numerically noise
     quat_norm_max: float = 1e6
+    # at rest, a splat's 3-sigma radius over the rest mesh's bounding-box diagonal
+    max_splat_body_ratio: float = 1.0
 
 
 def check_gaussian_ranges(*, parents: Tensor, local_means: Tensor, log_scales: Tensor,
@@ -78,6 +92,31 @@ def check_gaussian_ranges(*, parents: Tensor, local_means: Tensor, log_scales: T
     norms = quats.double().norm(dim=-1)
     _check("quats (norm)", torch.where(norms == 0, torch.ones_like(norms), norms),
            r.quat_norm_min, r.quat_norm_max)
+
+
+def check_splat_extent(scales: Tensor, vertices: Tensor,
+                       ranges: GaussianRanges | None = None) -> None:
+    """Raise :class:`RangeError` when a Gaussian at the rest pose is larger than the body:
+    its 3-sigma radius (``scales`` [N, 3], world standard deviations) above
+    ``ranges.max_splat_body_ratio`` times the bounding-box diagonal of the rest mesh
+    (``vertices`` [V, 3]). Non-finite scales fail too."""
+    r = ranges or GaussianRanges()
+    if not scales.shape[0]:
+        return
+    v = vertices.detach().double()
+    diagonal = float((v.amax(0) - v.amin(0)).norm()) if v.shape[0] else 0.0
+    extent = RADIUS_SIGMAS * scales.detach().double().abs().amax(-1)  # [N]
+    limit = r.max_splat_body_ratio * diagonal
+    bad = torch.nonzero(~(extent <= limit)).squeeze(1)  # NaN fails
+    if not bad.numel():
+        return
+    worst = int(bad[int(torch.argmax(torch.nan_to_num(extent[bad], nan=float("inf"))))])
+    raise RangeError(
+        f"Gaussian {worst} reaches {float(extent[worst]):.4g} m from its centre at the rest "
+        f"pose (3-sigma radius), larger than the body: the allowed maximum is "
+        f"max_splat_body_ratio "
+        f"{r.max_splat_body_ratio:g} x the rest mesh's {diagonal:.3g} m bounding-box "
+        f"diagonal = {limit:.3g} m ({bad.numel()} Gaussians exceed it)")
 
 
 def _check(field: str, values: Tensor, lo: float, hi: float) -> None:

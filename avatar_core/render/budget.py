@@ -2,9 +2,18 @@
 
 ``RenderRequest.budget`` keeps all visible Gaussians (``None``), the ``K`` most important
 (an int) or a fraction of the visible ones (a float in (0, 1], rounded up). Importance is
-opacity x 3-sigma footprint area in px^2; ties keep the lower index. :func:`select_rendered`
-is the torch reference (the torch and gsplat backends), :func:`drop_over_budget_np` its numpy
-twin for the cpu backend's no-gradient path; a test checks that they choose the same set.
+opacity x 3-sigma footprint area in px^2; ties keep the lower index.
+
+The render cost bound uses the same rule: with each splat's (Gaussian, tile) pairs
+(:mod:`cost`) and a bound ``max_pairs``, the least important splats are dropped until the
+pairs of the rest fit, i.e. what is kept is the longest run of the most important ones whose
+pairs sum to at most ``max_pairs`` (and at most the budget's ``K``). So a frame over its cost
+bound is degraded the way a quality budget degrades it, never allocated unbounded.
+
+:func:`select_rendered` is the torch reference (the torch and gsplat backends),
+:func:`drop_over_budget_np` its numpy twin for the cpu backend's no-gradient path, and
+:func:`kept_within_pairs` the selection as a device-side mask (gsplat's training step, which
+reads nothing back to the host); tests check that they choose the same set.
 """
 
 from __future__ import annotations
@@ -17,7 +26,8 @@ from torch import Tensor
 
 from .projection import Projected
 
-__all__ = ["budget_count", "drop_over_budget_np", "footprint_area", "select_rendered"]
+__all__ = ["budget_count", "drop_over_budget_np", "footprint_area", "kept_within_pairs",
+           "select_rendered"]
 
 _DET_FLOOR = 1e-30  # conic determinants are floored here before the square root (no Inf area)
 
@@ -37,32 +47,63 @@ def footprint_area(conics: Tensor) -> Tensor:
     return 9.0 * math.pi / torch.sqrt(det_conic)
 
 
-def select_rendered(proj: Projected, budget: int | float | None) -> tuple[Tensor, int]:
+def _importance(proj: Projected) -> Tensor:
+    """[N] opacity x 3-sigma footprint area (px^2), detached."""
+    return (proj.opacities * footprint_area(proj.conics)).detach()
+
+
+def select_rendered(proj: Projected, budget: int | float | None,
+                    pairs: Tensor | None = None,
+                    max_pairs: int | None = None) -> tuple[Tensor, int]:
     """Indices [K] (ascending) of the Gaussians to composite, and the number visible: all
     visible ones, or the ``budget`` most important (opacity x 3-sigma footprint area; ties
-    keep the lower index)."""
+    keep the lower index). With ``pairs`` [N] (``cost.tile_pairs``) and ``max_pairs``, also
+    at most as many of the most important as fit in ``max_pairs`` pairs."""
     sel = torch.nonzero(proj.valid).squeeze(1)  # [V]
     n_visible = int(sel.numel())
     keep = budget_count(budget, n_visible)
-    if keep < n_visible:
-        importance = (proj.opacities * footprint_area(proj.conics))[sel].detach()
-        order = torch.sort(importance, descending=True, stable=True).indices[:keep]
-        sel = torch.sort(sel[order]).values
+    over = (pairs is not None and max_pairs is not None
+            and int(pairs[sel].sum()) > max_pairs)
+    if keep < n_visible or over:
+        order = torch.sort(_importance(proj)[sel], descending=True, stable=True).indices
+        if over:
+            fits = torch.cumsum(pairs[sel][order], 0) <= max_pairs  # [V], a prefix
+            keep = min(keep, int(fits.sum()))
+        sel = torch.sort(sel[order[:keep]]).values
     return sel, n_visible
 
 
+def kept_within_pairs(proj: Projected, pairs: Tensor, max_pairs: int) -> Tensor:
+    """[N] bool: :func:`select_rendered`'s choice without a budget, as a mask computed on the
+    device with no host read: the visible Gaussians, less the least important ones whose
+    pairs do not fit in ``max_pairs``."""
+    importance = torch.where(proj.valid, _importance(proj),
+                             torch.full_like(proj.opacities, -torch.inf).detach())
+    order = torch.sort(importance, descending=True, stable=True).indices  # [N]
+    cost = torch.where(proj.valid, pairs, torch.zeros_like(pairs))[order]
+    fits = torch.zeros_like(proj.valid)
+    fits[order] = torch.cumsum(cost, 0) <= max_pairs
+    return proj.valid & fits
+
+
 def drop_over_budget_np(conics: np.ndarray, opacities: np.ndarray, radii: np.ndarray,
-                        budget: int | float | None) -> tuple[int, int]:
+                        budget: int | float | None, pairs: np.ndarray | None = None,
+                        max_pairs: int | None = None) -> tuple[int, int]:
     """The numpy twin of :func:`select_rendered` on the numba projection's outputs: sets
-    ``radii`` to 0 (in place) for the visible Gaussians the budget drops.
+    ``radii`` to 0 (in place) for the visible Gaussians the budget, or the pair bound
+    (``pairs`` [N] from ``cost.tile_pairs_np``, ``max_pairs``), drops.
 
     -> ``(n_visible, n_rendered)``.
     """
     vis = np.flatnonzero(radii > 0)
     keep = budget_count(budget, int(vis.size))
-    if keep < vis.size:
+    over = pairs is not None and max_pairs is not None and int(pairs[vis].sum()) > max_pairs
+    if keep < vis.size or over:
         c = conics[vis]
         area = 9.0 * np.pi / np.sqrt(np.maximum(c[:, 0] * c[:, 2] - c[:, 1] ** 2, _DET_FLOOR))
         order = np.argsort(-(opacities[vis] * area), kind="stable")
+        if over:
+            fits = np.cumsum(pairs[vis][order]) <= max_pairs  # a prefix
+            keep = min(keep, int(fits.sum()))
         radii[vis[order[keep:]]] = 0
     return int(vis.size), keep

@@ -17,7 +17,8 @@ __all__ = ["check_gaussians", "check_request", "clamp_opacities", "rendered_sh_d
 
 
 def check_request(request: RenderRequest) -> None:
-    """``ValueError`` for outputs outside ``OUTPUTS``, a bad budget, SH degree or background."""
+    """``ValueError`` for outputs outside ``OUTPUTS``, a bad budget, pair bound, SH degree or
+    background."""
     outs = tuple(request.outputs)
     if not outs or any(o not in OUTPUTS for o in outs):
         raise ValueError(f"outputs must be a non-empty subset of {OUTPUTS}, got {outs!r}")
@@ -29,6 +30,10 @@ def check_request(request: RenderRequest) -> None:
             raise ValueError(f"budget count must be >= 0, got {budget}")
         if isinstance(budget, float) and not 0.0 < budget <= 1.0:
             raise ValueError(f"budget fraction must be in (0, 1], got {budget}")
+    pairs = request.max_tile_pairs
+    if pairs is not None and (isinstance(pairs, bool) or not isinstance(pairs, int)
+                              or pairs < 0):
+        raise ValueError(f"max_tile_pairs must be an int >= 0 or None, got {pairs!r}")
     if request.sh_degree is not None and not 0 <= request.sh_degree <= 3:
         raise ValueError(f"sh_degree must be in 0..3, got {request.sh_degree}")
     if len(request.background) != 3:

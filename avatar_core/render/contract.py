@@ -17,6 +17,7 @@ __all__ = [
     "MAX_BOUND_PX",
     "MAX_SCREEN_PX",
     "MAX_SIGMA_PX",
+    "MAX_TILE_PAIRS",
     "NEAR_PLANE",
     "RADIUS_SIGMAS",
     "SH_COEFF_MAX",
@@ -41,6 +42,21 @@ TILE_SIZE = 16  # px; splats are binned and depth-sorted per tile of this side
 ALPHA_MAX = 0.99  # alpha clamp (3DGS), so no single splat makes a pixel opaque
 ALPHA_MIN = 1.0 / 255.0  # splats below this alpha at a pixel are skipped (invisible in 8 bits)
 T_MIN = 1e-4  # a pixel is done when its transmittance would fall to this or below
+
+# ---- render cost (avatar_core/render/cost.py)
+# Most (Gaussian, tile) pairs one frame composites when its request names no bound: past it
+# the quality budget drops the least important splats until the pairs fit (a compositor
+# handed longer lists directly refuses them: RenderTooExpensive). A pair is a slot in the
+# tile lists (cpu: 4 B, and 40 B more in the backward pass; the torch reference ~100 B) and
+# up to a tile of compositing (measured on the cpu backend, one thread: 0.1 us for splats
+# that cover their tiles at once, 1.5-3 us for semi-transparent ones), so this bounds a
+# frame's memory (cpu: 64 MiB of lists, 640 MiB more for gradients) and time whatever the
+# Gaussians. Legitimate frames stay far below: the 16k-Gaussian synthetic avatar needs 0.1 M
+# pairs at 1920 x 1080 (0.3 M in a close-up); a trainer-capped 200k-Gaussian avatar a few
+# million while its splats are still large early in training. An in-range "render bomb"
+# (16k splats of log-scale 6) needs 134 M there. Servers bound frames much tighter (setting
+# max_tile_pairs).
+MAX_TILE_PAIRS = 1 << 24  # 16,777,216
 
 # ---- guards against absurd but finite inputs
 # Wider splats are culled: over any image they are a uniform veil, and beyond this float32

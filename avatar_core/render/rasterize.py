@@ -5,10 +5,13 @@ the same Gaussians); this is its one-camera case, what it runs per camera on the
 backends, and what gsplat runs for a single camera.
 
 Stages: validate (:mod:`checks`, shared with ``render_views``) -> project (torch,
-differentiable) -> keep the visible Gaussians, or the ``budget`` most important of them ->
-colour from SH (only when rgb is asked) -> composite on the chosen backend -> expected depth
-(only when asked). Everything before compositing is shared, so the torch and cpu backends
-differ only in the compositing kernel. When nothing needs gradients, the cpu backend runs
+differentiable) -> count each splat's (Gaussian, tile) pairs (:mod:`cost`) -> keep the
+visible Gaussians, or the ``budget`` most important of them, and only as many of the most
+important as fit in ``max_tile_pairs`` pairs (a frame over its cost bound is degraded, on
+every backend, before anything per pair is allocated) -> colour from SH (only when rgb is
+asked) -> composite on the chosen backend -> expected depth (only when asked). Everything
+before compositing is shared, so the torch and cpu backends differ only in the compositing
+kernel. When nothing needs gradients, the cpu backend runs
 projection and colour with their numba twins (:mod:`project_cpu`) as well: same stages, same
 picture, no per-op tensor overhead.
 """
@@ -21,7 +24,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .budget import drop_over_budget_np, select_rendered
+from .budget import budget_count, drop_over_budget_np, select_rendered
 from .camera import Camera
 from .checks import (
     check_gaussians,
@@ -31,6 +34,7 @@ from .checks import (
     sized_camera,
 )
 from .contract import NEAR_PLANE
+from .cost import pair_bound, tile_pairs, tile_pairs_np
 from .projection import depth_key, project_gaussians
 from .sh import sh_to_rgb
 from .types import (
@@ -106,8 +110,13 @@ def rasterize(gaussians: GaussianSet, camera: Camera,
     proj = project_gaussians(gaussians.means, gaussians.quats, gaussians.scales,
                              gaussians.opacities, viewmat, K, width, height, NEAR_PLANE,
                              request.antialiased, validate=False)
-    sel, stats["n_visible"] = select_rendered(proj, request.budget)
+    max_pairs = pair_bound(request.max_tile_pairs)
+    pairs = tile_pairs(proj.means2d, proj.radii, width, height)  # [N]
+    sel, stats["n_visible"] = select_rendered(proj, request.budget, pairs, max_pairs)
     stats["n_rendered"] = int(sel.numel())
+    stats["tile_pairs"] = int(pairs[sel].sum())
+    stats["n_cost_dropped"] = (budget_count(request.budget, stats["n_visible"])
+                               - stats["n_rendered"])  # by the pair bound
     stats["project_ms"] = _ms(t0)
 
     bg = torch.tensor(request.background, dtype=dtype, device=device)
@@ -134,7 +143,8 @@ def rasterize(gaussians: GaussianSet, camera: Camera,
     keys = depth_key(gaussians.means, camera.viewmat())[take]
     rgb, alpha, depth_acc = rasterize_to_pixels(
         proj.means2d[take], proj.conics[take], colors, proj.opacities[take], proj.depths[take],
-        proj.radii[take], width, height, background=bg, with_depth=with_depth, sort_keys=keys)
+        proj.radii[take], width, height, background=bg, with_depth=with_depth, sort_keys=keys,
+        max_pairs=max_pairs)
     depth = _expected_depth(depth_acc, alpha) if with_depth else None
     stats["raster_ms"] = _ms(t0)
     stats["total_ms"] = _ms(t_start)
@@ -156,7 +166,7 @@ def _rasterize_cpu_no_grad(g: GaussianSet, camera: Camera, request: RenderReques
     """The cpu backend without autograd: projection and colour in numba too (the twins of
     the torch stages above), no tensor round trips. Same picture as the autograd path."""
     from .project_cpu import project_np, sh_rgb_np
-    from .rasterize_cpu import composite_np
+    from .rasterize_cpu import composite_np, pairs_allocated
 
     width, height = camera.width, camera.height
     outputs = set(request.outputs)
@@ -166,8 +176,13 @@ def _rasterize_cpu_no_grad(g: GaussianSet, camera: Camera, request: RenderReques
     m2, co, de, rad, op = project_np(means, _np32(g.quats), _np32(g.scales), opac,
                                      camera.viewmat(), camera.K, width, height, NEAR_PLANE,
                                      request.antialiased)
-    stats["n_visible"], keep = drop_over_budget_np(co, op, rad, request.budget)
+    max_pairs = pair_bound(request.max_tile_pairs)
+    pairs = tile_pairs_np(m2, rad, width, height)  # [N], before anything per pair
+    stats["n_visible"], keep = drop_over_budget_np(co, op, rad, request.budget, pairs,
+                                                   max_pairs)
     stats["n_rendered"] = keep
+    stats["tile_pairs"] = int(pairs[rad > 0].sum())
+    stats["n_cost_dropped"] = budget_count(request.budget, stats["n_visible"]) - keep
     stats["project_ms"] = _ms(t0)
     if keep == 0:
         return background_output(request, width, height, dtype, g.means.device, stats,
@@ -186,7 +201,8 @@ def _rasterize_cpu_no_grad(g: GaussianSet, camera: Camera, request: RenderReques
     bg = np.zeros(4)
     bg[:n_col] = request.background[:n_col]
     keys = depth_key(g.means, camera.viewmat()).cpu().numpy()
-    out, T, _ = composite_np(m2, co, op, feats, keys, rad, width, height, bg)
+    out, T, state = composite_np(m2, co, op, feats, keys, rad, width, height, bg, max_pairs)
+    stats["pairs_allocated"] = pairs_allocated(state)
     to = dict(dtype=dtype, device=g.means.device)
     alpha = torch.from_numpy(1.0 - T).to(**to)
     rgb = torch.from_numpy(out[..., :3]).to(**to) if n_col else None

@@ -36,10 +36,12 @@ import torch
 from numba import njit, prange
 from torch import Tensor
 
-from .contract import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE_SIZE
+from .contract import ALPHA_MAX, ALPHA_MIN, MAX_TILE_PAIRS, T_MIN, TILE_SIZE
+from .cost import check_pairs, clamp_int, tile_box
 from .rasterize_torch import pack_features
 
-__all__ = ["RasterizeCPU", "bin_tiles", "composite_np", "rasterize_to_pixels"]
+__all__ = ["RasterizeCPU", "bin_tiles", "composite_np", "pairs_allocated",
+           "rasterize_to_pixels"]
 
 _TS = TILE_SIZE
 _SMAX_REL = 1e-4  # widen the sigma cut-off used for culling / spans: never drops a pixel
@@ -72,28 +74,6 @@ def _tile_reaches(tx, ty, mx, my, a, b, c, smax, width, height):
 
 
 @njit(cache=True, inline="always")
-def _clamp_int(x, lo, hi):
-    """int(x) clamped to [lo, hi], NaN giving lo: clamped while still a float, because a
-    float -> int cast of NaN, Inf or anything out of range is undefined (LLVM poison)."""
-    if not x >= lo:
-        return lo
-    if x > hi:
-        return hi
-    return int(x)
-
-
-@njit(cache=True, inline="always")
-def _tile_box(mx, my, r, tw, th):
-    """gsplat's tile range [x0, x1) x [y0, y1) of a splat with radius r (np.floor / np.ceil:
-    math's return ints, converted before any clamp)."""
-    x0 = _clamp_int(np.floor((mx - r) / _TS), 0, tw)
-    x1 = _clamp_int(np.ceil((mx + r) / _TS), 0, tw)
-    y0 = _clamp_int(np.floor((my - r) / _TS), 0, th)
-    y1 = _clamp_int(np.ceil((my + r) / _TS), 0, th)
-    return x0, x1, y0, y1
-
-
-@njit(cache=True, inline="always")
 def _drawable(mx, my, a, b, c):
     """Finite mean and a positive definite conic: what every extent below divides by. The
     projection emits nothing else; direct callers' degenerate splats are skipped."""
@@ -123,7 +103,7 @@ def _find_hits(means2d, conics, opacities, radii, width, height, smax, boxes, ma
         s = math.log(op / ALPHA_MIN)
         s = s + _SMAX_REL * s + _SMAX_ABS
         smax[g] = s
-        x0, x1, y0, y1 = _tile_box(mx, my, float(radii[g]), tw, th)
+        x0, x1, y0, y1 = tile_box(mx, my, float(radii[g]), tw, th)
         boxes[g, 0], boxes[g, 1], boxes[g, 2], boxes[g, 3] = x0, x1, y0, y1
         bits = np.uint64(0)
         n = 0
@@ -225,10 +205,14 @@ def _depth_order(depths, counts):
 
 
 def bin_tiles(means2d: np.ndarray, conics: np.ndarray, opacities: np.ndarray,
-              depths: np.ndarray, radii: np.ndarray, width: int, height: int):
+              depths: np.ndarray, radii: np.ndarray, width: int, height: int,
+              max_pairs: int | None = MAX_TILE_PAIRS):
     """Per-tile front-to-back lists -> ``(offsets [n_tiles + 1], ids [n_pairs], smax [N])``
     (int64, int32, float64); only tiles the splat can reach with ``alpha >= 1/255``.
-    ``depths``: the sort key, float64 (``projection.depth_key``)."""
+    ``depths``: the sort key, float64 (``projection.depth_key``). The pairs are counted
+    first: more than ``max_pairs`` (None: ``MAX_TILE_PAIRS``) raise ``RenderTooExpensive``
+    before the lists are allocated. The tile tests themselves cost one step per pair of the
+    radius boxes, which ``rasterize`` has already bounded (cost.tile_pairs_np)."""
     n = means2d.shape[0]
     n_tiles = ((width + _TS - 1) // _TS) * ((height + _TS - 1) // _TS)
     counts = np.empty(n, np.int64)
@@ -236,9 +220,11 @@ def bin_tiles(means2d: np.ndarray, conics: np.ndarray, opacities: np.ndarray,
     boxes = np.empty((n, 4), np.int32)
     masks = np.empty(n, np.uint64)
     _find_hits(means2d, conics, opacities, radii, width, height, smax, boxes, masks, counts)
+    n_pairs = int(counts.sum())
+    check_pairs(n_pairs, max_pairs, width, height)  # count first, allocate after
     order = _depth_order(np.ascontiguousarray(depths, np.float64), counts)
     offsets = np.empty(n_tiles + 1, np.int64)
-    ids = np.empty(int(counts.sum()), np.int32)
+    ids = np.empty(n_pairs, np.int32)
     n_blocks = 4 * max(1, numba.get_num_threads())
     _fill_lists(order, boxes, masks, means2d, conics, smax, width, height, n_blocks, offsets,
                 ids)
@@ -282,9 +268,9 @@ def _exp_neg(s):
 def _rows(my, a, c, detc, s, ty0, ty1):
     """Rows [r0, r1] (clamped to [ty0, ty1)) whose centres can lie inside sigma <= s."""
     ey = math.sqrt(max(2.0 * s * a / detc, 0.0))  # y half-extent: sqrt(2 s cov_yy)
-    # clamped as floats (see _clamp_int); an empty range stays empty
-    return (_clamp_int(np.ceil(my - ey - 0.5), ty0, ty1),
-            _clamp_int(np.floor(my + ey - 0.5), ty0 - 1, ty1 - 1))
+    # clamped as floats (see clamp_int); an empty range stays empty
+    return (clamp_int(np.ceil(my - ey - 0.5), ty0, ty1),
+            clamp_int(np.floor(my + ey - 0.5), ty0 - 1, ty1 - 1))
 
 
 @njit(cache=True, inline="always")
@@ -527,11 +513,14 @@ def _np32(t: Tensor) -> np.ndarray:
 _MAX_FEATS = 4  # rgb + depth; the kernels carry four feature channels
 
 
-def composite_np(means2d, conics, opacities, feats, depths, radii, width, height, background):
+def composite_np(means2d, conics, opacities, feats, depths, radii, width, height, background,
+                 max_pairs: int | None = MAX_TILE_PAIRS):
     """numpy float32 in (feats [N, 4], background [4]; ``depths`` the float64 sort key) ->
     (feats image [H, W, 4] with background, final transmittance [H, W], the state the
-    backward pass needs)."""
-    offsets, ids, smax = bin_tiles(means2d, conics, opacities, depths, radii, width, height)
+    backward pass needs: :func:`pairs_allocated` reads its pair count). ``max_pairs``: see
+    :func:`bin_tiles`."""
+    offsets, ids, smax = bin_tiles(means2d, conics, opacities, depths, radii, width, height,
+                                   max_pairs)
     tiles = _tile_order(offsets.shape[0] - 1)
     out = np.empty((height, width, _MAX_FEATS), np.float32)
     T = np.empty((height, width), np.float32)
@@ -543,6 +532,11 @@ def composite_np(means2d, conics, opacities, feats, depths, radii, width, height
     return out, T, state
 
 
+def pairs_allocated(state) -> int:
+    """The (tile, Gaussian) pairs the tile lists of ``composite_np``'s ``state`` hold."""
+    return int(state[6].shape[0])  # ids
+
+
 class RasterizeCPU(torch.autograd.Function):
     """(means2d, conics, feats [N, C <= 4], opacities) -> (feats image [H, W, C] incl.
     background [C], alpha [H, W]); depths are only the sort key (append them to feats to
@@ -550,7 +544,7 @@ class RasterizeCPU(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, means2d, conics, feats, opacities, depths, radii, width, height,
-                background):
+                background, max_pairs):
         n, nc = feats.shape
         m2, co, op = _np32(means2d), _np32(conics), _np32(opacities)
         fe = np.zeros((n, _MAX_FEATS), np.float32)
@@ -559,7 +553,7 @@ class RasterizeCPU(torch.autograd.Function):
         bg[:nc] = background.detach().cpu().double().numpy()
         rad = np.ascontiguousarray(radii.detach().cpu().numpy().astype(np.int32))
         keys = np.ascontiguousarray(depths.detach().cpu().double().numpy())
-        out, T, state = composite_np(m2, co, op, fe, keys, rad, width, height, bg)
+        out, T, state = composite_np(m2, co, op, fe, keys, rad, width, height, bg, max_pairs)
         ctx.state = state
         ctx.dtype = dtype = means2d.dtype
         ctx.nc = nc
@@ -580,7 +574,8 @@ class RasterizeCPU(torch.autograd.Function):
         grads = np.zeros((m2.shape[0], 6 + _MAX_FEATS), np.float64)
         _reduce_pairs(ids, pair_grads, grads)
         g = torch.from_numpy(grads).to(ctx.dtype)
-        return (g[:, 0:2], g[:, 2:5], g[:, 6:6 + nc], g[:, 5], None, None, None, None, None)
+        return (g[:, 0:2], g[:, 2:5], g[:, 6:6 + nc], g[:, 5], None, None, None, None, None,
+                None)
 
 
 def rasterize_to_pixels(
@@ -595,6 +590,7 @@ def rasterize_to_pixels(
     background: Tensor | None = None,  # [C]
     with_depth: bool = False,
     sort_keys: Tensor | None = None,  # [N] front-to-back key; None: depths
+    max_pairs: int | None = MAX_TILE_PAIRS,  # RenderTooExpensive past it, before allocating
 ) -> tuple[Tensor | None, Tensor, Tensor | None]:
     """Same contract as :func:`avatar_core.render.rasterize_torch.rasterize_to_pixels`
     (float32 inside, float64 sort keys; outputs and gradients in the inputs' dtype)."""
@@ -608,7 +604,7 @@ def rasterize_to_pixels(
         bg[:n_col] = background.detach().cpu().double()
     keys = depths if sort_keys is None else sort_keys
     out, alpha = RasterizeCPU.apply(means2d, conics, feats, opacities, keys, radii,
-                                    int(width), int(height), bg)
+                                    int(width), int(height), bg, max_pairs)
     out, alpha = out.to(means2d.device), alpha.to(means2d.device)
     rgb = out[..., :n_col] if n_col else None
     depth = out[..., n_col] if with_depth else None

@@ -6,6 +6,12 @@ plane 1e10, eps2d 0.3, 16 px tiles, SH evaluated by gsplat (``colors`` = coeffic
 for ``antialiased``, ``render_mode`` "RGB" / "RGB+ED" / "ED" (expected depth, 0 where alpha
 is 0) and the background for the colour channels only. A ``budget`` is applied before the
 call, with the shared importance (opacity x 3-sigma footprint area, from our projection).
+So is the render cost bound (``max_tile_pairs``, :mod:`cost`): the (Gaussian, tile) pairs of
+our projection's radius boxes, with the least important splats dropped until they fit
+(without a budget as a device-side mask, :func:`budget.kept_within_pairs`: no host read).
+gsplat bins what it is given with its own radius, which is no wider than ours (recent
+releases: opacity-aware and per axis), so its lists hold at most that many pairs; this is
+argued, not measured here (no CUDA in the test environment).
 
 gsplat's kernels get only what our projection keeps (visible, sane: see
 :mod:`projection`), unit quaternions (a zero one as the identity) and SH coefficients clamped
@@ -34,9 +40,10 @@ from collections.abc import Sequence
 
 import torch
 
-from .budget import select_rendered
+from .budget import kept_within_pairs, select_rendered
 from .camera import Camera
 from .contract import EPS2D, FAR_PLANE, NEAR_PLANE, SH_COEFF_MAX, TILE_SIZE
+from .cost import pair_bound, tile_pairs
 from .projection import project_gaussians
 from .types import GaussianSet, RenderOutput, RenderRequest, background_output
 
@@ -93,14 +100,15 @@ def _unit_quats(quats: torch.Tensor) -> torch.Tensor:
 
 def _apply_budget(gaussians: GaussianSet, camera: Camera,
                   request: RenderRequest) -> tuple[GaussianSet, int]:
-    """The subset that our projection keeps and ``request.budget`` (if any) selects (the
-    shared importance rule)."""
+    """The subset that our projection keeps and ``request.budget`` (if any) and the pair
+    bound select (the shared importance rule)."""
     viewmat, K = camera.to_torch(gaussians.means.device, gaussians.means.dtype)
     with torch.no_grad():
         p = project_gaussians(gaussians.means, gaussians.quats, gaussians.scales,
                               gaussians.opacities, viewmat, K, camera.width, camera.height,
                               antialiased=request.antialiased, validate=False)
-        sel, _ = select_rendered(p, request.budget)
+        pairs = tile_pairs(p.means2d, p.radii, camera.width, camera.height)
+        sel, _ = select_rendered(p, request.budget, pairs, pair_bound(request.max_tile_pairs))
     sub = GaussianSet(*(t[sel] for t in (gaussians.means, gaussians.quats, gaussians.scales,
                                          gaussians.opacities, gaussians.sh)))
     return sub, int(sel.numel())
@@ -108,23 +116,25 @@ def _apply_budget(gaussians: GaussianSet, camera: Camera,
 
 def _mask_culled(gaussians: GaussianSet, camera: Camera,
                  request: RenderRequest) -> tuple[GaussianSet, torch.Tensor]:
-    """Every Gaussian, those our projection culls moved to the camera centre with opacity 0
-    (gsplat's first test, the near plane, drops them before any covariance arithmetic), and
-    the kept count as a 0-d device tensor: no ``nonzero``, no gather, no host round trip
-    (the training step on CUDA). Without a budget this keeps what :func:`_apply_budget`
-    keeps."""
+    """Every Gaussian, those our projection culls (or the pair bound drops) moved to the
+    camera centre with opacity 0 (gsplat's first test, the near plane, drops them before
+    any covariance arithmetic), and the kept count as a 0-d device tensor: no ``nonzero``,
+    no gather, no host round trip (the training step on CUDA). Without a budget this keeps
+    what :func:`_apply_budget` keeps."""
     device, dtype = gaussians.means.device, gaussians.means.dtype
     viewmat, K = camera.to_torch(device, dtype)
     with torch.no_grad():
         p = project_gaussians(gaussians.means, gaussians.quats, gaussians.scales,
                               gaussians.opacities, viewmat, K, camera.width, camera.height,
                               antialiased=request.antialiased, validate=False)
-    keep = p.valid[:, None]  # [N, 1]
+        pairs = tile_pairs(p.means2d, p.radii, camera.width, camera.height)
+        kept = kept_within_pairs(p, pairs, pair_bound(request.max_tile_pairs))  # [N]
+    keep = kept[:, None]  # [N, 1]
     centre = torch.as_tensor(camera.center, dtype=dtype, device=device)
     return GaussianSet(
         torch.where(keep, gaussians.means, centre), gaussians.quats,
         torch.where(keep, gaussians.scales, torch.ones_like(gaussians.scales)),
-        gaussians.opacities * p.valid.to(dtype), gaussians.sh), p.valid.sum()
+        gaussians.opacities * kept.to(dtype), gaussians.sh), kept.sum()
 
 
 def rasterize_gsplat(gaussians: GaussianSet, camera: Camera, request: RenderRequest,
@@ -158,8 +168,8 @@ def rasterize_gsplat(gaussians: GaussianSet, camera: Camera, request: RenderRequ
 
 def _kept_masks(gaussians: GaussianSet, cameras: Sequence[Camera],
                 request: RenderRequest) -> torch.Tensor:
-    """[C, N] bool: the Gaussians our projection keeps and the budget selects, per camera
-    (the single-camera rule of :func:`_apply_budget`)."""
+    """[C, N] bool: the Gaussians our projection keeps and the budget and the pair bound
+    select, per camera (the single-camera rule of :func:`_apply_budget`)."""
     n = gaussians.num
     masks = torch.zeros(len(cameras), n, dtype=torch.bool, device=gaussians.means.device)
     with torch.no_grad():
@@ -168,7 +178,9 @@ def _kept_masks(gaussians: GaussianSet, cameras: Sequence[Camera],
             p = project_gaussians(gaussians.means, gaussians.quats, gaussians.scales,
                                   gaussians.opacities, viewmat, K, cam.width, cam.height,
                                   antialiased=request.antialiased, validate=False)
-            sel, _ = select_rendered(p, request.budget)
+            pairs = tile_pairs(p.means2d, p.radii, cam.width, cam.height)
+            sel, _ = select_rendered(p, request.budget, pairs,
+                                     pair_bound(request.max_tile_pairs))
             masks[c, sel] = True
     return masks
 

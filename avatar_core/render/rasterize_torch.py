@@ -25,7 +25,8 @@ import torch
 from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
-from .contract import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE_SIZE
+from .contract import ALPHA_MAX, ALPHA_MIN, MAX_TILE_PAIRS, T_MIN, TILE_SIZE
+from .cost import check_pairs
 
 __all__ = ["isect_tiles", "pack_features", "rasterize_to_pixels"]
 
@@ -33,10 +34,13 @@ _CHUNK_ELEMS = 1 << 21  # pixels x list entries evaluated at once
 
 
 def isect_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, width: int, height: int,
-                tile_size: int = TILE_SIZE) -> tuple[Tensor, Tensor]:
+                tile_size: int = TILE_SIZE,
+                max_pairs: int | None = MAX_TILE_PAIRS) -> tuple[Tensor, Tensor]:
     """Tile lists: ``offsets [n_tiles + 1]`` (int64) and ``ids [n_pairs]`` (int64) such that tile
     ``t`` (row-major, ``ceil(W / 16)`` per row) holds Gaussians ``ids[offsets[t]:offsets[t+1]]``
-    in front-to-back order."""
+    in front-to-back order. ``n_pairs`` is ``cost.tile_pairs(...).sum()``; more than
+    ``max_pairs`` (None: ``MAX_TILE_PAIRS``) raise ``RenderTooExpensive`` before any list is
+    allocated."""
     device = means2d.device
     tw, th = -(-width // tile_size), -(-height // tile_size)
     with torch.no_grad():
@@ -51,6 +55,7 @@ def isect_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, width: int, heig
         hi = torch.minimum(hi.clamp_min(0), lim).long()
         nx, ny = (hi - lo).unbind(-1)  # [V]
         counts = nx * ny  # [V]
+        check_pairs(int(counts.sum()), max_pairs, width, height)  # count first, then allocate
         gid = torch.repeat_interleave(vis, counts)  # [P]
         local = torch.arange(gid.numel(), device=device) - torch.repeat_interleave(
             torch.cumsum(counts, 0) - counts, counts)  # [P] index within its Gaussian's box
@@ -121,6 +126,7 @@ def rasterize_to_pixels(
     with_depth: bool = False,
     tile_size: int = TILE_SIZE,
     sort_keys: Tensor | None = None,  # [N] front-to-back key (projection.depth_key); None: depths
+    max_pairs: int | None = MAX_TILE_PAIRS,  # RenderTooExpensive past it (isect_tiles)
 ) -> tuple[Tensor | None, Tensor, Tensor | None]:
     """Composite the projected Gaussians -> ``(colors [H, W, C] | None, alphas [H, W],
     depth_acc [H, W] | None)``; ``depth_acc = sum_i w_i z_i`` (divide by alpha for the
@@ -129,7 +135,7 @@ def rasterize_to_pixels(
     n = means2d.shape[0]
     feats, n_col = pack_features(colors, depths, with_depth, n, means2d)  # [N, C']
     keys = depths if sort_keys is None else sort_keys
-    offsets, ids = isect_tiles(means2d, radii, keys, width, height, tile_size)
+    offsets, ids = isect_tiles(means2d, radii, keys, width, height, tile_size, max_pairs)
 
     tw, th = -(-width // tile_size), -(-height // tile_size)
     n_tiles, tp = tw * th, tile_size * tile_size

@@ -47,6 +47,9 @@ class RenderRequest:
     budget: int | float | None = None
     antialiased: bool = False                      # opacity compensation (Mip-Splatting)
     backend: str = "auto"                          # BACKENDS
+    # Most (Gaussian, tile) pairs the frame may composite (render/cost.py); past it the least
+    # important splats are dropped until the rest fit. None: contract.MAX_TILE_PAIRS.
+    max_tile_pairs: int | None = None
 
 
 @dataclass
@@ -55,7 +58,11 @@ class RenderOutput:
     rgb: Tensor | None = None
     alpha: Tensor | None = None   # [H, W]
     depth: Tensor | None = None   # [H, W] expected camera z (alpha-weighted mean), 0 where empty
-    stats: dict = field(default_factory=dict)  # backend, n_rendered, timings in ms
+    # backend, n_gaussians, n_visible, n_rendered (after the budget and the pair bound),
+    # tile_pairs (of the rendered splats' radius boxes, cost.tile_pairs), n_cost_dropped
+    # (visible splats the pair bound dropped), cpu: pairs_allocated (its tile lists);
+    # timings in ms
+    stats: dict = field(default_factory=dict)
 
 
 def background_output(request: RenderRequest, width: int, height: int, dtype: torch.dtype,

@@ -144,5 +144,6 @@ def make_frame_workers(settings, registry, scheduler):
     config = WorkerConfig(
         backend=settings.backend, threads=max(1, round(settings.render_actor_num_cpus)),
         max_package_bytes=registry.max_package_bytes, npz_limits=registry.npz_limits,
-        ranges=registry.ranges, max_streams_per_scene=settings.max_participants_per_room)
+        ranges=registry.ranges, max_streams_per_scene=settings.max_participants_per_room,
+        max_tile_pairs=settings.max_tile_pairs)
     return RayWorkers(RenderPool(settings, config), settings.max_participants_per_room)

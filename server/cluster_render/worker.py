@@ -51,6 +51,7 @@ class WorkerConfig:
     npz_limits: NpzLimits | None
     ranges: GaussianRanges | None
     max_streams_per_scene: int       # stateful encoder streams kept per scene
+    max_tile_pairs: int | None = None  # per render (settings.max_tile_pairs)
 
 
 @dataclass
@@ -116,7 +117,8 @@ class RenderWorker:
                 scene.frames.close()
             posers = [SeatPoser(*self._animator(seat), seat.placement) for seat in seats]
             encoders = FrameEncoders(max_streams=self.config.max_streams_per_scene)
-            frames = SceneFrames(posers, self.config.backend, encoders)
+            frames = SceneFrames(posers, self.config.backend, encoders,
+                                 max_tile_pairs=self.config.max_tile_pairs)
             scene = self._scenes[scene_id] = WorkerScene(seats, frames)
         return scene
 

@@ -23,7 +23,7 @@ import torch
 from avatar_core.render.rasterize import available_backends
 from avatar_core.render.types import GaussianSet
 
-from .scheduler import RenderScheduler
+from .scheduler import RenderScheduler, WorkFuture, abandon_check
 
 Item = TypeVar("Item")
 Result = TypeVar("Result")
@@ -90,7 +90,8 @@ class BatchCounters:
 class ViewBatches(Generic[Item, Result]):
     """Items of one batch key, run together by ``run(items) -> results`` (same order) on the
     scheduler. Each item gets its own future: cancelling it drops the item (if its batch has
-    not started), never the batch."""
+    not started), never the batch; once every item of a running batch is cancelled, the
+    batch is abandoned (``scheduler.abandoned``)."""
 
     def __init__(self, run: Callable[[list[Item]], list[Result]], max_views: int) -> None:
         if max_views < 1:
@@ -102,8 +103,8 @@ class ViewBatches(Generic[Item, Result]):
         self._open: dict[Hashable, _Batch] = {}  # key -> the batch not started yet
 
     def submit(self, scheduler: RenderScheduler, key: Hashable, item: Item, *,
-               share_key: Hashable | None = None) -> concurrent.futures.Future[Result]:
-        future: concurrent.futures.Future[Result] = concurrent.futures.Future()
+               share_key: Hashable | None = None) -> WorkFuture:
+        future = WorkFuture()  # cancelled while its batch runs: asks it to stop
         with self._lock:
             batch = self._open.get(key)
             new = batch is None
@@ -133,7 +134,8 @@ class ViewBatches(Generic[Item, Result]):
         if not live:
             return
         try:
-            results = self._run_items([item for item, _ in live])
+            with abandon_check(lambda: all(fut.stop_asked for _, fut in live)):
+                results = self._run_items([item for item, _ in live])
             if len(results) != len(live):
                 raise RuntimeError(f"a batch of {len(live)} gave {len(results)} results")
         except BaseException as exc:  # noqa: BLE001 - handed to every waiting viewer

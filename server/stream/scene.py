@@ -15,6 +15,17 @@ newest state is always rendered next. Whether a participant's encoded frame may 
 all is the encoders' to say (:meth:`FrameEncoders.output_key`). Where a frame is made is the
 scene's workers' to decide (server/stream/workers.py: the local render threads, or a render
 worker on Ray).
+
+A frame's cost is bounded before it is made: every render asks for at most
+``max_tile_pairs`` (Gaussian, tile) pairs (the server setting; avatar_core/render/cost.py),
+past which the rasterizer drops the least important splats, so no avatar can make one frame
+take seconds and gigabytes. A frame nobody waits for any more is abandoned: each participant
+follows the shared render through a future of its own, and when the last of them is
+cancelled (its session left) the render is cancelled too, which drops it if it is still
+queued and otherwise makes it stop at its next stage boundary (before posing, before
+rendering, before each encode: :func:`~.scheduler.abandoned`). The flag lives with the
+shared render, not with a participant: a render another participant still waits for goes on.
+Abandoning is local to this process (a render worker on Ray finishes what it started).
 """
 
 from __future__ import annotations
@@ -42,6 +53,7 @@ from protocol import Request, Timings, View
 from .batching import DeviceCopies, ViewBatches, render_device
 from .drive import DriveState, drive_shapes
 from .encoders import FrameEncoders, frame_rgb
+from .scheduler import abandoned
 
 if TYPE_CHECKING:
     from .workers import FrameWorkers
@@ -94,6 +106,14 @@ class FrameCounters:
     encodes: int = 0         # encoded images
     shared: int = 0          # frames a participant got from another's render
     batched: int = 0         # renders that shared a render_views call with other views
+    abandoned: int = 0       # frames stopped at a stage boundary: nobody waited any more
+    cost_degraded: int = 0   # renders the pair bound degraded (splats dropped to fit)
+    tile_pairs_max: int = 0  # most (Gaussian, tile) pairs one render composited
+    pairs_allocated_max: int = 0  # most pairs one render's tile lists held (cpu backend)
+
+
+class FrameAbandoned(RuntimeError):
+    """Everyone waiting for the frame left: it stopped at a stage boundary."""
 
 
 def view_camera(view: View, width: int, height: int, default_target: np.ndarray) -> Camera:
@@ -145,9 +165,11 @@ class SceneFrames:
     where the scene's workers put it: a render thread here, or a render worker on Ray."""
 
     def __init__(self, posers: list[SeatPoser], backend: str,
-                 encoders: FrameEncoders | None = None) -> None:
+                 encoders: FrameEncoders | None = None,
+                 max_tile_pairs: int | None = None) -> None:
         self.posers = posers
         self.backend = backend
+        self.max_tile_pairs = max_tile_pairs  # per render; None: the rasterizer contract's
         self.encoders = encoders if encoders is not None else FrameEncoders()
         self.counters = FrameCounters()
         self._on_device = DeviceCopies(render_device(backend))  # CUDA: one upload a state
@@ -160,26 +182,36 @@ class SceneFrames:
         """One view: a batch of one (``render_views`` of one camera is ``rasterize``)."""
         return self.make([job])[0]
 
+    def _stage(self) -> None:
+        """A stage boundary: stop here when nobody waits for the frame any more."""
+        if abandoned():
+            self.counters.abandoned += 1
+            raise FrameAbandoned("nobody waits for this frame any more")
+
     def make(self, jobs: list[FrameJob]) -> list[Frame]:
         """Views of one state and request: one posing, one ``render_views`` call, an encode
-        each (none for a raw frame)."""
+        each (none for a raw frame); abandoned (:class:`FrameAbandoned`) at the first stage
+        boundary after everyone waiting for it left."""
         c = self.counters
         req = jobs[0].request
+        self._stage()
         t0 = time.perf_counter()
         with torch.no_grad():
             gaussians = self._on_device.get(jobs[0].versions, union([
                 poser.world(drive, c) for poser, drive in zip(self.posers, jobs[0].seats,
                                                               strict=True)]))
             t1 = time.perf_counter()
+            self._stage()
             cams = [view_camera(job.view, req.width, req.height, self.chest) for job in jobs]
             outputs = tuple(dict.fromkeys(("rgb", *req.outputs)))
             budget = None if req.quality >= 1.0 else float(req.quality)
             outs = render_views(gaussians, cams, RenderRequest(
                 outputs=outputs, background=tuple(req.background),
                 sh_degree=min(req.sh_degree, gaussians.sh_degree), budget=budget,
-                backend=self.backend))
+                backend=self.backend, max_tile_pairs=self.max_tile_pairs))
             c.renders += 1
             c.batched += len(jobs) if len(jobs) > 1 else 0
+            self._count_cost([o.stats for o in outs])
             alpha_asked = "alpha" in req.outputs
             images = [(frame_rgb(o.rgb, req.codec, alpha_asked),
                        None if o.alpha is None else to_uint8(o.alpha),
@@ -187,6 +219,7 @@ class SceneFrames:
         t2 = time.perf_counter()
         frames = []
         for job, cam, (rgb, alpha, depth) in zip(jobs, cams, images, strict=True):
+            self._stage()
             t3 = time.perf_counter()
             if job.raw:  # a WebRTC track encodes it
                 codec, data, keyframe, depth_png = RAW_CODEC, b"", True, None
@@ -203,6 +236,14 @@ class SceneFrames:
                                 keyframe, timings, seat_seqs=seqs, versions=job.versions,
                                 rgb=rgb if job.raw else None))
         return frames
+
+    def _count_cost(self, stats: list[dict]) -> None:
+        c = self.counters
+        for st in stats:
+            c.cost_degraded += int(st.get("n_cost_dropped", 0) > 0)
+            c.tile_pairs_max = max(c.tile_pairs_max, int(st.get("tile_pairs", 0)))
+            c.pairs_allocated_max = max(c.pairs_allocated_max,
+                                        int(st.get("pairs_allocated", 0)))
 
     def release(self, participant: Hashable) -> None:
         self.encoders.release(participant)
@@ -234,9 +275,8 @@ class Scene:
         self.shared = 0  # frames a participant got from another's render
         self.closed = False
         self._lock = threading.Lock()
-        self._frames: collections.OrderedDict[Hashable, concurrent.futures.Future] = (
-            collections.OrderedDict())
-        self._inflight: dict[Hashable, concurrent.futures.Future] = {}  # group -> render
+        self._frames: collections.OrderedDict[Hashable, _Render] = collections.OrderedDict()
+        self._inflight: dict[Hashable, _Render] = {}  # group -> render
 
     @property
     def counters(self) -> FrameCounters:
@@ -247,36 +287,56 @@ class Scene:
 
     def submit(self, job: FrameJob) -> concurrent.futures.Future:
         """The frame of ``job``: shared with every participant asking the same one. The
-        future returned is the caller's own (cancelling it leaves the shared render alone)."""
+        future returned is the caller's own: cancelling it leaves a render others still
+        wait for alone, and abandons one nobody else waits for (see the module docstring).
+        Its ``work`` is the render's own future (done when no thread works on it)."""
         versions = job.versions
         owner = FrameEncoders.output_key(job.participant, job.request)
         group = (job.view.model_dump_json(exclude={"moving"}), job.request.model_dump_json(),
                  job.jpeg_quality, owner, job.raw)
         key = (versions, *group)
         with self._lock:
-            shared = self._frames.get(key)
-            if shared is None or _failed(shared):
-                shared = self._inflight.get(group)  # an older state of this group, rendering
-                if shared is not None and shared.done():
-                    shared = None  # finished: this participant's newer state renders now
-            if shared is not None and not _failed(shared):
+            render = self._frames.get(key)
+            if render is None or render.failed:
+                render = self._inflight.get(group)  # an older state of this group, rendering
+                if render is not None and render.future.done():
+                    render = None  # finished: this participant's newer state renders now
+            if render is not None and not render.failed:
                 self.shared += 1
             else:
-                shared = self.workers.run(self, job)
-                self._frames[key] = self._inflight[group] = shared
+                render = _Render(self.workers.run(self, job))
+                self._frames[key] = self._inflight[group] = render
                 self._evict(versions)
-        if owner is not None:
-            return shared  # a participant's own encoded frame: nobody else waits on it
-        return _relay(shared)
+            render.waiting += 1
+        return self._follow(render)
+
+    def _follow(self, render: _Render) -> concurrent.futures.Future:
+        """A waiter's own future of ``render`` (counted in ``render.waiting`` already)."""
+        own = _relay(render.future)
+        own.add_done_callback(lambda done: self._left(render, done))
+        return own
+
+    def _left(self, render: _Render, own: concurrent.futures.Future) -> None:
+        """A waiter's future is done; if it was cancelled and was the last one waiting, the
+        render is abandoned: dropped if still queued, else stopped at its next stage."""
+        if not own.cancelled():
+            return
+        with self._lock:
+            render.waiting -= 1
+            if render.waiting > 0 or render.future.done():
+                return
+            render.abandoned = True  # nobody joins it any more
+        render.future.cancel()
 
     def _evict(self, versions: tuple[int, ...]) -> None:
         """Finished frames of older drive states go (nobody asks for them again), and the
         oldest past ``max_frames`` (lock held)."""
-        for key in [k for k, f in self._frames.items() if k[0] != versions and f.done()]:
+        for key in [k for k, r in self._frames.items()
+                    if k[0] != versions and r.future.done()]:
             del self._frames[key]
         while len(self._frames) > self.max_frames:
             self._frames.popitem(last=False)
-        for group in [g for g, f in self._inflight.items() if f.done()]:
+        for group in [g for g, r in self._inflight.items() if r.future.done()]:
             del self._inflight[group]
 
     def release(self, participant: Hashable) -> None:
@@ -290,14 +350,25 @@ class Scene:
             self.workers.close(self)
 
 
-def _failed(future: concurrent.futures.Future) -> bool:
-    return future.done() and (future.cancelled() or future.exception() is not None)
+@dataclass(eq=False)
+class _Render:
+    """One render of a scene and who waits for it (counted under the scene's lock)."""
+
+    future: concurrent.futures.Future
+    waiting: int = 0          # participants whose own future follows it, not cancelled
+    abandoned: bool = False   # the last of them left: it is cancelled, nobody may join
+
+    @property
+    def failed(self) -> bool:
+        f = self.future
+        return self.abandoned or (f.done() and (f.cancelled() or f.exception() is not None))
 
 
 def _relay(shared: concurrent.futures.Future) -> concurrent.futures.Future:
     """A future of one's own that follows ``shared``: a participant that leaves cancels its
-    own, never the render the others wait for."""
+    own, never the render the others wait for. ``own.work`` is ``shared``."""
     own: concurrent.futures.Future = concurrent.futures.Future()
+    own.work = shared  # type: ignore[attr-defined]
 
     def copy(done: concurrent.futures.Future) -> None:
         if not own.set_running_or_notify_cancel():

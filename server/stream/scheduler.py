@@ -18,6 +18,19 @@ asking 128 px JPEG. Instead the scheduler measures each job (pose, rasterize, en
 
 Policy ``"frames"`` keeps the plain first-in first-out round-robin (equal frame rates).
 
+A job is charged before it runs, not only after: when it starts, its session is debited an
+estimate (the time its session's last job took) and its usage raised by as much, and when it
+ends the estimate is replaced by what it really took. So while an expensive frame runs, its
+session already counts as having spent it: its other jobs (a room's participants asking
+different views) queue behind everyone else's and it is paced from the moment it starts,
+and the render threads cannot all be taken by one session's frames. What one frame can cost
+is bounded where it is made (the rasterizer's ``max_tile_pairs``), since no scheduler can
+take back a thread a frame already holds.
+
+A running job can be abandoned: ``future.cancel()`` on a running job's :class:`WorkFuture`
+cannot stop it, but records the wish (``stop_asked``); the job reads it on its own thread with
+:func:`abandoned` between its stages and stops there (server/stream/scene.py).
+
 Threads: torch's intra-op pool is process-wide and numba's thread count is per calling
 thread; both are set to ``threads_per_render`` so that ``render_threads`` workers do not
 oversubscribe the cores (on 2 cores: 1 x 2 or 2 x 1, never 2 x 2).
@@ -26,11 +39,12 @@ oversubscribe the cores (on 2 cores: 1 x 2 or 2 x 1, never 2 x 2).
 from __future__ import annotations
 
 import concurrent.futures
+import contextlib
 import itertools
 import math
 import threading
 import time
-from collections.abc import Callable, Hashable
+from collections.abc import Callable, Hashable, Iterator
 from dataclasses import dataclass, field
 from typing import Any, Literal, TypeVar
 
@@ -53,6 +67,44 @@ def limit_threads(threads: int) -> None:
         pass
 
 
+class WorkFuture(concurrent.futures.Future):
+    """A job's future whose ``cancel()`` while the job runs asks it to stop (``stop_asked``,
+    read by :func:`abandoned` on the job's thread) instead of doing nothing."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.stop_asked = False
+
+    def cancel(self) -> bool:
+        if super().cancel():
+            return True
+        if not self.done():
+            self.stop_asked = True  # running: it stops at its next check
+        return False
+
+
+_running = threading.local()  # .check: the job on this thread was abandoned, () -> bool
+
+
+def abandoned() -> bool:
+    """Whether everyone waiting for the job running on this thread has cancelled it: a
+    job polls this between its stages and stops when it is set. False outside a job."""
+    check = getattr(_running, "check", None)
+    return check is not None and check()
+
+
+@contextlib.contextmanager
+def abandon_check(check: Callable[[], bool]) -> Iterator[None]:
+    """Inside, :func:`abandoned` on this thread is ``check()`` (a job running several
+    waiters' work, a batch: abandoned when all of them are)."""
+    previous = getattr(_running, "check", None)
+    _running.check = check
+    try:
+        yield
+    finally:
+        _running.check = previous
+
+
 @dataclass
 class _Account:
     usage_s: float = 0.0           # render seconds, decayed to `stamp`: the serving order
@@ -61,6 +113,7 @@ class _Account:
     credit_stamp: float = 0.0
     last_seen: float = 0.0         # last submit or finish
     total_s: float = 0.0           # all render seconds, never decayed (metrics, tests)
+    last_job_s: float = 0.0        # what its last job took: the next one's estimate
 
 
 class FairShare:
@@ -88,20 +141,35 @@ class FairShare:
     def seen(self, key: Hashable, now: float) -> None:
         self._accounts.setdefault(key, _Account(stamp=now, credit_stamp=now)).last_seen = now
 
-    def add(self, key: Hashable, seconds: float, now: float) -> None:
-        acc = self._accounts.setdefault(key, _Account(stamp=now, credit_stamp=now))
-        acc.usage_s, acc.stamp = self._decayed(acc, now) + seconds, now
+    def _spend(self, acc: _Account, seconds: float, now: float) -> None:
+        acc.usage_s, acc.stamp = max(0.0, self._decayed(acc, now) + seconds), now
         fair = self.fair(now)
         credit = math.inf if fair is None else self._credit(acc, now, fair)
         acc.credit_s, acc.credit_stamp = credit - seconds, now
+
+    def start(self, key: Hashable, now: float) -> float:
+        """A job of ``key`` starts: it is charged its estimate now (what the key's last job
+        took), which is returned, to be passed to :meth:`add` when the job ends."""
+        acc = self._accounts.setdefault(key, _Account(stamp=now, credit_stamp=now))
+        estimate = acc.last_job_s
+        self._spend(acc, estimate, now)
+        acc.last_seen = now
+        return estimate
+
+    def add(self, key: Hashable, seconds: float, now: float, charged: float = 0.0) -> None:
+        """A job of ``key`` took ``seconds``; ``charged``: what :meth:`start` charged it."""
+        acc = self._accounts.setdefault(key, _Account(stamp=now, credit_stamp=now))
+        self._spend(acc, seconds - charged, now)
         acc.total_s += seconds
+        acc.last_job_s = seconds
         acc.last_seen = now
 
-    def add_if_known(self, key: Hashable, seconds: float, now: float) -> None:
+    def add_if_known(self, key: Hashable, seconds: float, now: float,
+                     charged: float = 0.0) -> None:
         """``add`` for an account still kept: a job that finishes after its session was
         forgotten does not bring the account back (it would never be forgotten again)."""
         if key in self._accounts:
-            self.add(key, seconds, now)
+            self.add(key, seconds, now, charged)
 
     def usage(self, key: Hashable, now: float) -> float:
         acc = self._accounts.get(key)
@@ -133,7 +201,7 @@ class _Job:
     key: Hashable = field(compare=False)
     fn: Callable[..., Any] = field(compare=False)
     args: tuple = field(compare=False)
-    future: concurrent.futures.Future = field(compare=False)
+    future: WorkFuture = field(compare=False)
 
 
 class RenderScheduler:
@@ -159,8 +227,10 @@ class RenderScheduler:
     # -- submitting ---------------------------------------------------------------------------
 
     def submit(self, fn: Callable[..., T], *args: Any,
-               key: Hashable | None = None) -> concurrent.futures.Future[T]:
-        future: concurrent.futures.Future[T] = concurrent.futures.Future()
+               key: Hashable | None = None) -> WorkFuture:
+        """``fn(*args)`` on a render thread; its future's ``cancel()`` drops it while queued
+        and asks it to stop (:func:`abandoned`) while it runs."""
+        future = WorkFuture()
         with self._cond:
             if self._closed:
                 raise RuntimeError("the render scheduler is shut down")
@@ -233,17 +303,22 @@ class RenderScheduler:
                 if not job.future.set_running_or_notify_cancel():
                     continue  # cancelled while queued
                 self.running += 1
+                charged = 0.0
+                if job.key is not None:  # charged as it starts, settled when it ends
+                    charged = self.share.start(job.key, time.monotonic())
             started = time.perf_counter()
             result, error = None, None
+            future = job.future
             try:
-                result = job.fn(*job.args)
+                with abandon_check(lambda f=future: f.stop_asked):
+                    result = job.fn(*job.args)
             except BaseException as exc:  # noqa: BLE001 - handed to the awaiting session
                 error = exc
             took = time.perf_counter() - started
             with self._cond:
                 self.running -= 1
                 if job.key is not None:  # accounted before the session sees the result
-                    self.share.add_if_known(job.key, took, time.monotonic())
+                    self.share.add_if_known(job.key, took, time.monotonic(), charged)
             if error is not None:
                 job.future.set_exception(error)
             else:

@@ -466,8 +466,10 @@ class Session:
     def after_work(self, fn: Callable[[], Any]) -> None:
         """``fn()`` once no thread works for this session any more (a running render or
         tracking job finishes first; a queued one was cancelled with its task)."""
-        pending = [f for f in (self._inflight, self._track_inflight)
-                   if f is not None and not f.done()]
+        # a frame's own future is done when cancelled; the render it follows (``work``) is
+        # done when no thread works on it any more
+        pending = [f for f in (getattr(self._inflight, "work", self._inflight),
+                               self._track_inflight) if f is not None and not f.done()]
         if not pending:
             fn()
             return

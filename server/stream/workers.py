@@ -78,7 +78,8 @@ class LocalWorkers:
         for spec in room.seats:
             animator, manos = await asyncio.to_thread(ctx.session_models, spec.avatar)
             posers.append(SeatPoser(animator, manos, spec.placement))
-        frames = SceneFrames(posers, self.backend)
+        frames = SceneFrames(posers, self.backend,
+                             max_tile_pairs=ctx.settings.max_tile_pairs)
         return Scene(f"{kind}:{room.id}", [p.shapes for p in posers], self, frames=frames,
                      max_frames=ctx.settings.max_participants_per_room,
                      batch_views=self.views_per_batch, kind=kind)
