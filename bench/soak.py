@@ -14,7 +14,19 @@ issues a second token for a hostile user, then runs two phases side by side in o
    - ``expensive``: an authenticated session asking the largest frames allowed (PNG with
      alpha and depth) as fast as it can;
    - ``uploads``: REST abuse: npz decompression bombs, absurd avatars (log-scales 80),
-     truncated zips, job archives with zip bombs, and a slow reader that never reads frames.
+     truncated zips, job archives with zip bombs, and a slow reader that never reads frames;
+
+   and, from the second review (issue 25), with ``--hostile`` up to 9:
+
+   - ``roomburst``: garbage-credential bursts on the room path (16 at a time, each a garbage
+     ``Authorization`` header and a 7.9 MiB hello);
+   - ``bomb``: in-range render bombs (the demo avatar with every log-scale 6, 400 m splats)
+     uploaded, and, where one gets in, streamed at the largest size;
+   - ``whep``: WHEP offers that never complete (answered, then never connected);
+   - ``dcflood``: a WHEP peer flooding its data channel (tests/webrtc_flooder.py in its own
+     process: 20k pings, then one 16 MiB message);
+   - ``fuzz``: a performer in a room of its own sending fuzzed messages (valid drives with
+     bytes flipped, random msgpack, truncations), fast.
 
 It reports the server's memory (RSS from /proc, sampled every second) at the start of the
 soak, after its warm-up minute and at the end (target: growth after the warm-up <= 5%), the
@@ -24,6 +36,8 @@ hostile clients' refusals by code (expected).
 
     .venv/bin/python bench/soak.py [--seconds 300] [--baseline 30] [--good 4] [--hostile 4]
                                    [--size 256] [--fps 10] [--avatar synthetic] [--warmup 60]
+
+It also samples ``GET /v1/health`` every second during the soak (target p95 <= 100 ms).
 """
 
 from __future__ import annotations
@@ -356,6 +370,202 @@ async def hostile_uploads(url: str, token: str, end: float, tally: HostileTally)
                 await asyncio.wait_for(slow.close(), 5)
 
 
+# -- the second review's attacks (issue 25) ------------------------------------------------
+
+
+async def _own_room(http: httpx.AsyncClient) -> str | None:
+    r = await http.post("/v1/rooms", json={})
+    return r.json()["id"] if r.status_code == 201 else None
+
+
+async def hostile_roomburst(url: str, token: str, end: float, tally: HostileTally) -> None:
+    from websockets.asyncio.client import connect
+
+    big = msgpack.packb({"type": "hello", "version": PROTOCOL_VERSION,
+                         "pad": b"\0" * int(7.9 * 2**20)})
+    garbage = {"Authorization": "Bearer tsk_garbage"}
+    async with httpx.AsyncClient(base_url=url, timeout=30,
+                                 headers={"Authorization": f"Bearer {token}"}) as http:
+        room = await _own_room(http)
+    target = f"{ws_url(url).split('?')[0]}?room={room}"
+
+    async def one() -> None:
+        try:
+            ws = await connect(target, additional_headers=garbage, max_size=MAX_WIRE,
+                               proxy=None, open_timeout=5)
+            with _suppress():
+                await ws.send(big)
+            tally.refusals["roomburst: " + await _close_code(ws, 10)] += 1
+        except OSError as exc:
+            tally.refusals[f"roomburst connect: {type(exc).__name__}"] += 1
+
+    while time.monotonic() < end:
+        await asyncio.gather(*(one() for _ in range(16)))
+        await asyncio.sleep(0.5)
+
+
+def bomb_avatar(package_zip: bytes) -> bytes:
+    """The demo package with every log-scale at 6 (in range: 400 m splats)."""
+    out = {}
+    with zipfile.ZipFile(io.BytesIO(package_zip)) as z:
+        for name in z.namelist():
+            data = z.read(name)
+            if name.endswith("gaussians.npz"):
+                arrays = dict(np.load(io.BytesIO(data)))
+                for key in arrays:
+                    if "scale" in key:
+                        arrays[key] = np.full_like(arrays[key], 6.0)
+                b = io.BytesIO()
+                np.savez_compressed(b, **arrays)
+                data = b.getvalue()
+            out[name] = data
+    return _zip(out)
+
+
+async def hostile_bomb(url: str, token: str, end: float, tally: HostileTally) -> None:
+    headers = {"Authorization": f"Bearer {token}"}
+    async with httpx.AsyncClient(base_url=url, headers=headers, timeout=120) as http:
+        demo = await http.get("/v1/avatars/demo/package")
+        bomb = bomb_avatar(demo.content) if demo.status_code == 200 else b""
+        while time.monotonic() < end and bomb:
+            r = await http.post("/v1/avatars", content=bomb,
+                                headers={"Content-Type": "application/zip"})
+            tally.refusals[f"bomb upload: {r.status_code}"] += 1
+            if r.status_code >= 500:
+                tally.server_errors.append(f"bomb upload: {r.status_code}")
+            elif r.status_code < 300:  # got in: stream it at the largest size for a while
+                tally.accepted_bad.append(f"bomb upload: {r.status_code}")
+                avatar = r.json()["id"]
+                with _suppress():
+                    async with await StreamClient.connect(url, avatar, token,
+                                                          timeout=60) as c:
+                        lim = c.limits
+                        await c.request(width=lim.max_width, height=lim.max_height,
+                                        codec="png", max_fps=lim.max_fps)
+                        stop = min(end, time.monotonic() + 20)
+                        while time.monotonic() < stop:
+                            with _suppress():
+                                await c.next_frame(timeout=1)
+                with _suppress():
+                    await http.delete(f"/v1/avatars/{avatar}")
+            await asyncio.sleep(2.0)
+
+
+async def hostile_whep(url: str, token: str, end: float, tally: HostileTally) -> None:
+    from aiortc import RTCPeerConnection
+
+    headers = {"Authorization": f"Bearer {token}"}
+    async with httpx.AsyncClient(base_url=url, headers=headers, timeout=30) as http:
+        room = await _own_room(http)
+        while time.monotonic() < end:
+            pcs = []
+            for _ in range(3):
+                pc = RTCPeerConnection()
+                pc.addTransceiver("video", direction="recvonly")
+                pc.createDataChannel("telesplat")
+                await pc.setLocalDescription(await pc.createOffer())
+                r = await http.post(f"/v1/rooms/{room}/whep", content=pc.localDescription.sdp,
+                                    headers={"Content-Type": "application/sdp"})
+                tally.refusals[f"whep never completed: {r.status_code}"] += 1
+                if r.status_code >= 500 and r.status_code != 503:
+                    tally.server_errors.append(f"whep: {r.status_code}")
+                pcs.append(pc)  # never given the answer: ICE never completes
+            await asyncio.sleep(5.0)
+            for pc in pcs:
+                await pc.close()
+
+
+async def hostile_dcflood(url: str, token: str, end: float, tally: HostileTally) -> None:
+    async with httpx.AsyncClient(base_url=url, timeout=30,
+                                 headers={"Authorization": f"Bearer {token}"}) as http:
+        room = await _own_room(http)
+    while time.monotonic() < end:
+        for mode in (["--pings", "20000"], ["--big", str(16 * 2**20)]):
+            proc = await asyncio.create_subprocess_exec(
+                sys.executable, "-m", "tests.webrtc_flooder", url, room, token, *mode,
+                "--hold", "5", cwd=ROOT, stdin=asyncio.subprocess.PIPE,
+                stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.DEVNULL)
+            try:
+                ready = await asyncio.wait_for(proc.stdout.readline(), 60)
+                if not ready.startswith(b"ready"):
+                    tally.refusals[f"dcflood {mode[0]}: not admitted"] += 1
+                    continue
+                proc.stdin.write(b"go\n")
+                await proc.stdin.drain()
+                done = await asyncio.wait_for(proc.stdout.readline(), 90)
+                info = json.loads(done.split(b" ", 1)[1]) if done.startswith(b"done") else {}
+                closed = info.get("closed_after_s")
+                tally.refusals[f"dcflood {mode[0]}: "
+                               f"{'closed' if closed is not None else 'kept open'}"] += 1
+            except (TimeoutError, ValueError):
+                tally.refusals[f"dcflood {mode[0]}: no answer"] += 1
+            finally:
+                with _suppress():
+                    proc.kill()
+                await proc.wait()
+            if time.monotonic() >= end:
+                break
+
+
+def _fuzzed(rng: np.random.Generator, seq: int) -> bytes:
+    base = _drive(seq, jaw_pose=[0.1, 0.0, 0.0], body_pose=[[0.0, 0.1, 0.0]] * 21)
+    kind = seq % 4
+    if kind == 0:  # bytes flipped
+        data = bytearray(base)
+        for i in rng.integers(0, len(data), size=4):
+            data[i] = int(rng.integers(0, 256))
+        return bytes(data)
+    if kind == 1:  # truncated
+        return base[: int(rng.integers(1, len(base)))]
+    if kind == 2:  # random msgpack
+        return msgpack.packb({"type": "drive", "seq": seq,
+                              "smplx": {str(rng.integers(0, 9)): rng.normal(size=3).tolist()}})
+    return bytes(rng.integers(0, 256, size=int(rng.integers(1, 512)), dtype=np.uint8))
+
+
+async def hostile_fuzz(url: str, token: str, end: float, tally: HostileTally) -> None:
+    from websockets.asyncio.client import connect
+    from websockets.exceptions import ConnectionClosed
+
+    rng = np.random.default_rng(0)
+    async with httpx.AsyncClient(base_url=url, timeout=30,
+                                 headers={"Authorization": f"Bearer {token}"}) as http:
+        room = await _own_room(http)
+    target = f"{ws_url(url).split('?')[0]}?room={room}"
+    seq = 0
+    while time.monotonic() < end:
+        try:
+            ws = await connect(target, max_size=MAX_WIRE, proxy=None, open_timeout=10)
+            await ws.send(msgpack.packb({"type": "hello", "version": PROTOCOL_VERSION,
+                                         "token": token, "role": "perform"}))
+            n = 0
+            while time.monotonic() < end and n < 3000:  # one connection: a bounded burst
+                seq += 1
+                n += 1
+                await ws.send(_fuzzed(rng, seq))
+                with _suppress():
+                    msg = msgpack.unpackb(await asyncio.wait_for(ws.recv(), 0.01))
+                    if isinstance(msg, dict) and msg.get("type") == "error":
+                        tally.refusals["fuzz: " + str(msg.get("code"))] += 1
+            await ws.close()
+        except (OSError, ConnectionClosed) as exc:
+            tally.refusals[f"fuzz closed: {type(exc).__name__}"] += 1
+            await asyncio.sleep(0.2)
+
+
+async def health_probe(url: str, end: float, into: list[float]) -> None:
+    """``GET /v1/health`` once a second; each answer's time in ms (a failure counts 10 s)."""
+    async with httpx.AsyncClient(base_url=url, timeout=10) as http:
+        while time.monotonic() < end:
+            t0 = time.monotonic()
+            try:
+                ok = (await http.get("/v1/health")).status_code == 200
+            except httpx.HTTPError:
+                ok = False
+            into.append((time.monotonic() - t0) * 1e3 if ok else 10_000.0)
+            await asyncio.sleep(max(0.0, 1.0 - (time.monotonic() - t0)))
+
+
 # -- the run -------------------------------------------------------------------------------
 
 
@@ -365,21 +575,29 @@ async def run_good(url: str, token: str, n: int, size: int, fps: float,
                                   for i in range(n)))
 
 
-async def run_soak(url: str, good_token: str, bad_token: str, args) -> tuple:
+async def run_soak(url: str, good_token: str, bad_tokens: list[str], args) -> tuple:
     end = time.monotonic() + args.seconds
     tally = HostileTally()
-    kinds = [hostile_preauth(url, end, tally),
-             hostile_garbage(url, bad_token, end, tally),
-             hostile_expensive(url, bad_token, end, tally),
-             hostile_uploads(url, bad_token, end, tally)][: args.hostile]
-    hostile = [asyncio.create_task(k) for k in kinds]
+    makers = [lambda: hostile_preauth(url, end, tally),
+              lambda: hostile_garbage(url, bad_tokens[1], end, tally),
+              lambda: hostile_expensive(url, bad_tokens[2], end, tally),
+              lambda: hostile_uploads(url, bad_tokens[3], end, tally),
+              lambda: hostile_roomburst(url, bad_tokens[4], end, tally),
+              lambda: hostile_bomb(url, bad_tokens[5], end, tally),
+              lambda: hostile_whep(url, bad_tokens[6], end, tally),
+              lambda: hostile_dcflood(url, bad_tokens[7], end, tally),
+              lambda: hostile_fuzz(url, bad_tokens[8], end, tally)][: args.hostile]
+    hostile = [asyncio.create_task(make()) for make in makers]
+    health: list[float] = []
+    probe = asyncio.create_task(health_probe(url, end, health))
     await asyncio.sleep(2.0)  # the hostile load is on before the measured sessions start
     good = await run_good(url, good_token, args.good, args.size, args.fps, args.seconds - 4)
     results = await asyncio.gather(*hostile, return_exceptions=True)
+    await probe
     for r in results:
         if isinstance(r, BaseException):
             tally.refusals[f"hostile client raised {type(r).__name__}: {r}"[:100]] += 1
-    return good, tally
+    return good, tally, health
 
 
 def main() -> int:
@@ -388,7 +606,8 @@ def main() -> int:
     parser.add_argument("--seconds", type=float, default=300.0, help="the soak phase")
     parser.add_argument("--baseline", type=float, default=30.0, help="the undisturbed phase")
     parser.add_argument("--good", type=int, default=4, help="well-behaved sessions")
-    parser.add_argument("--hostile", type=int, default=4, choices=range(0, 5))
+    parser.add_argument("--hostile", type=int, default=9, choices=range(0, 10),
+                        help="how many of the attack classes run (in the order above)")
     parser.add_argument("--size", type=int, default=256)
     parser.add_argument("--fps", type=float, default=10.0, help="well-behaved max_fps")
     parser.add_argument("--avatar", default="synthetic")
@@ -399,7 +618,8 @@ def main() -> int:
 
     with tempfile.TemporaryDirectory(prefix="telesplat-soak-") as tmp:
         data_dir = Path(tmp)
-        bad_token = issue_token(data_dir, "mallory:stream,train")
+        # one hostile user per attack class: each has its own per-user quotas to spend
+        bad_tokens = [issue_token(data_dir, f"mallory{i}:stream,train") for i in range(9)]
         proc, url, good_token = start_server(data_dir, 1, args.good + args.hostile + 8,
                                              args.avatar)
         try:
@@ -411,7 +631,7 @@ def main() -> int:
             sampler = threading.Thread(target=_sample_rss, args=(proc.pid, samples, stop),
                                        daemon=True)
             sampler.start()
-            good, tally = asyncio.run(run_soak(url, good_token, bad_token, args))
+            good, tally, health_ms = asyncio.run(run_soak(url, good_token, bad_tokens, args))
             time.sleep(2.0)  # let closed sessions release their buffers
             stop.set()
             sampler.join(5)
@@ -446,6 +666,9 @@ def main() -> int:
     print(f"| errors seen by well-behaved sessions | {len(good_errors)} | 0 |")
     print(f"| server 5xx answers | {len(tally.server_errors)} | 0 |")
     print(f"| absurd uploads accepted | {len(tally.accepted_bad)} | 0 |")
+    health_p95 = float(np.percentile(health_ms, 95)) if health_ms else float("nan")
+    print(f"| /v1/health during the soak, p95 (max) | {health_p95:.0f} ms "
+          f"({max(health_ms, default=float('nan')):.0f} ms) | <= 100 ms |")
     print(f"| server alive, /v1/health after the soak | {alive}, {health} | True, 200 |")
     if samples:
         t0 = samples[0][0]
@@ -459,7 +682,8 @@ def main() -> int:
     for line in good_errors[:10] + tally.server_errors[:10] + tally.accepted_bad[:10]:
         print("  !", line)
     ok = (soak_fps >= 0.8 * base_fps and growth <= 0.05 and not good_errors
-          and not tally.server_errors and not tally.accepted_bad and alive)
+          and not tally.server_errors and not tally.accepted_bad and alive
+          and health_p95 <= 100.0)
     return 0 if ok else 1
 
 
