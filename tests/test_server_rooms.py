@@ -414,7 +414,7 @@ def _small_buffer_socket(srv) -> socket.socket:
     return sock
 
 
-async def _until_stalled(srv, *readers, timeout_s: float = 10.0) -> None:
+async def _until_stalled(srv, *readers, timeout_s: float = 30.0) -> None:
     """Until a png participant waits on its client (bounded; ``readers`` keep reading)."""
     end = time.monotonic() + timeout_s
     while time.monotonic() < end:

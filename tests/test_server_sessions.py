@@ -150,7 +150,7 @@ def _small_buffer_socket(srv) -> socket.socket:
     return sock
 
 
-async def _until_stalled(srv, reader, codec: str, timeout_s: float = 10.0) -> None:
+async def _until_stalled(srv, reader, codec: str, timeout_s: float = 30.0) -> None:
     """Until the session asking ``codec`` waits on its client (bounded; ``reader`` keeps
     reading meanwhile)."""
     end = time.monotonic() + timeout_s
