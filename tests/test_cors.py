@@ -314,3 +314,27 @@ def test_the_same_player_is_refused_without_cors_origins(browser, plain_server):
     result = _whep(browser, plain_server)
     assert "status" not in result and "Failed to fetch" in result.get("error", ""), result
     assert len(plain_server.ctx.webrtc_peers) == 0  # the POST never left the browser
+
+
+def test_a_whep_player_without_a_data_channel_gets_frames(plain_server):
+    """What a plain WHEP player offers (recvonly video, no data channel) plays: the session's
+    control messages no longer wait for a channel that never opens (they held its frames)."""
+    import asyncio
+
+    from client.webrtc import WhepViewer
+
+    async def run():
+        links = plain_server.ctx.startup_links
+        viewer = WhepViewer(plain_server.url, links["room"], links["watch"].split("#token=")[1],
+                            data_channel=False, timeout_s=TIMEOUT_S)
+        await viewer.start()
+        try:
+            return [(await viewer.next_frame(TIMEOUT_S))[0] for _ in range(3)]
+        finally:
+            await viewer.close()
+
+    frames = asyncio.run(asyncio.wait_for(run(), 3 * TIMEOUT_S))
+    assert all(f.shape == (SIZE, SIZE, 3) for f in frames)
+    assert frames[-1].std() > 5  # the avatar, not a blank picture
+    wait_until(lambda: len(plain_server.ctx.webrtc_peers) == 0, TIMEOUT_S,
+               what="the WHEP peer to be freed")
