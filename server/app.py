@@ -2,9 +2,10 @@
 
 ``app.state`` carries one thing, ``ctx`` (the ServerContext: settings, tokens, avatars,
 schedulers, metrics, sessions, the job service; in local auth mode ``ctx.local_token`` is the
-admin token printed at start-up). Routes reach it through server/dependencies.py. The demo
-avatar is registered and a warm-up frame rendered in the lifespan's start-up (numba compiles
-its kernels once).
+admin token printed at start-up, the same at every start: data_dir/local_token). Routes reach
+it through server/dependencies.py. The demo avatar is registered and a warm-up frame rendered
+in the lifespan's start-up (numba compiles its kernels once). With ``cors_origins`` set,
+CORSMiddleware answers browsers of those origins (preflights included).
 """
 
 from __future__ import annotations
@@ -17,12 +18,13 @@ from collections.abc import AsyncIterator
 from pathlib import Path
 
 from fastapi import FastAPI
+from fastapi.middleware.cors import CORSMiddleware
 from fastapi.staticfiles import StaticFiles
 
 from protocol import PROTOCOL_VERSION, View
 from protocol.messages import Orbit
 
-from .auth import LOCAL_SUBJECT, SCOPES, Principal, TokenStore
+from .auth import LOCAL_SUBJECT, SCOPES, Principal, TokenStore, local_admin_token
 from .cluster_render import routes as cluster_render
 from .cluster_render.backend import make_frame_workers
 from .config import Settings
@@ -119,14 +121,27 @@ async def _sweep_rooms(ctx: ServerContext) -> None:
         rooms.sweep_idle_rooms(ctx)
 
 
+CORS_METHODS = ("GET", "POST", "DELETE", "PATCH")  # every method a route answers
+CORS_HEADERS = ("Authorization", "Content-Type")
+CORS_EXPOSED = ("Location", "Link", "ETag")  # WHEP/WHIP's resource, ICE servers, entity tag
+
+
+def cors_options(settings: Settings) -> dict:
+    """CORSMiddleware's arguments: the settings' origins, no credentials mode (tokens travel
+    in the Authorization header, never in cookies), the methods and headers of REST and
+    WHEP/WHIP, and the headers a WHEP player reads exposed."""
+    return {"allow_origins": list(settings.cors_origins), "allow_methods": list(CORS_METHODS),
+            "allow_headers": list(CORS_HEADERS), "expose_headers": list(CORS_EXPOSED),
+            "allow_credentials": False, "max_age": settings.cors_max_age_s}
+
+
 def create_app(settings: Settings) -> FastAPI:
     install_log_redaction()  # before uvicorn logs a URL with ?token= in it
     private_dir(settings.data_dir)  # 0700: tokens, uploads, avatars and logs live below
     tokens = TokenStore(settings.tokens_path, settings.tokens_reload_interval_s)
     local_token = None
-    if settings.auth == "local":
-        tokens.revoke_subject(LOCAL_SUBJECT)  # one live local token: the one printed last
-        local_token = tokens.issue(LOCAL_SUBJECT, SCOPES)
+    if settings.auth == "local":  # the same token at every start (data_dir/local_token)
+        local_token = local_admin_token(tokens, settings.local_token_path)
     ctx = ServerContext(
         settings=settings, tokens=tokens,
         registry=AvatarRegistry.from_settings(settings),
@@ -163,6 +178,8 @@ def create_app(settings: Settings) -> FastAPI:
     app.state.ctx = ctx
     for routes in (system, avatars, stream, rooms, webrtc, motions, jobs, cluster_render):
         app.include_router(routes.router)
+    if settings.cors_origins:  # none by default: no CORS header at all
+        app.add_middleware(CORSMiddleware, **cors_options(settings))
     # Last: the browser page at "/" would shadow any route added after it.
     if (WEB_DIR / "index.html").is_file():
         app.mount("/", StaticFiles(directory=WEB_DIR, html=True), name="web")

@@ -15,7 +15,9 @@ import hmac
 import json
 import logging
 import os
+import re
 import secrets
+import stat
 import threading
 import time
 from collections.abc import Iterable, Iterator
@@ -149,10 +151,12 @@ class TokenStore:
                                              "scopes": scopes, "created": time.time()}
         return token
 
-    def revoke_subject(self, subject: str) -> int:
-        """Remove every token of ``subject``; how many there were."""
+    def revoke_subject(self, subject: str, keep: str | None = None) -> int:
+        """Remove every token of ``subject`` but ``keep`` (a plain token); how many went."""
+        kept = _digest(keep) if keep else None
         with self._update():
-            gone = [k for k, e in self._entries.items() if e["subject"] == subject]
+            gone = [k for k, e in self._entries.items()
+                    if e["subject"] == subject and k != kept]
             for key in gone:
                 del self._entries[key]
         return len(gone)
@@ -173,6 +177,107 @@ class TokenStore:
                 if hmac.compare_digest(key, digest):  # constant time per comparison
                     return Principal(entry["subject"], frozenset(entry["scopes"]))
         return None
+
+
+# -- the local admin token (auth = "local") ------------------------------------------------
+#
+# Its plain text lives in data_dir/local_token (0600, in the 0700 data_dir), written once and
+# read at every start, so the links printed with it survive restarts; the token store keeps
+# its hash as for any token. `telesplat serve --rotate-local-token` replaces it.
+
+LOCAL_TOKEN_MAX_BYTES = 256  # what is read of the file at most (a token is 47 characters)
+_LOCAL_TOKEN = re.compile(re.escape(TOKEN_PREFIX) + r"[A-Za-z0-9_-]{32,128}")
+ROTATE_HINT = "telesplat serve --rotate-local-token writes a new one"
+
+
+@contextlib.contextmanager
+def _local_token_lock(path: Path) -> Iterator[None]:
+    """One process at a time reads or replaces the local token (two servers starting on one
+    data dir, or a rotation during a start, agree on one token)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    lock_path = path.with_name(path.name + ".lock")
+    fd = os.open(lock_path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o600)
+    with os.fdopen(fd, "r+") as lock_file:
+        os.fchmod(fd, 0o600)
+        fcntl.flock(lock_file, fcntl.LOCK_EX)
+        yield
+
+
+def read_local_token(path: str | Path) -> str | None:
+    """The local token kept in ``path`` (None when there is no file). A file that is a link,
+    not a regular file, too large or not a token is a ValueError naming the file; one that
+    others may read is made 0600 with a warning (it may have been read: rotate it)."""
+    path = Path(path)
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
+    except FileNotFoundError:
+        return None
+    except OSError as exc:  # ELOOP: a symbolic link
+        raise ValueError(f"{path}: cannot read the local token ({exc.strerror}); "
+                         f"{ROTATE_HINT}") from None
+    info = os.fstat(fd)
+    if not stat.S_ISREG(info.st_mode):
+        os.close(fd)
+        raise ValueError(f"{path} is not a regular file; {ROTATE_HINT}")
+    with os.fdopen(fd, "rb") as file:
+        mode = stat.S_IMODE(info.st_mode)
+        if mode & 0o077:
+            os.fchmod(fd, 0o600)
+            log.warning("%s was open to other users (mode %o), now 0600; if someone else may "
+                        "have read it, rotate it (telesplat serve --rotate-local-token)",
+                        path, mode)
+        data = file.read(LOCAL_TOKEN_MAX_BYTES + 1)
+    token = data.decode("ascii", errors="replace").strip()
+    if len(data) > LOCAL_TOKEN_MAX_BYTES or not _LOCAL_TOKEN.fullmatch(token):
+        raise ValueError(f"{path} does not hold a Telesplat token ({TOKEN_PREFIX}... on one "
+                         f"line); {ROTATE_HINT}")
+    return token
+
+
+def _write_local_token(path: Path, token: str) -> None:
+    """``token`` into ``path``, 0600 from its creation, replacing the old file atomically."""
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.unlink(missing_ok=True)
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o600)
+    with os.fdopen(fd, "w") as file:
+        file.write(token + "\n")
+        file.flush()
+        os.fsync(fd)
+    tmp.replace(path)
+
+
+def _new_local_token(tokens: TokenStore, path: Path) -> str:
+    tokens.revoke_subject(LOCAL_SUBJECT)
+    token = tokens.issue(LOCAL_SUBJECT, SCOPES)
+    _write_local_token(path, token)
+    return token
+
+
+def local_admin_token(tokens: TokenStore, path: str | Path) -> str:
+    """The local admin token (subject ``local``, every scope): the one kept in ``path`` while
+    the token store still knows it, else a new one (written there). Any other token of subject
+    ``local`` is revoked: one live local token."""
+    path = Path(path)
+    with _local_token_lock(path):
+        token = read_local_token(path)
+        if token is not None:
+            principal = tokens.principal(token)
+            if principal is not None and principal.subject == LOCAL_SUBJECT \
+                    and principal.is_admin:
+                tokens.revoke_subject(LOCAL_SUBJECT, keep=token)
+                return token
+            log.warning("the local token in %s is not in the token store %s (revoked, or "
+                        "another store): a new one replaces it", path, tokens.path)
+        return _new_local_token(tokens, path)
+
+
+def rotate_local_token(tokens: TokenStore, path: str | Path) -> str:
+    """Revoke every token of subject ``local``, write a new local admin token to ``path``
+    and return it (a running server picks the change up within tokens_reload_interval_s).
+    Works whatever ``path`` held, so it also mends a damaged file."""
+    path = Path(path)
+    with _local_token_lock(path):
+        return _new_local_token(tokens, path)
 
 
 def bearer_token(authorization: str | None) -> str | None:

@@ -38,6 +38,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--issue-token", metavar="SUBJECT:SCOPES", default=None,
                         help="add a token to the token store (e.g. alice:stream,train), print "
                              "it and exit")
+    parser.add_argument("--rotate-local-token", action="store_true",
+                        help="revoke the local admin token (auth = local), write a new one to "
+                             "DATA_DIR/local_token, print it and exit")
 
 
 def _announce(app: FastAPI, url: str) -> None:
@@ -54,6 +57,9 @@ def _announce(app: FastAPI, url: str) -> None:
             if token:
                 print(f"Telesplat is serving at {url}/#token={token}", flush=True)
                 print(f"  admin token (subject 'local'): {token}", flush=True)
+                print(f"  (the same at every start, kept in "
+                      f"{app.state.ctx.settings.local_token_path}; "
+                      f"telesplat serve --rotate-local-token replaces it)", flush=True)
             else:
                 print(f"Telesplat is serving at {url}/ (tokens from "
                       f"{app.state.ctx.settings.tokens_path})", flush=True)
@@ -86,6 +92,17 @@ def serve(args: argparse.Namespace) -> int:
         subject, _, scopes = args.issue_token.partition(":")
         token = TokenStore(settings.tokens_path).issue(subject, scopes.split(",") or ["stream"])
         print(token)
+        return 0
+    if getattr(args, "rotate_local_token", False):
+        from .auth import TokenStore, rotate_local_token
+        from .private import private_dir
+
+        private_dir(settings.data_dir)
+        token = rotate_local_token(TokenStore(settings.tokens_path), settings.local_token_path)
+        print(token, flush=True)
+        print(f"telesplat serve: the local admin token in {settings.local_token_path} was "
+              "replaced; the old one no longer works (a running server stops accepting it "
+              "within tokens_reload_interval_s)", file=sys.stderr)
         return 0
     logging.basicConfig(level=args.log_level.upper(), format="%(levelname)s %(name)s: "
                                                              "%(message)s")

@@ -11,6 +11,7 @@ import os
 import tomllib
 from pathlib import Path
 from typing import Any, Literal
+from urllib.parse import urlsplit
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
@@ -23,6 +24,29 @@ NESTED = frozenset({"limits", "gaussian_ranges"})  # tables in the file, JSON in
 
 def default_data_dir() -> Path:
     return Path.home() / ".cache" / "telesplat" / "server"
+
+
+DEFAULT_PORTS = {"http": 80, "https": 443}
+
+
+def cors_origin(text: str) -> str:
+    """A web origin as a browser sends it in ``Origin`` (scheme and host lower case, no default
+    port), from ``scheme://host[:port]``; ValueError naming what is wrong otherwise."""
+    problem = f"cors_origins: {text!r} is not an origin (http[s]://host[:port], no path)"
+    try:
+        parts = urlsplit(text.strip())
+        port = parts.port
+    except ValueError:
+        raise ValueError(problem) from None
+    if (parts.scheme.lower() not in DEFAULT_PORTS or not parts.hostname or parts.username
+            or parts.password or parts.path or parts.query or parts.fragment
+            or text.strip().endswith(("?", "#"))):
+        raise ValueError(problem)
+    scheme, host = parts.scheme.lower(), parts.hostname.lower()
+    if ":" in host:
+        host = f"[{host}]"
+    suffix = "" if port is None or port == DEFAULT_PORTS[scheme] else f":{port}"
+    return f"{scheme}://{host}{suffix}"
 
 
 class Settings(BaseModel):
@@ -93,6 +117,17 @@ class Settings(BaseModel):
                              "at start-up; tokens: only tokens already in the token file.")
     tokens_file: Path | None = Field(None, description="Token store (JSON, sha256 hashes); "
                                                        "default data_dir/tokens.json.")
+    cors_origins: list[str] = Field(
+        default_factory=list, description="Web origins (scheme://host[:port]) whose pages may "
+                                          "call the REST and WHEP/WHIP endpoints from a "
+                                          "browser (CORS; no credentials mode: tokens travel "
+                                          "in the Authorization header). None by default: no "
+                                          "CORS headers at all. '*' alone allows any origin "
+                                          "(docs/security.md). TELESPLAT_CORS_ORIGINS is "
+                                          "comma-separated or a JSON list.")
+    cors_max_age_s: int = Field(
+        600, ge=0, le=86400, description="Seconds a browser may cache a CORS preflight's "
+                                         "answer (Access-Control-Max-Age).")
     max_upload_bytes: int = Field(512 * 2**20, ge=1024,
                                   description="Largest avatar upload (zip) accepted, bytes.")
     demo_avatar: str = Field("synthetic", description="Avatar registered at start-up, owner "
@@ -334,6 +369,30 @@ class Settings(BaseModel):
             raise ValueError("demo_avatar is synthetic, trained, none or a package path")
         return value
 
+    @field_validator("cors_origins", mode="before")
+    @classmethod
+    def _cors_list(cls, value: Any) -> Any:
+        """TELESPLAT_CORS_ORIGINS: a JSON list, or comma-separated."""
+        if isinstance(value, str):
+            text = value.strip()
+            if text.startswith("["):
+                try:
+                    return json.loads(text)
+                except ValueError as exc:
+                    raise ValueError(f"cors_origins: not a JSON list: {exc}") from None
+            return [origin.strip() for origin in text.split(",") if origin.strip()]
+        return value
+
+    @field_validator("cors_origins")
+    @classmethod
+    def _cors_origins(cls, value: list[str]) -> list[str]:
+        if "*" in value:
+            if len(value) > 1:
+                raise ValueError("cors_origins: '*' (any origin) cannot be combined with other "
+                                 f"origins, got {value}; give '*' alone or only origins")
+            return value
+        return list(dict.fromkeys(cors_origin(origin) for origin in value))
+
     @field_validator("webrtc_ice_servers", mode="before")
     @classmethod
     def _ice_list(cls, value: Any) -> Any:
@@ -392,6 +451,11 @@ class Settings(BaseModel):
     @property
     def tokens_path(self) -> Path:
         return self.tokens_file or self.data_dir / "tokens.json"
+
+    @property
+    def local_token_path(self) -> Path:
+        """auth = "local": the local admin token, in plain text (0600)."""
+        return self.data_dir / "local_token"
 
     @property
     def avatars_dir(self) -> Path:

@@ -5,7 +5,7 @@ same port and data dir again.
     with ServerProcess(tmp_path) as srv:     # started; srv.url, srv.token, srv.links
         ...
         srv.stop(signal.SIGKILL)             # or SIGTERM (the default)
-        srv.start()                          # same port, same data dir; a new admin token
+        srv.start()                          # same port, same data dir, same admin token
 
 Every wait is bounded; what the server prints is kept (``srv.output``) for failure messages.
 """

@@ -232,7 +232,7 @@ def test_watch_and_drive_reconnect_by_default_and_can_be_told_not_to():
 def test_room_participants_come_back_after_a_restart(tmp_path, sig):
     from server.auth import TokenStore
 
-    # A user's token (the local admin token changes at each start; this one does not).
+    # A user's token, besides the local admin token (kept in data_dir/local_token).
     alice = TokenStore(tmp_path / "tokens.json").issue("alice", ("stream",))
     with ServerProcess(tmp_path, default_width=SIZE, default_height=SIZE,
                        stats_interval_s=1.0) as srv:

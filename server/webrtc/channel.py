@@ -3,8 +3,8 @@
 :class:`DataChannel` is the peer's data channel labelled ``telesplat``: the session's
 receiver, rate limits, decoding and control sender are the WebSocket path's. Messages are the
 WebSocket protocol's msgpack messages. The ``welcome`` goes first, as soon as the channel
-opens. A peer without a data channel still gets its video; its control messages wait (the
-session's bounded control queue drops past its size).
+opens. A peer whose offer has no data channel (a plain WHEP player) still gets its video; its
+control messages are dropped.
 
 The channel ends the session only when the peer ends (``disconnect``): a client that closes
 just its channel keeps watching. What reaches ``_message`` was reassembled within the peer's
@@ -55,6 +55,12 @@ class DataChannel:
         else:
             channel.on("open", self._opened)
 
+    def absent(self) -> None:
+        """The offer has no data channel (a plain WHEP player): none will ever open, so the
+        session's control messages are dropped at once instead of waiting for it (a send
+        waiting here would hold the session's send lock, and its frames, forever)."""
+        self._ready.set()
+
     def _opened(self) -> None:
         if self.welcome is not None:
             self._channel.send(self.welcome)
@@ -82,6 +88,9 @@ class DataChannel:
         if self.disconnected:
             raise ConnectionResetError("the WebRTC peer is closed")
         channel = self._channel
+        if channel is None:  # no data channel in the offer: the video goes on alone
+            self.dropped_out += 1
+            return
         if channel.readyState != "open":
             return  # the client closed its channel; the video goes on
         if channel.bufferedAmount > MAX_BUFFERED_BYTES:

@@ -69,6 +69,8 @@ class WebRTCPeer:
         if offer.watch_mid is not None:
             self.track = LatestFrameTrack()
         self.pc.on("datachannel", self.channel.attach)
+        if not offer.data_channel:
+            self.channel.absent()
         self.pc.on("track", self._on_track)
         self.pc.on("connectionstatechange", self._on_state)
         try:
