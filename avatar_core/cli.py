@@ -380,8 +380,12 @@ def build_parser() -> argparse.ArgumentParser:
     render = groups.add_parser("render", help="render an avatar under a motion")
     render.add_argument("avatar", help="avatar package (folder or .zip) or synthetic[:IDENTITY]")
     render.add_argument("--motion", default="demo",
-                        help="built-in clip (demo, rest), or a .json / .npz parameter file")
-    render.add_argument("--camera", default="orbit", help="'orbit' or a JSON camera file")
+                        help="a built-in clip by name (demo, rest, or a library clip: smile, "
+                             "talk_calm, ...: every name in 'telesplat-client motions list'), "
+                             "or a .json / .npz parameter file")
+    render.add_argument("--camera", default="orbit",
+                        help="a camera preset: front, left, right, or orbit (a sweep from "
+                             "left to right; one frame: the front), or a JSON camera file")
     render.add_argument("--out", type=Path, required=True, help="folder of PNGs or FILE.mp4")
     _add_body_models(render)
     render.add_argument("--size", type=int, default=512)

@@ -25,6 +25,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from protocol.cameras import CAMERA_NAMES
 from protocol.jobs import MIN_USABLE_ITERATIONS, PRESET_NAMES
 
 DEFAULT_SERVER = "http://127.0.0.1:8000"
@@ -71,10 +72,30 @@ def _print(args: argparse.Namespace, value: Any, columns: tuple[str, ...] = ()) 
 # -- stream ------------------------------------------------------------------------------
 
 
-async def stream_motion(server: str, token: str | None, avatar: str, motion_path: Path,
+def server_motion(server: str, token: str | None, name: str, avatar: str,
+                  fps: float | None = None):
+    """The server's built-in clip ``name`` rigged for ``avatar``, as a Motion; ValueError
+    listing the server's clips for a name it does not know."""
+    from .motion_file import motion_from_json
+    from .rest import ApiError, RestClient
+
+    with RestClient(server, token) as api:
+        known = [m.get("name") for m in api.motions()]
+        if name not in known:
+            raise ValueError(f"motion {name!r} is neither a .json / .npz file nor a built-in "
+                             f"clip; built-in clips: {', '.join(known)}")
+        try:
+            data = api.motion(name, avatar=avatar, fps=fps)
+        except ApiError as exc:
+            raise ValueError(f"motion {name!r}: {exc}") from None
+    return motion_from_json(data, f"built-in clip {name}")
+
+
+async def stream_motion(server: str, token: str | None, avatar: str, motion_path: Path | str,
                         out: Path, *, fps: float | None = None, size: int = 512,
                         timeout: float = 30.0, progress: bool = True) -> list[Path]:
-    """Drive ``avatar`` with a motion file frame by frame; save each returned frame in ``out``.
+    """Drive ``avatar`` with a motion file (or a built-in clip of the server, by name) frame
+    by frame; save each returned frame in ``out``.
 
     Lock-step: the next frame is driven once the previous one came back (and not before its
     time at ``fps``), so every motion frame gets its own image and none are coalesced.
@@ -82,10 +103,14 @@ async def stream_motion(server: str, token: str | None, avatar: str, motion_path
     from tqdm import tqdm
 
     from .images import save_frame
-    from .motion_file import load_motion
+    from .motion_file import is_motion_file, load_motion
     from .stream import StreamClient
 
-    motion = load_motion(motion_path)
+    if is_motion_file(motion_path):
+        motion = load_motion(motion_path)
+    else:  # a built-in clip: the server rigs it for the avatar
+        motion = await asyncio.to_thread(server_motion, server, token, str(motion_path),
+                                         avatar, fps)
     rate = fps or motion.fps or 30.0
     out.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
@@ -95,7 +120,7 @@ async def stream_motion(server: str, token: str | None, avatar: str, motion_path
                              max_fps=min(max(rate, 1.0), client.limits.max_fps))
         start = time.monotonic()
         with tqdm(total=len(motion), unit="frame", disable=not progress,
-                  desc=f"streaming {motion_path.name}") as bar:
+                  desc=f"streaming {Path(motion_path).name}") as bar:
             for i, params in enumerate(motion.frames):
                 delay = start + i / rate - time.monotonic()
                 if delay > 0:
@@ -156,7 +181,7 @@ def cmd_drive(args: argparse.Namespace) -> int:
 def cmd_watch(args: argparse.Namespace) -> int:
     from .watch import parse_view, watch_room
 
-    view = parse_view(args.view) if args.view else None
+    view = parse_view(args.view) if args.view and args.view != "orbit" else None
     if args.webrtc:
         from .watch import watch_room_webrtc
 
@@ -366,8 +391,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("stream", help="stream a motion file and save the frames")
     _common(p)
     p.add_argument("--avatar", required=True)
-    p.add_argument("--motion", type=Path, required=True,
-                   help=".json list of per-frame dicts or .npz with a frame axis")
+    p.add_argument("--motion", required=True,
+                   help="a built-in clip by name (smile, talk_calm, ...: 'motions list') or "
+                        "a .json list of per-frame dicts or .npz with a frame axis")
     p.add_argument("--out", type=Path, required=True, help="folder for the frames")
     p.add_argument("--fps", type=float, default=None,
                    help="drive rate (default: the file's, else 30)")
@@ -406,8 +432,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="folder for the frames and frames.jsonl")
     p.add_argument("--seconds", type=float, default=10.0, help="record this long")
     p.add_argument("--frames", type=int, default=None, help="stop after this many frames")
-    p.add_argument("--view", default=None, metavar="YAW,PITCH,DIST",
-                   help="own viewpoint: degrees, degrees, metres")
+    p.add_argument("--view", default=None, metavar="YAW,PITCH,DIST|NAME",
+                   help="own viewpoint: degrees, degrees, metres, or a camera preset: "
+                        f"{', '.join(CAMERA_NAMES)} (orbit: the room's camera)")
     p.add_argument("--size", type=int, default=512, help="frame width and height")
     p.add_argument("--timeout", type=float, default=30.0, help="seconds to wait per frame")
     p.add_argument("--webrtc", action="store_true",

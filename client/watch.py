@@ -16,7 +16,15 @@ from .stream import Backoff
 
 
 def parse_view(text: str) -> dict[str, float]:
-    """``--view yaw,pitch,distance`` (degrees, degrees, metres) as orbit fields."""
+    """``--view yaw,pitch,distance`` (degrees, degrees, metres) or a camera preset's name
+    (protocol.cameras: front, left, right) as orbit fields."""
+    from protocol.cameras import CAMERA_NAMES, CAMERA_PRESETS
+
+    if text in CAMERA_PRESETS:
+        return dict(CAMERA_PRESETS[text])
+    if "," not in text:
+        raise ValueError(f"--view {text!r} is neither yaw,pitch,distance nor a camera preset "
+                         f"({', '.join(CAMERA_NAMES)})")
     parts = [p.strip() for p in text.split(",")]
     if len(parts) != 3:
         raise ValueError(f"--view wants yaw,pitch,distance, got {text!r}")
