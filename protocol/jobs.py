@@ -27,7 +27,7 @@ __all__ = ["JOB_EVENT_TYPES", "JOB_STATES", "MIN_USABLE_ITERATIONS", "PRESET_NAM
 # here for the clients, which do not import the engine's trainer.
 PRESET_NAMES = ("default", "quick", "demo", "test")
 PROGRESS_TYPES = ("progress", "densify", "checkpoint", "done", "resumed")
-JOB_EVENT_TYPES = (*PROGRESS_TYPES, "state", "message", "error", "end")
+JOB_EVENT_TYPES = (*PROGRESS_TYPES, "state", "cancel_requested", "message", "error", "end")
 JOB_STATES = ("queued", "running", "succeeded", "failed", "cancelled")
 TERMINAL_JOB_STATES = ("succeeded", "failed", "cancelled")
 
