@@ -347,8 +347,8 @@ def build_parser() -> argparse.ArgumentParser:
     cap.add_argument("--resolution", type=int, default=512)
     cap.add_argument("--max-frames", type=int, default=None, help="per sequence")
     cap.add_argument("--holdout-cameras", default=None,
-                     help="comma-separated camera names (default: the front camera next to "
-                          "the centre one, never the front one itself)")
+                     help="comma-separated camera names (default: a front-arc camera next to "
+                          "azimuth 0, never the front camera itself)")
     cap.add_argument("--holdout-sequences", type=int, default=1,
                      help="the last N sequences are held out for self-reenactment")
     cap.add_argument("--cross-identity", type=int, default=None,

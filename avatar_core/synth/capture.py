@@ -117,17 +117,18 @@ def _holdout_cameras(spec: CaptureSpec, rig: list[RigCamera]) -> tuple[str, ...]
 
 
 def default_holdout(rig: list[RigCamera]) -> tuple[str, ...]:
-    """The default novel-view camera: never the front one (the training would never see the
-    face straight on; with 4 cameras the front camera is the only one that does). The front
-    arc's cameras run left to right; the held-out one is the next after the centre one (an
-    odd count's centre camera is at azimuth 0 and trains; of an even count, the two nearest
-    azimuth 0 train). A rig of one camera holds none out."""
+    """The default novel-view camera: never the front one, the camera at azimuth 0 (the
+    training would not see the face straight on; with 4 cameras it is the only one that
+    does). The front arc's cameras run left to right, evenly: an odd count has its centre
+    camera at azimuth 0, and the one after it is held out; an even count has none there, and
+    the first of the two nearest it is held out (the other trains). A rig of one camera holds
+    none out."""
     if len(rig) < 2:
         return ()
     front = [c.name for c in rig if c.role == "front"]
-    if len(front) < 3:  # no camera faces the front straight on: the rightmost one
-        return (front[-1],)
-    return (front[len(front) // 2 + 1],)
+    if len(front) % 2 == 1 and len(front) >= 3:
+        return (front[len(front) // 2 + 1],)
+    return (front[len(front) // 2],)
 
 
 class _Bounds:
