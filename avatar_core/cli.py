@@ -147,6 +147,11 @@ def _train(args: argparse.Namespace) -> int:
         overrides = {"iterations": args.iterations, "device": args.device}
         config = replace(config, **{k: v for k, v in overrides.items() if v is not None})
         trainer = Trainer(args.dataset, config, args.out, body_model=args.body_models)
+    from protocol.jobs import small_job_warning
+
+    warning = small_job_warning(trainer.config.iterations)
+    if warning:
+        print(f"telesplat: {warning}", file=sys.stderr)
     with tqdm(total=trainer.config.iterations, initial=trainer.iteration, desc="training",
               unit="it") as bar:
         def progress(event: dict) -> None:
@@ -342,7 +347,8 @@ def build_parser() -> argparse.ArgumentParser:
     cap.add_argument("--resolution", type=int, default=512)
     cap.add_argument("--max-frames", type=int, default=None, help="per sequence")
     cap.add_argument("--holdout-cameras", default=None,
-                     help="comma-separated camera names (default: the centre front camera)")
+                     help="comma-separated camera names (default: a front-arc camera next to "
+                          "azimuth 0, never the front camera itself)")
     cap.add_argument("--holdout-sequences", type=int, default=1,
                      help="the last N sequences are held out for self-reenactment")
     cap.add_argument("--cross-identity", type=int, default=None,
@@ -380,8 +386,12 @@ def build_parser() -> argparse.ArgumentParser:
     render = groups.add_parser("render", help="render an avatar under a motion")
     render.add_argument("avatar", help="avatar package (folder or .zip) or synthetic[:IDENTITY]")
     render.add_argument("--motion", default="demo",
-                        help="built-in clip (demo, rest), or a .json / .npz parameter file")
-    render.add_argument("--camera", default="orbit", help="'orbit' or a JSON camera file")
+                        help="a built-in clip by name (demo, rest, or a library clip: smile, "
+                             "talk_calm, ...: every name in 'telesplat-client motions list'), "
+                             "or a .json / .npz parameter file")
+    render.add_argument("--camera", default="orbit",
+                        help="a camera preset: front, left, right, or orbit (a sweep from "
+                             "left to right; one frame: the front), or a JSON camera file")
     render.add_argument("--out", type=Path, required=True, help="folder of PNGs or FILE.mp4")
     _add_body_models(render)
     render.add_argument("--size", type=int, default=512)
@@ -398,7 +408,10 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("dataset", type=Path, help="dataset folder (Format v1)")
     train.add_argument("--out", type=Path, required=True,
                        help="output folder: checkpoints/, avatar/ (the package)")
-    train.add_argument("--config", type=Path, default=None, help=".json or .toml config")
+    train.add_argument("--config", type=Path, default=None,
+                       help=".json or .toml config; its optional 'preset' key picks the base: "
+                            "default, quick, demo (the least that gives a usable avatar) or "
+                            "test (smoke runs only)")
     train.add_argument("--resume", action="store_true", help="continue from OUT's checkpoint")
     train.add_argument("--iterations", type=int, default=None, help="total iterations")
     train.add_argument("--device", default=None, help="auto, cpu, cuda[:N]")

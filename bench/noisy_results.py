@@ -15,7 +15,7 @@ AKD is against the true body throughout. Writes ``noisy.json``, ``ablation.md`` 
 
     telesplat synth capture --out DATA --cameras 12 --resolution 384 --max-frames 40 \\
         --motions "smile+grin+mouth_open+thumbs_up,peace+talk_calm+heart,sad+angry+clapping" \\
-        --cross-identity -1 --tracker-noise studio
+        --cross-identity -1 --tracker-noise studio --holdout-cameras cam05
     for s in 0 1; do .venv/bin/python bench/train_results.py DATA --preset demo \\
         --iterations 1500 --target-size 128 --finetune-schedule budget --seed $s \\
         --models full,no_finetune,no_fusion --points 1 --train-only \\

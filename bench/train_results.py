@@ -8,7 +8,8 @@ against the Gaussian count, next to the render time). At the end every model is 
 numbers (JSON) are written to --out. LPIPS is off here (no backbone weights can be fetched),
 so there is no "without LPIPS" ablation.
 
-    telesplat synth capture --out DATA --max-frames 60 --resolution 512 --motions \
+    telesplat synth capture --out DATA --max-frames 60 --resolution 512 --holdout-cameras cam07 \
+        --motions \
         "smile+grin+mouth_open+thumbs_up,peace+talk_calm+heart,sad+angry+clapping"
     .venv/bin/python bench/train_results.py DATA --out docs/results --preset quick \\
         [--iterations N] [--points 5] [--models full,no_fusion,no_finetune]

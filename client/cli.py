@@ -25,6 +25,9 @@ import time
 from pathlib import Path
 from typing import Any
 
+from protocol.cameras import CAMERA_NAMES
+from protocol.jobs import MIN_USABLE_ITERATIONS, PRESET_NAMES
+
 DEFAULT_SERVER = "http://127.0.0.1:8000"
 
 
@@ -42,11 +45,25 @@ def _rest(args: argparse.Namespace):
     return RestClient(args.server, args.token)
 
 
+TIME_COLUMNS = ("created", "started", "finished", "expires_at", "created_at", "updated_at")
+
+
+def _cell(column: str, value: Any) -> str:
+    """One table cell: epoch seconds as local date and time, progress as a percentage."""
+    if value is None:
+        return ""
+    if column in TIME_COLUMNS and isinstance(value, int | float):
+        return time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(value))
+    if column == "progress" and isinstance(value, int | float):
+        return f"{100.0 * value:.0f}%"
+    return str(value)
+
+
 def _print(args: argparse.Namespace, value: Any, columns: tuple[str, ...] = ()) -> None:
     if args.json or not columns or not isinstance(value, list):
         print(json.dumps(value, indent=2, default=str))
         return
-    rows = [[str(item.get(c, "")) for c in columns] for item in value]
+    rows = [[_cell(c, item.get(c)) for c in columns] for item in value]
     widths = [max([len(c), *(len(r[i]) for r in rows)]) for i, c in enumerate(columns)]
     for row in [list(columns), *rows]:
         print("  ".join(cell.ljust(w) for cell, w in zip(row, widths, strict=True)).rstrip())
@@ -55,10 +72,30 @@ def _print(args: argparse.Namespace, value: Any, columns: tuple[str, ...] = ()) 
 # -- stream ------------------------------------------------------------------------------
 
 
-async def stream_motion(server: str, token: str | None, avatar: str, motion_path: Path,
+def server_motion(server: str, token: str | None, name: str, avatar: str,
+                  fps: float | None = None):
+    """The server's built-in clip ``name`` rigged for ``avatar``, as a Motion; ValueError
+    listing the server's clips for a name it does not know."""
+    from .motion_file import motion_from_json
+    from .rest import ApiError, RestClient
+
+    with RestClient(server, token) as api:
+        known = [m.get("name") for m in api.motions()]
+        if name not in known:
+            raise ValueError(f"motion {name!r} is neither a .json / .npz file nor a built-in "
+                             f"clip; built-in clips: {', '.join(known)}")
+        try:
+            data = api.motion(name, avatar=avatar, fps=fps)
+        except ApiError as exc:
+            raise ValueError(f"motion {name!r}: {exc}") from None
+    return motion_from_json(data, f"built-in clip {name}")
+
+
+async def stream_motion(server: str, token: str | None, avatar: str, motion_path: Path | str,
                         out: Path, *, fps: float | None = None, size: int = 512,
                         timeout: float = 30.0, progress: bool = True) -> list[Path]:
-    """Drive ``avatar`` with a motion file frame by frame; save each returned frame in ``out``.
+    """Drive ``avatar`` with a motion file (or a built-in clip of the server, by name) frame
+    by frame; save each returned frame in ``out``.
 
     Lock-step: the next frame is driven once the previous one came back (and not before its
     time at ``fps``), so every motion frame gets its own image and none are coalesced.
@@ -66,10 +103,14 @@ async def stream_motion(server: str, token: str | None, avatar: str, motion_path
     from tqdm import tqdm
 
     from .images import save_frame
-    from .motion_file import load_motion
+    from .motion_file import is_motion_file, load_motion
     from .stream import StreamClient
 
-    motion = load_motion(motion_path)
+    if is_motion_file(motion_path):
+        motion = load_motion(motion_path)
+    else:  # a built-in clip: the server rigs it for the avatar
+        motion = await asyncio.to_thread(server_motion, server, token, str(motion_path),
+                                         avatar, fps)
     rate = fps or motion.fps or 30.0
     out.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
@@ -79,7 +120,7 @@ async def stream_motion(server: str, token: str | None, avatar: str, motion_path
                              max_fps=min(max(rate, 1.0), client.limits.max_fps))
         start = time.monotonic()
         with tqdm(total=len(motion), unit="frame", disable=not progress,
-                  desc=f"streaming {motion_path.name}") as bar:
+                  desc=f"streaming {Path(motion_path).name}") as bar:
             for i, params in enumerate(motion.frames):
                 delay = start + i / rate - time.monotonic()
                 if delay > 0:
@@ -140,7 +181,7 @@ def cmd_drive(args: argparse.Namespace) -> int:
 def cmd_watch(args: argparse.Namespace) -> int:
     from .watch import parse_view, watch_room
 
-    view = parse_view(args.view) if args.view else None
+    view = parse_view(args.view) if args.view and args.view != "orbit" else None
     if args.webrtc:
         from .watch import watch_room_webrtc
 
@@ -172,7 +213,11 @@ def cmd_rooms(args: argparse.Namespace) -> int:
             _print(args, api.room(args.id))
         elif args.action == "create":
             seats = [{"avatar": avatar} for avatar in args.avatar] if args.avatar else None
-            _print(args, api.create_room(seats, name=args.name))
+            room = api.create_room(seats, name=args.name)
+            if args.json:
+                _print(args, room)
+            else:  # the id, for 'rooms invite ID' (--json: the whole room)
+                print(room["id"])
         elif args.action == "delete":
             api.delete_room(args.id)
             print(f"deleted room {args.id}")
@@ -229,24 +274,11 @@ def cmd_motions(args: argparse.Namespace) -> int:
 # -- jobs --------------------------------------------------------------------------------
 
 
-def _progress_of(data: Any) -> float | None:
-    """A 0..1 progress from an event payload, whatever of the usual fields it carries."""
-    if not isinstance(data, dict):
-        return None
-    if isinstance(data.get("progress"), int | float):
-        value = float(data["progress"])
-        return value / 100.0 if value > 1.0 else value
-    for done, total in (("step", "total"), ("iteration", "iterations"), ("done", "total")):
-        if isinstance(data.get(done), int | float) and data.get(total):
-            return float(data[done]) / float(data[total])
-    return None
-
-
-TERMINAL_STATES = ("succeeded", "failed", "cancelled")
 
 
 def _config(value: str | None) -> dict[str, Any] | str | None:
-    """--config: a JSON file (a training config) or a preset name (quick, default, test)."""
+    """--config: a JSON file (a training config) or a preset name (protocol.jobs.PRESET_NAMES:
+    default, quick, demo, test)."""
     if value is None:
         return None
     path = Path(value)
@@ -256,10 +288,13 @@ def _config(value: str | None) -> dict[str, Any] | str | None:
 
 
 def watch_job(api, job_id: str, *, progress: bool = True) -> dict[str, Any]:
-    """Follow a job's events with a progress bar until it ends; returns its final status."""
+    """Follow a job's events with a progress bar until it ends; returns its final status.
+    The bar reads each event's ``progress`` (protocol.jobs, the one job-event schema)."""
     from tqdm import tqdm
 
-    with tqdm(total=1000, unit="‰", disable=not progress, desc=f"job {job_id}",
+    from protocol.jobs import TERMINAL_JOB_STATES, progress_of
+
+    with tqdm(total=100, unit="%", disable=not progress, desc=f"job {job_id}",
               bar_format="{l_bar}{bar}| {postfix}") as bar:
         # The server ends the stream with an `end` event once the job has finished; a stream
         # that times out first (no news for 10 minutes) is resumed after the last event id.
@@ -268,17 +303,45 @@ def watch_job(api, job_id: str, *, progress: bool = True) -> dict[str, Any]:
             for event in api.job_events(job_id, after=last_id):
                 last_id = int(event.id) if event.id and event.id.isdigit() else last_id
                 data = event.data if isinstance(event.data, dict) else {}
-                fraction = _progress_of(data)
+                fraction = progress_of(event.event, data)
                 if fraction is not None:
-                    bar.n = round(min(max(fraction, 0.0), 1.0) * 1000)
+                    bar.update(round(fraction * 100) - bar.n)
                 state = data.get("state")
                 loss = f" loss {data['loss']:.4f}" if isinstance(data.get("loss"), float) else ""
                 bar.set_postfix_str(f"{state or event.event}{loss}", refresh=True)
                 if event.event == "end":
                     return api.job(job_id)
-            if api.job(job_id).get("state") in TERMINAL_STATES:
+            if api.job(job_id).get("state") in TERMINAL_JOB_STATES:
                 break
     return api.job(job_id)
+
+
+def job_summary(job: dict[str, Any]) -> str:
+    """A few lines on how a job ended (``--json`` prints the whole status instead)."""
+    state = job.get("state")
+    took = ""
+    if isinstance(job.get("started"), int | float) and isinstance(job.get("finished"),
+                                                                   int | float):
+        took = f" in {job['finished'] - job['started']:.0f} s"
+    head = f"job {job.get('id')} {state}{took}: {job.get('iteration')}/{job.get('total')} " \
+           "iterations"
+    if isinstance(job.get("loss"), int | float):
+        head += f", loss {job['loss']:.4f}"
+    lines = [head]
+    if job.get("avatar_id"):
+        lines.append(f"avatar {job['avatar_id']}")
+    if job.get("error"):
+        lines.append(f"error: {job['error']}")
+    return "\n".join(lines)
+
+
+def _warn_small(job: dict[str, Any]) -> None:
+    from protocol.jobs import small_job_warning
+
+    total = job.get("total")
+    warning = small_job_warning(total) if isinstance(total, int) else None
+    if warning:
+        print(f"telesplat-client: {warning}", file=sys.stderr)
 
 
 def cmd_jobs(args: argparse.Namespace) -> int:
@@ -289,17 +352,19 @@ def cmd_jobs(args: argparse.Namespace) -> int:
                                  name=args.name)
             job_id = job.get("id") or job.get("job_id")
             print(f"submitted job {job_id}")
+            _warn_small(job)
             if args.watch:
                 final = watch_job(api, job_id, progress=not args.quiet)
-                _print(args, final)
-                state = final.get("state") or final.get("status")
-                return 0 if state in ("succeeded", "done") else 1
+                print(json.dumps(final, indent=2) if args.json else job_summary(final))
+                return 0 if final.get("state") == "succeeded" else 1
         elif args.action == "list":
-            _print(args, api.jobs(), ("id", "name", "state", "progress"))
+            _print(args, api.jobs(), ("id", "name", "state", "progress", "created"))
         elif args.action == "status":
             _print(args, api.job(args.id))
         elif args.action == "watch":
-            _print(args, watch_job(api, args.id, progress=not args.quiet))
+            final = watch_job(api, args.id, progress=not args.quiet)
+            print(json.dumps(final, indent=2) if args.json else job_summary(final))
+            return 0 if final.get("state") == "succeeded" else 1
         elif args.action == "logs":
             print(api.job_logs(args.id, tail=args.tail))
         elif args.action == "cancel":
@@ -326,8 +391,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("stream", help="stream a motion file and save the frames")
     _common(p)
     p.add_argument("--avatar", required=True)
-    p.add_argument("--motion", type=Path, required=True,
-                   help=".json list of per-frame dicts or .npz with a frame axis")
+    p.add_argument("--motion", required=True,
+                   help="a built-in clip by name (smile, talk_calm, ...: 'motions list') or "
+                        "a .json list of per-frame dicts or .npz with a frame axis")
     p.add_argument("--out", type=Path, required=True, help="folder for the frames")
     p.add_argument("--fps", type=float, default=None,
                    help="drive rate (default: the file's, else 30)")
@@ -366,8 +432,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="folder for the frames and frames.jsonl")
     p.add_argument("--seconds", type=float, default=10.0, help="record this long")
     p.add_argument("--frames", type=int, default=None, help="stop after this many frames")
-    p.add_argument("--view", default=None, metavar="YAW,PITCH,DIST",
-                   help="own viewpoint: degrees, degrees, metres")
+    p.add_argument("--view", default=None, metavar="YAW,PITCH,DIST|NAME",
+                   help="own viewpoint: degrees, degrees, metres, or a camera preset: "
+                        f"{', '.join(CAMERA_NAMES)} (orbit: the room's camera)")
     p.add_argument("--size", type=int, default=512, help="frame width and height")
     p.add_argument("--timeout", type=float, default=30.0, help="seconds to wait per frame")
     p.add_argument("--webrtc", action="store_true",
@@ -438,7 +505,9 @@ def build_parser() -> argparse.ArgumentParser:
     source = j.add_mutually_exclusive_group(required=True)
     source.add_argument("--dataset", help="a dataset name the server knows")
     source.add_argument("--archive", type=Path, help="a dataset archive to upload")
-    j.add_argument("--config", help="training config: a JSON file or a preset name (quick)")
+    j.add_argument("--config", help="training config: a JSON file or a preset name: "
+                   f"{', '.join(PRESET_NAMES)} (test: a smoke run, no usable avatar; "
+                   f"demo: the least that gives one, {MIN_USABLE_ITERATIONS} iterations)")
     j.add_argument("--name")
     j.add_argument("--watch", action="store_true", help="follow progress until it ends")
     j.add_argument("--quiet", action="store_true")

@@ -47,14 +47,24 @@ def load_motion(path: str | Path) -> Motion:
 
 
 def _load_json(path: Path) -> Motion:
-    data = json.loads(path.read_text())
+    return motion_from_json(json.loads(path.read_text()), str(path))
+
+
+def motion_from_json(data: Any, where: str = "motion") -> Motion:
+    """A motion from parsed JSON: a list of per-frame objects or ``{"fps", "frames"}`` (the
+    answer of ``GET /v1/motions/{name}``)."""
     fps = None
     if isinstance(data, dict):
         fps, data = data.get("fps"), data.get("frames")
     if not isinstance(data, list) or not data or not all(isinstance(f, dict) for f in data):
-        raise ValueError(f"{path}: expected a non-empty list of per-frame objects "
+        raise ValueError(f"{where}: expected a non-empty list of per-frame objects "
                          f"(or {{'frames': [...]}})")
     return Motion([params_of(frame) for frame in data], float(fps) if fps else None)
+
+
+def is_motion_file(spec: str | Path) -> bool:
+    """Whether a ``--motion`` names a file (else a built-in clip the server has)."""
+    return Path(spec).suffix in (".json", ".npz") or Path(spec).is_file()
 
 
 def _split_key(key: str) -> tuple[str, str]:

@@ -16,7 +16,15 @@ from .stream import Backoff
 
 
 def parse_view(text: str) -> dict[str, float]:
-    """``--view yaw,pitch,distance`` (degrees, degrees, metres) as orbit fields."""
+    """``--view yaw,pitch,distance`` (degrees, degrees, metres) or a camera preset's name
+    (protocol.cameras: front, left, right) as orbit fields."""
+    from protocol.cameras import CAMERA_NAMES, CAMERA_PRESETS
+
+    if text in CAMERA_PRESETS:
+        return dict(CAMERA_PRESETS[text])
+    if "," not in text:
+        raise ValueError(f"--view {text!r} is neither yaw,pitch,distance nor a camera preset "
+                         f"({', '.join(CAMERA_NAMES)})")
     parts = [p.strip() for p in text.split(",")]
     if len(parts) != 3:
         raise ValueError(f"--view wants yaw,pitch,distance, got {text!r}")
@@ -63,7 +71,8 @@ async def watch_room(server: str, token: str | None, room: str, out: Path, *,
     ``max_frames`` arrived (whichever first; at least one of them must be given).
 
     Up to ``max_stale`` frames rendered before our request landed (not ``size`` square) are
-    skipped; after the first frame of the asked size, or that many, every frame is kept.
+    skipped; after the first frame of the asked size, or that many, every frame is kept but
+    one that repeats the last saved (same drive seq, same bytes): one file per picture.
     ``reconnect``: rejoin the room by itself after a server restart (client/stream.py); the
     recording goes on, and the result lists each reconnection's downtime."""
     from .images import save_frame
@@ -72,7 +81,8 @@ async def watch_room(server: str, token: str | None, room: str, out: Path, *,
     if seconds is None and max_frames is None:
         raise ValueError("give seconds or max_frames: a recording must end")
     out.mkdir(parents=True, exist_ok=True)
-    saved = stale = 0
+    saved = stale = repeats = 0
+    last: tuple[int, int, bytes] | None = None
     async with await StreamClient.connect(server, token=token, room=room, role="watch",
                                           timeout=timeout, reconnect=reconnect,
                                           client_name="telesplat-client watch") as client:
@@ -92,6 +102,10 @@ async def watch_room(server: str, token: str | None, room: str, out: Path, *,
                     if saved == 0 and stale < max_stale and not asked:
                         stale += 1
                         continue
+                    if last is not None and (frame.seq, frame.width, frame.data) == last:
+                        repeats += 1  # the same picture again (the join's frame, re-sent
+                        continue      # when our request lands): one file per picture
+                    last = (frame.seq, frame.width, frame.data)
                     path = save_frame(frame, out / f"{saved:05d}")
                     log.write(json.dumps(frame_record(frame, saved, path.name,
                                                       time.monotonic() - start)) + "\n")
@@ -101,7 +115,7 @@ async def watch_room(server: str, token: str | None, room: str, out: Path, *,
         presence = client.presence
         reconnections = [{"reason": r.reason, "downtime_s": round(r.downtime_s, 3),
                           "attempts": r.attempts} for r in client.reconnections]
-    return {"frames": saved, "stale_skipped": stale, "room": room,
+    return {"frames": saved, "stale_skipped": stale, "repeats_skipped": repeats, "room": room,
             "presence": presence.model_dump() if presence is not None else None,
             "reconnections": reconnections}
 

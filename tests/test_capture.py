@@ -39,7 +39,8 @@ def test_capture_is_a_valid_dataset_with_the_paper_splits(small_capture):
     assert set(ds.sequences) == {"smile", "nod", "cross-bo-nod"}
     assert all(n == 2 for n in ds.sequences.values())
     assert ticks == list(range(1, count_views(spec) + 1))
-    assert ds.splits["novel_view"].cameras == ("cam02",)  # centre of 4 front + 1 rear
+    # 4 front + 1 rear: none at azimuth 0; one of the two nearest it (+-25 deg) is held out
+    assert ds.splits["novel_view"].cameras == ("cam02",)
     assert "cam02" not in ds.splits["train"].cameras
     assert ds.splits["train"].sequences == ("smile",)
     assert ds.splits["self_reenactment"].sequences == ("nod",)

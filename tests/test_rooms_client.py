@@ -150,6 +150,8 @@ def test_watch_room_records_what_the_performer_drives(server, tmp_path):  # noqa
     images = [decode_image((out / r["file"]).read_bytes()) for r in records]
     assert all(image.shape == (96, 96, 3) for image in images)
     assert all(r["codec"] == "jpeg" and r["bytes"] > 0 for r in records)
+    saved = [(r["seq"], (out / r["file"]).read_bytes()) for r in records]
+    assert all(a != b for a, b in zip(saved, saved[1:], strict=False)), "saved twice"
     # The viewer's first frame shows the seat at rest, its last one the driven jaw.
     assert np.abs(images[0].astype(int) - images[-1]).mean() > 0.1
 

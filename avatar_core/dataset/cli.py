@@ -1,4 +1,5 @@
-"""`telesplat dataset ...`: validate a dataset, import other tools' captures.
+"""`telesplat dataset ...`: validate a dataset, zip one for upload, import other tools'
+captures.
 
 `register(subparsers)` adds the "dataset" command group to the main parser; each command's
 `func(args)` returns the exit status.
@@ -7,6 +8,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from tqdm import tqdm
@@ -47,6 +49,20 @@ def _progress(bar: tqdm):
     return update
 
 
+def _zip(args: argparse.Namespace) -> int:
+    from .pack import DatasetIncomplete, zip_dataset
+
+    try:
+        with tqdm(desc="zipping", unit="file") as bar:
+            out = zip_dataset(args.dataset, args.out, progress=_progress(bar))
+    except DatasetIncomplete as exc:
+        print(f"telesplat: error: {exc}", file=sys.stderr)
+        return 2
+    print(f"wrote {out} ({out.stat().st_size / 2**20:.1f} MiB); upload it with "
+          f"'telesplat-client jobs submit --archive {out}'")
+    return 0
+
+
 def _import_vhap(args: argparse.Namespace) -> int:
     from .importers.vhap import import_vhap
 
@@ -72,7 +88,8 @@ def _import_easymocap(args: argparse.Namespace) -> int:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add `dataset validate`, `dataset preview` and `dataset import {vhap,easymocap}`."""
+    """Add `dataset validate`, `dataset preview`, `dataset zip` and
+    `dataset import {vhap,easymocap}`."""
     group = subparsers.add_parser("dataset", help="multi-view capture datasets")
     cmds = group.add_subparsers(dest="command", required=True)
 
@@ -91,6 +108,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     pre.add_argument("--columns", type=int, default=6)
     pre.add_argument("--size", type=int, default=256, help="tile size in pixels")
     pre.set_defaults(func=_preview)
+
+    zp = cmds.add_parser("zip", help="zip a dataset for 'telesplat-client jobs submit "
+                         "--archive' (refuses one with validation errors)")
+    zp.add_argument("dataset", type=Path)
+    zp.add_argument("--out", type=Path, required=True, help="FILE.zip to write")
+    zp.set_defaults(func=_zip)
 
     imp = cmds.add_parser("import", help="convert another tool's capture layout")
     kinds = imp.add_subparsers(dest="layout", required=True)

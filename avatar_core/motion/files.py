@@ -12,7 +12,7 @@ import numpy as np
 
 from ..body.model_paths import BodyModelFiles
 from ..body.upper_body import UpperBodyModel
-from .library import demo_clip
+from .library import ALIASES, MOTIONS, demo_clip, motion, unknown_clip_message
 from .rig import model_rig
 
 __all__ = ["motion_frames"]
@@ -20,13 +20,14 @@ __all__ = ["motion_frames"]
 
 def motion_frames(spec: str, files: BodyModelFiles, model: UpperBodyModel, fps: float,
                   frames: int | None = None) -> list[dict[str, np.ndarray]]:
-    """Per-frame SMPL-X parameters: a built-in clip name ('demo', 'rest'), a .json list of
+    """Per-frame SMPL-X parameters: a built-in clip name ('demo', 'rest' or a library clip:
+    ``library.clip_names()``), a .json list of
     per-frame dicts, or an .npz of arrays with a leading frame axis. ``files`` and ``model``
     (the avatar's body model) rig the built-in clip."""
     if spec == "rest":
         return [{} for _ in range(frames or 1)]
-    if spec == "demo":
-        clip = demo_clip()
+    if spec == "demo" or spec in MOTIONS or spec in ALIASES:
+        clip = demo_clip() if spec == "demo" else motion(spec)
         rig = model_rig(files, model)
         n = frames or max(1, int(round(clip.duration * fps)))
         out = []
@@ -34,7 +35,7 @@ def motion_frames(spec: str, files: BodyModelFiles, model: UpperBodyModel, fps: 
             try:
                 p = clip.sample(clip.duration * i / max(n - 1, 1), rig)
             except KeyError as exc:  # official model files name no expressions or gestures
-                raise ValueError(f"the demo clip names what the body model in {files.root} "
+                raise ValueError(f"the {spec!r} clip names what the body model in {files.root} "
                                  f"does not ({exc.args[0]}): use --motion rest or a "
                                  "parameter file") from None
             p.pop("betas")
@@ -42,7 +43,7 @@ def motion_frames(spec: str, files: BodyModelFiles, model: UpperBodyModel, fps: 
         return out
     path = Path(spec)
     if not path.is_file():
-        raise ValueError(f"motion {spec!r} is neither a built-in clip (demo, rest) nor a file")
+        raise ValueError(unknown_clip_message(spec))
     if path.suffix == ".json":
         data = json.loads(path.read_text())
         if not isinstance(data, list) or not all(isinstance(d, dict) for d in data):

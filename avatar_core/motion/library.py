@@ -347,3 +347,20 @@ def demo_clip() -> Track:
         (5.2, Pose(look)),
     ))
     return chain("body demo", [face, hands])
+
+
+# What a `--motion NAME` may name, besides a file: the engine's own two ('demo': `demo_clip`,
+# 'rest': the rest pose) and every library clip and alias (what the server serves).
+ENGINE_CLIPS = ("demo", "rest")
+
+
+def clip_names() -> tuple[str, ...]:
+    """Every built-in clip name a `--motion` takes: `ENGINE_CLIPS`, `MOTIONS`, `ALIASES`."""
+    return (*ENGINE_CLIPS, *MOTIONS, *ALIASES)
+
+
+def unknown_clip_message(spec: str, *, files: bool = True) -> str:
+    """The error for a `--motion` that is neither a built-in clip nor (``files``) a file."""
+    what = "a built-in clip nor a .json / .npz file" if files else "a built-in clip"
+    return f"motion {spec!r} is neither {what}; built-in clips: {', '.join(clip_names())}"
+

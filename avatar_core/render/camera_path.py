@@ -12,6 +12,14 @@ from pathlib import Path
 import numpy as np
 from torch import Tensor
 
+from protocol.cameras import (
+    CAMERA_NAMES,
+    CAMERA_PRESETS,
+    DISTANCE_M,
+    PITCH_DEG,
+    orbit_yaws,
+)
+
 from .camera import Camera, orbit
 
 __all__ = ["CHEST_DROP_M", "NECK_JOINT", "cameras_for", "framing_target"]
@@ -28,10 +36,16 @@ def framing_target(joint_template: Tensor) -> np.ndarray:
 
 
 def cameras_for(spec: str, n: int, size: int, target: np.ndarray) -> list[Camera]:
-    """'orbit' (a half-circle sweep around the upper body) or a JSON camera / list of cameras."""
-    if spec == "orbit":
-        return [orbit(target, yaw_deg=-60.0 + 120.0 * i / max(n - 1, 1), pitch_deg=5.0,
-                      distance=2.7, width=size, height=size, fov_y_deg=30.0) for i in range(n)]
+    """A camera preset (protocol.cameras: 'front', 'left', 'right', or 'orbit', a sweep from
+    left to right around the upper body whose single frame is the front) or a JSON camera /
+    list of cameras."""
+    if spec in CAMERA_PRESETS or spec == "orbit":
+        yaws = orbit_yaws(n) if spec == "orbit" else [CAMERA_PRESETS[spec]["yaw_deg"]] * n
+        return [orbit(target, yaw_deg=yaw, pitch_deg=PITCH_DEG, distance=DISTANCE_M,
+                      width=size, height=size, fov_y_deg=30.0) for yaw in yaws]
+    if not Path(spec).is_file():
+        raise ValueError(f"camera {spec!r} is neither a preset ({', '.join(CAMERA_NAMES)}) "
+                         "nor a JSON camera file")
     data = json.loads(Path(spec).read_text())
     cams = [Camera.from_dict(d) for d in (data if isinstance(data, list) else [data])]
     if len(cams) == 1:

@@ -56,7 +56,7 @@ class CaptureSpec:
     num_cameras: int = 17
     resolution: int = 512
     max_frames: int | None = None  # per sequence; None: the whole motion
-    holdout_cameras: tuple[str, ...] | None = None  # None: the centre front camera
+    holdout_cameras: tuple[str, ...] | None = None  # None: default_holdout(rig), never front
     holdout_sequences: int = 1  # the last k sequences (when there are more than k)
     cross_identity: int | None = None  # None: no cross-identity sequences
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
@@ -113,8 +113,22 @@ def _holdout_cameras(spec: CaptureSpec, rig: list[RigCamera]) -> tuple[str, ...]
         if unknown:
             raise ValueError(f"unknown held-out camera(s) {unknown}; the rig has {names}")
         return tuple(spec.holdout_cameras)
+    return default_holdout(rig)
+
+
+def default_holdout(rig: list[RigCamera]) -> tuple[str, ...]:
+    """The default novel-view camera: never the front one, the camera at azimuth 0 (the
+    training would not see the face straight on; with 4 cameras it is the only one that
+    does). The front arc's cameras run left to right, evenly: an odd count has its centre
+    camera at azimuth 0, and the one after it is held out; an even count has none there, and
+    the first of the two nearest it is held out (the other trains). A rig of one camera holds
+    none out."""
+    if len(rig) < 2:
+        return ()
     front = [c.name for c in rig if c.role == "front"]
-    return (front[len(front) // 2],) if len(rig) > 1 else ()
+    if len(front) % 2 == 1 and len(front) >= 3:
+        return (front[len(front) // 2 + 1],)
+    return (front[len(front) // 2],)
 
 
 class _Bounds:

@@ -26,6 +26,8 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+from protocol.jobs import PROGRESS_TYPES, progress_event
+
 __all__ = ["ACTIVE", "MAX_ATTEMPT_LOG", "RESUMABLE", "STATES", "TERMINAL", "Event",
            "InvalidTransition", "Job", "JobNotFound", "JobStore", "NewJob", "QuotaExceeded",
            "SQLiteJobStore", "check_quota"]
@@ -456,7 +458,11 @@ class SQLiteJobStore(JobStore):
         data = {k: (_finite(v) if isinstance(v, float) else v) for k, v in event.items()}
         data.setdefault("type", "message")
         with self._write() as db:
-            self._get(db, job_id)
+            job = self._get(db, job_id)
+            if data["type"] in PROGRESS_TYPES:  # the one schema (protocol.jobs): + progress
+                data.setdefault("iteration", job.iteration)
+                data.setdefault("total", job.total)
+                data = progress_event(data)
             if isinstance(data.get("iteration"), int):
                 db.execute("UPDATE jobs SET iteration = ?, loss = COALESCE(?, loss) "
                            "WHERE id = ?", (data["iteration"], _finite(data.get("loss")),

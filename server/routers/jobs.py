@@ -20,6 +20,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from starlette.concurrency import run_in_threadpool
 from starlette.datastructures import UploadFile
 
+from protocol.jobs import JobEnd
+
 from ..auth import Principal
 from ..context import ServerContext
 from ..dependencies import Jobs, TrainPrincipal
@@ -392,8 +394,8 @@ def job_events(job_id: str, request: Request, principal: TrainPrincipal, service
                     return
                 # its last state event is written with the state: only a resume follows it
                 if job.done and not await run_in_threadpool(store.events, job_id, seq, 1):
-                    yield _sse(None, "end", {"state": job.state, "avatar_id": job.avatar_id,
-                                             "error": job.error})
+                    yield _sse(None, "end", JobEnd(state=job.state, avatar_id=job.avatar_id,
+                                                   error=job.error).model_dump())
                     return
             if now >= deadline or await request.is_disconnected():
                 return
