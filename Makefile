@@ -28,10 +28,11 @@ $(VENV)/.installed-dev: pyproject.toml | $(PY)
 install: $(VENV)/.installed
 dev: $(VENV)/.installed-dev
 
-# The trained demo avatar is built on the first run (synthetic capture + training, ~6 min on
-# 2 cores, with progress bars) and cached; then the server starts and prints its URL + token.
+# The server starts at once and prints its URL + token. On the first run the untrained demo
+# avatar stands in while the trained one is built behind it (synthetic capture + a training job
+# of the server's job service, progress on the page and at /v1/demo) and then swapped in; it is
+# cached afterwards. `telesplat demo-avatar` builds it in the foreground instead.
 run: $(VENV)/.installed models
-	$(VENV)/bin/telesplat demo-avatar
 	$(VENV)/bin/telesplat serve --host 127.0.0.1 --port 8000 --demo-avatar trained
 
 # The MediaPipe TFLite models: the mediapipe wheel is fetched with `pip download --no-deps`

@@ -7,6 +7,11 @@ resumable: an interrupted capture is filmed again, an interrupted training resum
 last checkpoint. Timings on this 2-core machine are in docs/results.md.
 
     telesplat demo-avatar [--cache DIR]       # build (or find) it, with progress bars
+
+The server builds it in the background instead (server/jobs/demo_build.py): the capture in a
+process of its own (``python -m avatar_core.demo capture ROOT --recipe JSON``, one JSON
+progress line per frame filmed), the training as a job of its job service, and
+:func:`install_package` puts the job's package where :func:`ensure_demo_avatar` finds it.
 """
 
 from __future__ import annotations
@@ -32,6 +37,16 @@ class DemoRecipe:
     frames: int = 40          # per sequence
     preset: str = "demo"
     iterations: int | None = None  # None: the preset's
+
+
+def recipe_from_dict(values: dict | None) -> DemoRecipe:
+    """A recipe from its fields (None: the default one); ValueError naming an unknown key."""
+    values = dict(values or {})
+    known = set(DemoRecipe.__dataclass_fields__)
+    unknown = sorted(set(values) - known)
+    if unknown:
+        raise ValueError(f"unknown demo recipe key(s) {unknown}; known: {sorted(known)}")
+    return DemoRecipe(**values)
 
 
 def default_demo_dir() -> Path:
@@ -92,11 +107,54 @@ def ensure_demo_avatar(cache: Path | None = None, progress: Progress | None = No
     root.mkdir(parents=True, exist_ok=True)
     data = _capture(root, recipe, model_dir, progress)
     package = _train(root, data, recipe, model_dir, progress)
+    return install_package(root, package)
+
+
+def trained_package(root: Path | None = None) -> Path | None:
+    """The trained demo package under ``root`` (default cache) when it is there."""
+    final = (root or default_demo_dir()) / "avatar"
+    return final if (final / "avatar.json").is_file() else None
+
+
+def install_package(root: Path, package: Path) -> Path:
+    """Copy a trained package to ``root/avatar`` (atomically, marked with DEMO_VERSION)."""
+    final = root / "avatar"
     staging = root / ".avatar-staging"
     shutil.rmtree(staging, ignore_errors=True)
     shutil.copytree(package, staging)
     manifest = json.loads((staging / "avatar.json").read_text())
-    manifest.setdefault("metadata", {})["demo_version"] = DEMO_VERSION
+    manifest.setdefault("metadata", {}).update(demo_version=DEMO_VERSION, trained=True)
     (staging / "avatar.json").write_text(json.dumps(manifest, indent=2))
+    if (final / "avatar.json").is_file():  # installed meanwhile (another builder)
+        shutil.rmtree(staging, ignore_errors=True)
+        return final
+    shutil.rmtree(final, ignore_errors=True)  # a partial one from before
     staging.rename(final)  # atomic: a reader sees no package or a whole one
     return final
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m avatar_core.demo capture ROOT [--recipe JSON] [--models DIR]``: film the
+    demo's dataset into ``ROOT/dataset`` (kept if already complete), printing one JSON line
+    ``{"stage": "capture", "done": d, "total": t}`` per frame filmed."""
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="python -m avatar_core.demo")
+    parser.add_argument("command", choices=["capture"])
+    parser.add_argument("root", type=Path)
+    parser.add_argument("--recipe", default=None, help="DemoRecipe fields as JSON")
+    parser.add_argument("--models", type=Path, default=None)
+    args = parser.parse_args(argv)
+    recipe = recipe_from_dict(json.loads(args.recipe) if args.recipe else None)
+
+    def progress(stage: str, done: int, total: int) -> None:
+        print(json.dumps({"stage": stage, "done": done, "total": total}), flush=True)
+
+    args.root.mkdir(parents=True, exist_ok=True)
+    data = _capture(args.root, recipe, args.models, progress)
+    print(json.dumps({"stage": "captured", "dataset": str(data)}), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -11,6 +11,13 @@ take more than ``--budget`` seconds per frame are skipped (estimated from the pr
 time per evaluated pixel-splat pair).
 
     .venv/bin/python bench/render.py [--quick] [--budget 20] [--seconds 4]
+
+Beside a busy machine: ``--hog N`` runs it next to N busy-loop processes; ``--wait-compare``
+instead times the cpu backend's forward pass (20k Gaussians at 512x512, the streaming case) at
+1 and 2 threads with OpenMP's wait policy ACTIVE and PASSIVE (a fresh process each,
+interleaved passes; bench/waitpolicy.py):
+
+    .venv/bin/python bench/render.py --wait-compare --hog 2 [--passes 3]
 """
 
 from __future__ import annotations
@@ -32,6 +39,7 @@ from avatar_core.render.rasterize import available_backends, rasterize  # noqa: 
 from avatar_core.render.rasterize_torch import isect_tiles  # noqa: E402
 from avatar_core.render.scenes import avatar_camera, avatar_like_scene  # noqa: E402
 from avatar_core.render.types import GaussianSet, RenderRequest  # noqa: E402
+from bench import waitpolicy  # noqa: E402
 
 FULL = [(n, s) for n in (5_000, 20_000, 100_000) for s in (256, 512, 1024)]
 QUICK = [(5_000, 256), (20_000, 512)]
@@ -105,13 +113,39 @@ def ratio(a: float | None, b: float | None) -> str:
     return "-" if a is None or b is None else f"{a / b:,.0f}x"
 
 
+def wait_child(seconds: float) -> None:
+    """cpu forward, 20k Gaussians at 512x512 (warmed up): frames per second."""
+    ms = time_forward(avatar_like_scene(20_000, seed=0), avatar_camera(512), "cpu", "cpu",
+                      seconds)
+    waitpolicy.report(1e3 / ms, "frames/s")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="only 5k @ 256^2 and 20k @ 512^2")
     ap.add_argument("--budget", type=float, default=20.0,
                     help="skip torch cells estimated above this many seconds per frame")
     ap.add_argument("--seconds", type=float, default=4.0, help="timing time per cell")
+    ap.add_argument("--hog", type=int, default=0, help="busy-loop processes beside the bench")
+    ap.add_argument("--wait-compare", action="store_true",
+                    help="1 and 2 threads x OMP_WAIT_POLICY ACTIVE / PASSIVE, one case")
+    ap.add_argument("--passes", type=int, default=3, help="--wait-compare: interleaved passes")
+    ap.add_argument("--wait-child", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.wait_child:
+        wait_child(args.seconds)
+        return
+    if args.wait_compare:
+        print(f"cpu forward, 20k Gaussians at 512x512, beside {args.hog} busy loop(s), "
+              f"{os.cpu_count()} cores", flush=True)
+        print(waitpolicy.compare([str(Path(__file__).resolve()), "--seconds",
+                                  str(args.seconds)], passes=args.passes, hog=args.hog))
+        return
+    with waitpolicy.hogs(args.hog):
+        run_bench(args)
+
+
+def run_bench(args: argparse.Namespace) -> None:
 
     backends = available_backends()
     print(f"# Rasterizer benchmark ({platform.processor() or platform.machine()}, "

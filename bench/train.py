@@ -21,6 +21,12 @@ Measured at the initial one-Gaussian-per-triangle avatar and again after densify
 avatar partway through training). LPIPS is off (not available offline here anyway).
 
     .venv/bin/python bench/train.py [--gaussians 48000] [--rounds 5] [--iters 40]
+
+Beside a busy machine: ``--hog N`` runs it next to N busy-loop processes; ``--wait-compare``
+instead times the "crop, no fine-tune" variant at 1 and 2 threads with OpenMP's wait policy
+ACTIVE and PASSIVE (a fresh process each, interleaved passes; bench/waitpolicy.py):
+
+    .venv/bin/python bench/train.py --wait-compare --hog 2 [--passes 3]
 """
 
 from __future__ import annotations
@@ -45,6 +51,7 @@ from avatar_core.synth.model_writer import ensure_models  # noqa: E402
 from avatar_core.train.config import preset  # noqa: E402
 from avatar_core.train.density import DensityStats, densify_and_prune  # noqa: E402
 from avatar_core.train.trainer import Trainer  # noqa: E402
+from bench import waitpolicy  # noqa: E402
 
 PHASES = ("data", "pose", "render", "loss", "backward", "optimizer", "densify")
 VARIANTS = {  # name: (crop_to_subject, fine-tuning)
@@ -128,6 +135,24 @@ def table(results: dict[str, dict]) -> str:
     return "\n".join([head, rule, *rows])
 
 
+def wait_child(data: Path, warmup: int, iters: int) -> None:
+    """One trainer (crop, no fine-tune), warmed up; the median it/s of 3 windows."""
+    base = preset("quick")
+    cfg = replace(base, loss=replace(base.loss, lpips=False),
+                  densify=replace(base.densify, from_iter=10**9))
+    with tempfile.TemporaryDirectory() as tmp:
+        t = Trainer(data, cfg, Path(tmp) / "t", body_model=ensure_models().root)
+        for _ in range(warmup):
+            t.step()
+        rates = []
+        for _ in range(3):
+            t0 = time.perf_counter()
+            for _ in range(iters):
+                t.step()
+            rates.append(iters / (time.perf_counter() - t0))
+    waitpolicy.report(statistics.median(rates), "it/s")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--data", type=Path, default=None, help="cache folder for the take")
@@ -136,11 +161,33 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=5)
     ap.add_argument("--iters", type=int, default=40, help="iterations per variant per round")
     ap.add_argument("--warmup", type=int, default=80)
+    ap.add_argument("--hog", type=int, default=0, help="busy-loop processes beside the bench")
+    ap.add_argument("--wait-compare", action="store_true",
+                    help="1 and 2 threads x OMP_WAIT_POLICY ACTIVE / PASSIVE, one case")
+    ap.add_argument("--passes", type=int, default=3, help="--wait-compare: interleaved passes")
+    ap.add_argument("--wait-child", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     cache = args.data or Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) \
         / "telesplat" / "bench"
     data = bench_dataset(cache, args.frames)
+    if args.wait_child:
+        wait_child(data, min(args.warmup, 20), min(args.iters, 10))
+        return
+    if args.wait_compare:
+        argv = [str(Path(__file__).resolve()), "--frames", str(args.frames),
+                "--warmup", str(args.warmup), "--iters", str(args.iters)]
+        if args.data:
+            argv += ["--data", str(args.data)]
+        print(f"training it/s, crop, no fine-tune, beside {args.hog} busy loop(s), "
+              f"{os.cpu_count()} cores", flush=True)
+        print(waitpolicy.compare(argv, passes=args.passes, hog=args.hog))
+        return
+    with waitpolicy.hogs(args.hog):
+        run_bench(args, data)
+
+
+def run_bench(args: argparse.Namespace, data: Path) -> None:
     print(f"torch {torch.__version__} ({torch.get_num_threads()} threads), numba "
           f"{numba.__version__} ({numba.get_num_threads()} threads), {os.cpu_count()} cores")
     with tempfile.TemporaryDirectory() as tmp:

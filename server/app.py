@@ -29,6 +29,7 @@ from .cluster_render import routes as cluster_render
 from .cluster_render.backend import make_frame_workers
 from .config import Settings
 from .context import ServerContext
+from .jobs.demo_build import DemoBuild
 from .logsafe import install_log_redaction
 from .metrics import ServerMetrics
 from .private import private_dir
@@ -101,7 +102,8 @@ def _start(ctx: ServerContext) -> None:
     s = ctx.settings
     chosen = select_encoders(s.encoders)  # probes the GPU encoders once
     log.info("encoders: JPEG %s, H.264 %s", chosen.jpeg, chosen.h264)
-    rec = ctx.registry.register_demo(s.demo_avatar)
+    rec = ctx.registry.register_demo(s.demo_avatar, cache=s.demo_cache_dir,
+                                     recipe=s.demo_build_recipe)  # never trains here
     if rec is not None:
         log.info("demo avatar %r (%s, %d Gaussians)", rec.id, rec.name, rec.num_gaussians)
     ctx.metrics.avatars.set(len(ctx.registry.list()))
@@ -152,6 +154,7 @@ def create_app(settings: Settings) -> FastAPI:
         rooms=RoomRegistry(settings, RoomStore(store_path(settings.data_dir))),
         local_token=local_token)
     ctx.render = make_frame_workers(settings, ctx.registry, ctx.scheduler)
+    ctx.demo_build = DemoBuild(settings, ctx.registry)
 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -160,7 +163,12 @@ def create_app(settings: Settings) -> FastAPI:
         sweeper = asyncio.create_task(_sweep_rooms(ctx), name="rooms:sweep")
         try:
             async with jobs.lifespan(ctx):  # the training worker
-                yield
+                # the trained demo, when not built yet: its job trains while we serve
+                await asyncio.to_thread(ctx.demo_build.start, ctx.jobs)
+                try:
+                    yield
+                finally:
+                    await asyncio.to_thread(ctx.demo_build.stop)
         finally:
             sweeper.cancel()
             # Whoever is still in (RestartingServer told the rest before uvicorn closed them)

@@ -67,6 +67,11 @@ def _announce(app: FastAPI, url: str) -> None:
             for scope in ("watch", "perform"):
                 if scope in links:
                     print(f"  {scope} link: {url}{links[scope]}", flush=True)
+            build = app.state.ctx.demo_build
+            if build is not None and build.status()["state"] == "building":
+                print("  the trained demo avatar is being built in the background (the page "
+                      f"shows its progress; {url}/v1/demo); the untrained one stands in",
+                      flush=True)
             yield
 
     app.router.lifespan_context = announced

@@ -16,6 +16,7 @@ from urllib.parse import urlsplit
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from avatar_core.gaussians.validate import GaussianRanges
+from avatar_core.threads import machine_threads
 from protocol import Limits
 
 ENV_PREFIX = "TELESPLAT_"
@@ -132,7 +133,17 @@ class Settings(BaseModel):
                                   description="Largest avatar upload (zip) accepted, bytes.")
     demo_avatar: str = Field("synthetic", description="Avatar registered at start-up, owner "
                                                       "'public': synthetic, trained, none, or "
-                                                      "a package path.")
+                                                      "a package path. trained never holds up "
+                                                      "the start: until the trained demo is "
+                                                      "built (a background job, GET /v1/demo) "
+                                                      "the synthetic one stands in.")
+    demo_cache_dir: Path | None = Field(
+        None, description="Where the trained demo avatar is built and cached (None: "
+                          "~/.cache/telesplat/demo-avatar-vN, as `telesplat demo-avatar`).")
+    demo_build_recipe: dict[str, Any] | None = Field(
+        None, description="The trained demo's recipe (avatar_core/demo.py DemoRecipe fields: "
+                          "motions, resolution, frames, preset, iterations); None: the "
+                          "default. A smaller one belongs in its own demo_cache_dir.")
     body_models: Path | None = Field(
         None, description="Folder of the body-model files under their official names "
                           "(SMPLX_NEUTRAL.npz, smplx_vert_segmentation.json, MANO_*.pkl, "
@@ -176,8 +187,9 @@ class Settings(BaseModel):
     track_threads: int = Field(1, ge=1, le=64, description="Webcam-tracking worker threads "
                                                            "shared by all sessions.")
     torch_threads: int = Field(
-        default_factory=lambda: min(2, os.cpu_count() or 1), ge=1, le=64,
-        description="torch / numba threads per render worker (default: 2, or 1 on one core). "
+        default_factory=lambda: machine_threads(cap=2), ge=1, le=64,
+        description="torch / numba threads per render worker (default: the cores this process "
+                    "may use, at most 2; TELESPLAT_THREADS overrides the count). "
                     "render_threads x torch_threads should not exceed the cores; training jobs "
                     "run niced in their own process.")
     send_buffer_bytes: int = Field(
@@ -188,6 +200,14 @@ class Settings(BaseModel):
     warmup: bool = Field(True, description="Render one frame at start-up (numba compiles once).")
     backend: Literal["auto", "torch", "cpu", "gsplat"] = Field(
         "auto", description="Rasterizer backend (auto: gsplat on CUDA, else cpu).")
+    job_threads: int = Field(
+        1, ge=1, le=64, description="torch / numba / BLAS threads of each training process "
+                                    "(and of the trained demo's capture process).")
+    job_nice: int = Field(
+        10, ge=0, le=19, description="CPU priority increment of each training process (and "
+                                     "of the trained demo's capture): live sessions go first. "
+                                     "On a machine busy with other work a niced build gets "
+                                     "little CPU; 0 builds at normal priority.")
     job_max_attempts: int = Field(
         3, ge=1, description="Runs of one training job (retries after a killed or crashed "
                              "training process and server restarts included) before it fails; "
@@ -361,6 +381,14 @@ class Settings(BaseModel):
     @classmethod
     def _no_folder(cls, value: Any) -> Any:
         return None if value == "" else value  # an empty variable means "not given"
+
+    @field_validator("demo_build_recipe", mode="before")
+    @classmethod
+    def _recipe_json(cls, value: Any) -> Any:
+        """TELESPLAT_DEMO_BUILD_RECIPE is JSON."""
+        if isinstance(value, str):
+            return json.loads(value) if value.strip() else None
+        return value
 
     @field_validator("demo_avatar")
     @classmethod

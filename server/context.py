@@ -41,6 +41,7 @@ class ServerContext:
     sessions: dict[str, Any] = field(default_factory=dict)  # id -> StreamSession
     local_token: str | None = None  # local auth mode: the admin token printed at start-up
     jobs: JobService | None = None  # set while the app's lifespan runs (server/routers/jobs.py)
+    demo_build: Any = None  # the trained demo's background build (server/jobs/demo_build.py)
     motion_rigs: dict[str, Rig] = field(default_factory=dict)  # avatar id -> its motion rig
     admission: Admission = None  # type: ignore[assignment]  # made from settings below
     rooms: RoomRegistry = None  # type: ignore[assignment]  # made from settings below

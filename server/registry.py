@@ -72,6 +72,7 @@ log = logging.getLogger(__name__)
 RECORD, PACKAGE_DIR = "record.json", "package"
 ID_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$")
 DEMO_ID = "demo"
+STAND_IN_SOURCE = "demo:trained-pending"  # the synthetic demo while the trained one is built
 _PATH_LIKE = re.compile(r"^(/|~|\\\\|[A-Za-z]:[\\/])")  # /abs, ~user, \\share, C:\
 
 
@@ -318,10 +319,16 @@ class AvatarRegistry:
 
     # -- the demo avatar ---------------------------------------------------------------------
 
-    def register_demo(self, spec: str) -> AvatarRecord | None:
+    def register_demo(self, spec: str, *, cache: str | Path | None = None,
+                      recipe: dict[str, Any] | None = None) -> AvatarRecord | None:
         """The start-up demo avatar (owner 'public', id 'demo'): 'synthetic[:N]', 'trained',
         'none' or a package path. Kept as is when already registered from the same synthetic
-        spec."""
+        spec.
+
+        'trained' never trains here: the trained demo in the demo cache (``cache``, default
+        the user's; built for ``recipe``) when it is there, else the synthetic avatar stands
+        in (metadata ``trained: false``, ``stand_in: true``) until the background build
+        (server/jobs/demo_build.py) replaces it through :meth:`register_trained_demo`."""
         if spec == "none":
             return None
         with self._lock:
@@ -329,19 +336,42 @@ class AvatarRegistry:
         if existing is not None and existing.source == f"demo:{spec}" and spec != "trained":
             return existing
         if spec == "synthetic" or spec.startswith("synthetic:"):
-            loaded = load_avatar(spec, self.body_models)
-            with tempfile.TemporaryDirectory(dir=self.root, prefix=".incoming-") as tmp:
-                src = save_package(loaded.package, Path(tmp) / "pkg")
-                return self.add_package(src, PUBLIC_OWNER, avatar_id=DEMO_ID,
-                                        source=f"demo:{spec}")
+            return self._register_synthetic_demo(spec, f"demo:{spec}", {"trained": False})
         if spec == "trained":
-            from avatar_core.studio_entry import trained_demo_avatar  # trains once, cached
+            from avatar_core.studio_entry import demo_build_plan  # finds, never trains
 
-            path = trained_demo_avatar()
-            return self.add_package(path, PUBLIC_OWNER, avatar_id=DEMO_ID, source="demo:trained")
+            ready = demo_build_plan(cache, recipe).ready
+            if ready is not None:
+                return self.add_package(ready, PUBLIC_OWNER, avatar_id=DEMO_ID,
+                                        source="demo:trained", metadata={"trained": True})
+            if existing is not None and existing.source == STAND_IN_SOURCE:
+                return existing
+            return self._register_synthetic_demo("synthetic", STAND_IN_SOURCE,
+                                                 {"trained": False, "stand_in": True})
         # a path: re-added at every start (cheap), and never shown to clients
         return self.add_package(Path(spec), PUBLIC_OWNER, avatar_id=DEMO_ID,
                                 source="demo:package")
+
+    def _register_synthetic_demo(self, spec: str, source: str,
+                                 metadata: dict[str, Any]) -> AvatarRecord:
+        loaded = load_avatar(spec, self.body_models)
+        with tempfile.TemporaryDirectory(dir=self.root, prefix=".incoming-") as tmp:
+            src = save_package(loaded.package, Path(tmp) / "pkg")
+            return self.add_package(src, PUBLIC_OWNER, avatar_id=DEMO_ID, source=source,
+                                    metadata=metadata)
+
+    def register_trained_demo(self, package: str | Path, cache: str | Path | None,
+                              job_id: str) -> AvatarRecord:
+        """The background build's trained package: installed in the demo cache (later starts
+        and ``telesplat demo-avatar`` find it there) and registered as 'demo' in place of
+        the stand-in. Sessions already streaming the stand-in keep their loaded copy."""
+        from avatar_core.studio_entry import demo_build_plan, install_trained_demo
+
+        root = demo_build_plan(cache).root
+        installed = install_trained_demo(root, package)
+        return self.add_package(installed, PUBLIC_OWNER, avatar_id=DEMO_ID,
+                                source="demo:trained",
+                                metadata={"trained": True, "job_id": job_id})
 
     # -- loading for streaming ---------------------------------------------------------------
 

@@ -42,26 +42,31 @@ def test_demo_avatar_built_once_then_cached(tmp_path, synthetic_files):
     assert img.shape == (64, 64, 3) and np.ptp(img) > 50  # the avatar is in the picture
 
 
-def test_the_servers_trained_demo_comes_from_the_demo_builder(tmp_path, monkeypatch,
-                                                             synthetic_files):
-    """`demo_avatar = "trained"`: the registry asks the studio's entry point, which asks the
-    demo-avatar builder (here a stand-in returning an untrained package, no training)."""
+def test_the_servers_trained_demo_comes_from_the_demo_cache(tmp_path, monkeypatch,
+                                                           synthetic_files):
+    """`demo_avatar = "trained"`: the registry never trains (the server builds it in the
+    background, tests/test_demo_build.py); it takes the demo cache's package when the builder
+    has put one there (here an untrained package installed as the builder installs it), and
+    registers the synthetic stand-in otherwise."""
+    from avatar_core.demo import install_package
     from server.registry import DEMO_ID, AvatarRegistry
+
+    def never(*args, **kwargs):
+        raise AssertionError("the registry must not build the demo avatar")
+
+    monkeypatch.setattr(avatar_core.demo, "ensure_demo_avatar", never)
+    cache = tmp_path / "cache"
+    registry = AvatarRegistry(tmp_path / "avatars", body_models=synthetic_files.root)
+    stand_in = registry.register_demo("trained", cache=cache)
+    assert stand_in.id == DEMO_ID
+    assert stand_in.metadata["trained"] is False and stand_in.metadata["stand_in"] is True
 
     package = save_package(load_avatar("synthetic", synthetic_files.root).package,
                            tmp_path / "built")
-    calls = []
-
-    def built(*args, **kwargs):
-        calls.append((args, kwargs))
-        return package
-
-    monkeypatch.setattr(avatar_core.demo, "ensure_demo_avatar", built)
-    registry = AvatarRegistry(tmp_path / "avatars", body_models=synthetic_files.root)
-    record = registry.register_demo("trained")
-    assert calls == [((), {})]  # the default cache, as `telesplat demo-avatar` builds it
+    install_package(cache, package)
+    record = registry.register_demo("trained", cache=cache)
     assert record.id == DEMO_ID and record.owner == "public"
-    assert record.source == "demo:trained"
+    assert record.source == "demo:trained" and record.metadata["trained"] is True
 
 
 def test_demo_preset_is_a_compressed_quick_schedule():

@@ -29,6 +29,8 @@ STUDIO_ENTRY_CALLERS = {
         "the resolver's last resort: the synthetic family, generated on first use",
     "server.registry":
         "the server's start-up demo avatar, when configured as 'trained'",
+    "server.jobs.demo_build":
+        "the trained demo avatar, built in the background from start-up when not cached",
 }
 STUDIO_ENTRY_REASON = (
     "the studio's one entry point (STUDIO_ENTRY): the synthetic family is written by the "

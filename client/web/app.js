@@ -17,6 +17,7 @@ import { OrbitControl } from "./orbit.js";
 import { backoffDelay, reconnectDecision, reconnectPolicy, stopReason } from "./reconnect.js";
 import { Session, streamUrl, takeToken } from "./session.js";
 import { canShare, inviteAll, presenceText, showLinks } from "./share.js";
+import { demoBanner, watchDemoBuild } from "./demo_build.js";
 import { StreamStats, renderStats } from "./stats.js";
 import { Webcam } from "./webcam.js";
 import {
@@ -34,6 +35,7 @@ const state = window.telesplat = {
   room: null, presence: null, shareLinks: [],
   transport: null, transportWhy: null, privateRoom: null,  // privateRoom: the solo page's room id
   reconnecting: false, reconnects: 0, lastReconnect: null,  // {reason, downMs, attempts}
+  demoBuild: null,  // the last /v1/demo status
 };
 
 function notify(text, kind = "info") {
@@ -451,8 +453,33 @@ async function joinRoom(roomId) {
   if (state.room?.role === "perform") loadMotions();
 }
 
+/** The trained demo's background build: a banner while it runs; when it is done a solo page
+ *  on `demo` reconnects to get the trained avatar (a room's page is told to rejoin). */
+function followDemoBuild() {
+  const banner = $("demo-build");
+  watchDemoBuild({
+    fetchStatus: () => api("/v1/demo"),
+    show: (status) => {
+      state.demoBuild = status;
+      const text = demoBanner(status);
+      banner.hidden = !text;
+      banner.textContent = text || "";
+      banner.className = status?.state === "failed" ? "error" : "";
+    },
+    onReady: () => {
+      notify("the trained demo avatar is ready");
+      if (state.avatar === "demo" && (!state.room || state.room.id === state.privateRoom)) {
+        connect("demo");
+      } else if (state.room) {
+        notify("reload the page to see the trained demo avatar in this room");
+      }
+    },
+  });
+}
+
 async function start() {
   wire();
+  followDemoBuild();
   if (!token) notify("no #token= in the address: the server prints a URL with one", "error");
   await pickTransport();
   if (params.get("room")) {

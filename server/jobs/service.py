@@ -153,6 +153,11 @@ class JobService:
         job_max_stored_per_user."""
 
         def register(job: Job, package: Path) -> str:
+            from .demo_build import register_job_package  # the demo's job: replaces 'demo'
+
+            demo_id = register_job_package(settings, registry, job, package)
+            if demo_id is not None:
+                return demo_id
             record = registry.add_package(package, job.owner, job.name,
                                           source=f"job:{job.id}", metadata={"job_id": job.id})
             return record.id
@@ -283,6 +288,17 @@ class JobService:
                 raise
         finally:
             shutil.rmtree(scratch, ignore_errors=True)
+
+    def submit_prepared(self, owner: str, label: str, path: Path, config: Any,
+                        name: str | None = None) -> Job:
+        """A job the server itself queues (the trained demo avatar: server/jobs/demo_build.py) on a
+        dataset it made: no quota, the dataset's own checks left to the trainer. ``label``
+        is the job's ``dataset`` (never ``upload`` or ``dataset:...``, which users' jobs
+        carry)."""
+        if label == "upload" or label.startswith("dataset:"):
+            raise ValueError(f"label {label!r} is reserved for users' jobs")
+        return self._create(owner, label, Path(path), resolve_config(config), name,
+                            exempt=True)
 
     def _create(self, owner: str, dataset: str, path: Path, config: TrainConfig,
                 name: str | None, job_id: str | None = None, *, exempt: bool = False) -> Job:

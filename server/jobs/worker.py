@@ -41,6 +41,7 @@ try:
 except ImportError:  # pragma: no cover - not POSIX
     fcntl = None  # type: ignore[assignment]
 
+from avatar_core.threads import passive_waiting
 from avatar_core.train.checkpoint import CHECKPOINT_DIR, latest_checkpoint
 
 from .run import EXIT_CANCELLED, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, OUT_DIR
@@ -274,6 +275,7 @@ class Worker:
     def _env(self) -> dict[str, str]:
         env = dict(os.environ)
         env.update({name: str(self.config.threads) for name in _THREAD_VARS})
+        passive_waiting(env)  # read when torch loads: set before the process starts
         env["PYTHONUNBUFFERED"] = "1"
         path = env.get("PYTHONPATH")
         env["PYTHONPATH"] = str(_REPO_ROOT) + (os.pathsep + path if path else "")

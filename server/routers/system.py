@@ -1,4 +1,5 @@
-"""``/v1/health`` (no auth) and ``/metrics`` (Prometheus text, no auth)."""
+"""``/v1/health``, ``/v1/demo`` (the trained demo's build) and ``/metrics`` (Prometheus text),
+none with auth."""
 
 from __future__ import annotations
 
@@ -31,6 +32,23 @@ def health(ctx: Context) -> HealthOut:
                      render_queue=ctx.scheduler.queued,
                      webrtc=ctx.settings.webrtc_max_peers > 0,
                      webrtc_peers=len(ctx.webrtc_peers))
+
+
+class DemoBuildOut(BaseModel):
+    state: str = Field(description="off (no trained demo configured), building, ready or "
+                                   "failed")
+    stage: str | None = Field(description="capture or train while building")
+    progress: float = Field(description="the whole build's progress, in [0, 1]")
+    stage_progress: float = Field(description="the stage's progress, in [0, 1]")
+    job_id: str | None = Field(description="the training job (visible to admins)")
+    error: str | None = Field(description="why it failed")
+    trained: bool = Field(description="whether the avatar 'demo' is the trained one now")
+
+
+@router.get("/v1/demo", summary="The trained demo avatar's background build (no auth)",
+            response_model=DemoBuildOut)
+def demo_build(ctx: Context) -> DemoBuildOut:
+    return DemoBuildOut(**ctx.demo_build.status())
 
 
 @router.get("/metrics", summary="Prometheus metrics", response_class=Response,
