@@ -13,7 +13,7 @@ talking-and-gesturing motion at ``--rate`` Hz for ``--seconds`` and decodes ever
 - PSNR of decoded frames against the rendered ones: after the window, the same poses are
   rendered again losslessly (PNG over a WebSocket, a fresh room, same view) and compared; the
   top rows holding the frame stamp are left out of every comparison;
-- equal-PSNR JPEG: what the server's JPEG (OpenCV, as server/encoders.py) needs for the same
+- equal-PSNR JPEG: what the server's JPEG (OpenCV, as server/stream/encoders/) needs for the same
   PSNR on those reference frames (lowest quality reaching it), times the row's fps: the
   bytes a JPEG stream would need for that picture quality;
 - drive -> decoded-frame latency: WebSocket frames carry the seq of the newest drive they

@@ -5,7 +5,7 @@ takes a held-out take (the ``self_reenactment`` split; without one, ``novel_view
 and, frame by frame:
 
 1. the *webcam* camera's image (default: the centre front camera) goes through the live path
-   of ``server/tracking.py``: JPEG, ``decode_image``, the live ``Tracker`` (one thread per
+   of ``server/stream/tracking.py``: JPEG, ``decode_image``, the live ``Tracker`` (one thread per
    model, palm search every ``LIVE_PALM_INTERVAL`` frames, irises), ``SequenceFit`` on the
    avatar's body model and betas (One Euro smoothing, hold/relax), ``drive_params`` (no
    ``transl``: the avatar stays at its own place, as on the server). Two things the server
@@ -164,7 +164,7 @@ def _fov_x_deg(cam: Camera) -> float:
 
 
 def _live_tracking(loaded: LoadedAvatar, webcam: Camera):
-    """The server's tracker and fit (server/tracking.py SessionTracker._ensure), with the
+    """The server's tracker and fit (server/stream/tracking.py SessionTracker._ensure), with the
     webcam's own field of view. Raises RuntimeError with the reason when it cannot run."""
     try:
         from ..track.fit.sequence import SequenceFit, SequenceFitConfig
