@@ -38,7 +38,7 @@ class ServerContext:
     track_scheduler: RenderScheduler  # webcam images -> fitted parameters, off the renderers
     metrics: ServerMetrics
     slots: SessionSlots
-    sessions: dict[str, Any] = field(default_factory=dict)  # id -> Session (server/stream/session.py)
+    sessions: dict[str, Any] = field(default_factory=dict)  # id -> stream.session.Session
     local_token: str | None = None  # local auth mode: the admin token printed at start-up
     jobs: JobService | None = None  # set while the app's lifespan runs (server/routers/jobs.py)
     demo_build: Any = None  # the trained demo's background build (server/jobs/demo_build.py)
