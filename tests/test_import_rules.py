@@ -334,7 +334,7 @@ def test_known_lazy_cycle_edges_still_close_a_cycle():
 SERVER_ROOT = {"server", "server.__main__", "server.app", "server.auth", "server.cli",
                "server.cluster", "server.config", "server.context", "server.dependencies",
                "server.logsafe", "server.metrics", "server.private", "server.quotas",
-               "server.registry", "server.uploads"}
+               "server.registry", "server.sqlite", "server.uploads"}
 BUILT_ON_STREAM = ("server.rooms", "server.webrtc", "server.cluster_render")
 ENCODERS = "server.stream.encoders"
 # Where a codec may be named outside the encoders: the protocol (its codec list) and WebRTC's

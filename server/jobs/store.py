@@ -17,16 +17,15 @@ from __future__ import annotations
 import json
 import secrets
 import sqlite3
-import threading
 import time
 from abc import ABC, abstractmethod
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
 from protocol.jobs import PROGRESS_TYPES, progress_event
+
+from ..sqlite import SQLiteFile
 
 __all__ = ["ACTIVE", "MAX_ATTEMPT_LOG", "RESUMABLE", "STATES", "TERMINAL", "Event",
            "InvalidTransition", "Job", "JobNotFound", "JobStore", "NewJob", "QuotaExceeded",
@@ -243,46 +242,12 @@ def _finite(x: Any) -> float | None:
     return v if v == v and abs(v) != float("inf") else None
 
 
-class SQLiteJobStore(JobStore):
+class SQLiteJobStore(SQLiteFile, JobStore):
     """Jobs in one SQLite file; usable from many threads and processes at once."""
 
     def __init__(self, path: str | Path, *, timeout_s: float = 30.0) -> None:
-        self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.timeout_s = timeout_s
-        self._local = threading.local()
-        self._all: list[sqlite3.Connection] = []
-        self._lock = threading.Lock()
-        self._db().executescript(_SCHEMA)  # its own transaction (IF NOT EXISTS: idempotent)
+        SQLiteFile.__init__(self, path, _SCHEMA, timeout_s=timeout_s)
         self._migrate()
-
-    # -- connections -----------------------------------------------------------------------
-
-    def _db(self) -> sqlite3.Connection:
-        db = getattr(self._local, "db", None)
-        if db is None:
-            # autocommit mode (isolation_level None): transactions are explicit below
-            db = sqlite3.connect(self.path, timeout=self.timeout_s, isolation_level=None,
-                                 check_same_thread=False)
-            db.row_factory = sqlite3.Row
-            db.execute("PRAGMA journal_mode=WAL")
-            db.execute("PRAGMA synchronous=NORMAL")
-            db.execute("PRAGMA foreign_keys=ON")
-            self._local.db = db
-            with self._lock:
-                self._all.append(db)
-        return db
-
-    @contextmanager
-    def _write(self) -> Iterator[sqlite3.Connection]:
-        db = self._db()
-        db.execute("BEGIN IMMEDIATE")  # take the write lock now: no upgrade deadlocks
-        try:
-            yield db
-        except BaseException:
-            db.execute("ROLLBACK")
-            raise
-        db.execute("COMMIT")
 
     def _migrate(self) -> None:
         """Add the columns a database from an older release lacks. Under the write lock, so
@@ -293,15 +258,6 @@ class SQLiteJobStore(JobStore):
                 if name not in have:
                     db.execute(f"ALTER TABLE jobs ADD COLUMN {name} {declaration}")
 
-    def close(self) -> None:
-        with self._lock:
-            conns, self._all = self._all, []
-        for db in conns:
-            try:
-                db.close()
-            except sqlite3.ProgrammingError:  # closed from its own thread already
-                pass
-        self._local = threading.local()
 
     # -- helpers ---------------------------------------------------------------------------
 

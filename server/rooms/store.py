@@ -20,11 +20,9 @@ private room (``Room.private``). The schema has a version (table ``store_version
 from __future__ import annotations
 
 import sqlite3
-import threading
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 
+from ..sqlite import SQLiteFile
 from .registry import Invitation, Placement, Room, SeatSpec
 
 # The jobs' store file (server/jobs/service.py JOBS_DIR / DB_FILE; tests/test_rooms_store.py
@@ -76,46 +74,12 @@ def store_path(data_dir: str | Path) -> Path:
     return Path(data_dir) / STORE_FILE
 
 
-class RoomStore:
+class RoomStore(SQLiteFile):
     """Rooms in one SQLite file; usable from many threads (a connection each)."""
 
     def __init__(self, path: str | Path, *, timeout_s: float = 30.0) -> None:
-        self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.timeout_s = timeout_s
-        self._local = threading.local()
-        self._all: list[sqlite3.Connection] = []
-        self._lock = threading.Lock()
-        self._db().executescript(_SCHEMA)  # its own transaction (IF NOT EXISTS: idempotent)
+        super().__init__(path, _SCHEMA, timeout_s=timeout_s)
         self._migrate()
-
-    # -- connections -------------------------------------------------------------------------
-
-    def _db(self) -> sqlite3.Connection:
-        db = getattr(self._local, "db", None)
-        if db is None:
-            # autocommit mode (isolation_level None): transactions are explicit below
-            db = sqlite3.connect(self.path, timeout=self.timeout_s, isolation_level=None,
-                                 check_same_thread=False)
-            db.row_factory = sqlite3.Row
-            db.execute("PRAGMA journal_mode=WAL")
-            db.execute("PRAGMA synchronous=NORMAL")
-            db.execute("PRAGMA foreign_keys=ON")
-            self._local.db = db
-            with self._lock:
-                self._all.append(db)
-        return db
-
-    @contextmanager
-    def _write(self) -> Iterator[sqlite3.Connection]:
-        db = self._db()
-        db.execute("BEGIN IMMEDIATE")  # take the write lock now: no upgrade deadlocks
-        try:
-            yield db
-        except BaseException:
-            db.execute("ROLLBACK")
-            raise
-        db.execute("COMMIT")
 
     def _migrate(self) -> None:
         with self._write() as db:
@@ -131,16 +95,6 @@ class RoomStore:
             db.execute("INSERT INTO store_versions (part, version) VALUES ('rooms', ?) "
                        "ON CONFLICT (part) DO UPDATE SET version = excluded.version",
                        (SCHEMA_VERSION,))
-
-    def close(self) -> None:
-        with self._lock:
-            conns, self._all = self._all, []
-        for db in conns:
-            try:
-                db.close()
-            except sqlite3.ProgrammingError:  # closed from its own thread already
-                pass
-        self._local = threading.local()
 
     # -- writes (one transaction each) -------------------------------------------------------
 
