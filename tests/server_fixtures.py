@@ -156,3 +156,15 @@ async def stream(srv: RunningServer, avatar: str | None = "demo", token: str | N
         if welcome:
             ws.welcome = await recv_until(ws, is_type("welcome"))
         yield ws
+
+
+async def count_frames(ws, seconds: float) -> int:
+    """Frames a WebSocket receives within ``seconds`` (bounded by that deadline)."""
+    n, end = 0, time.monotonic() + seconds
+    while time.monotonic() < end:
+        try:
+            msg = await recv_msg(ws, timeout=max(0.01, end - time.monotonic()))
+        except TimeoutError:
+            break
+        n += msg.type == "frame"
+    return n

@@ -26,7 +26,7 @@ from server.rooms.registry import Placement
 from server.stream.drive import DriveState
 from server.stream.scene import FrameAbandoned, FrameJob, Scene, SceneFrames, SeatPoser
 from server.stream.scheduler import RenderScheduler, WorkFuture, abandon_check, abandoned
-from tests.server_fixtures import recv_msg, run_server, stream, wait_until
+from tests.server_fixtures import count_frames, run_server, stream, wait_until
 
 BOMB_LOG_SCALE = 6.0  # the largest log-scale GaussianRanges allows
 
@@ -272,27 +272,16 @@ async def _drive_for(ws, seconds: float) -> None:
         await asyncio.sleep(0.02)
 
 
-async def _count_frames(ws, seconds: float) -> int:
-    n, end = 0, time.monotonic() + seconds
-    while time.monotonic() < end:  # bounded by the deadline
-        try:
-            msg = await recv_msg(ws, timeout=max(0.01, end - time.monotonic()))
-        except TimeoutError:
-            break
-        n += msg.type == "frame"
-    return n
-
-
 async def _alone(ws, seconds: float) -> int:
     drives = asyncio.ensure_future(_drive_for(ws, seconds))
-    count = await _count_frames(ws, seconds)
+    count = await count_frames(ws, seconds)
     await drives
     return count
 
 
 async def _both(a, b, seconds: float) -> tuple[int, int]:
     drives = asyncio.gather(_drive_for(a, seconds), _drive_for(b, seconds))
-    counts = await asyncio.gather(_count_frames(a, seconds), _count_frames(b, seconds))
+    counts = await asyncio.gather(count_frames(a, seconds), count_frames(b, seconds))
     await drives
     return counts
 

@@ -20,8 +20,8 @@ from server.stream.drive import DriveState, fit_drive
 from server.stream.scene import view_camera
 from tests.server_fixtures import (
     WS_TIMEOUT_S,
+    count_frames,
     is_type,
-    recv_msg,
     recv_until,
     run_server,
     wait_until,
@@ -330,17 +330,6 @@ def test_seats_render_in_one_call_and_the_front_avatar_occludes(srv, monkeypatch
 # -- shared work, never repeated -----------------------------------------------------------------
 
 
-async def _count_frames(ws, seconds: float) -> int:
-    n, end = 0, time.monotonic() + seconds
-    while time.monotonic() < end:
-        try:
-            msg = await recv_msg(ws, max(0.01, end - time.monotonic()))
-        except TimeoutError:
-            break
-        n += msg.type == "frame"
-    return n
-
-
 async def _drive_for(ws, seconds: float, hz: float = 20.0, start: int = 100) -> int:
     seq, end = start, time.monotonic() + seconds
     while time.monotonic() < end:
@@ -365,7 +354,7 @@ def test_viewers_at_one_view_share_posing_rendering_and_encoding(srv):
             counters = live(srv, room["id"]).scene.counters
             before = (counters.poses, counters.renders, counters.encodes)
             sender = asyncio.create_task(_drive_for(performer, 1.5, hz=10))
-            counts = await asyncio.gather(*(_count_frames(ws, 2.0) for ws in
+            counts = await asyncio.gather(*(count_frames(ws, 2.0) for ws in
                                             (performer, *viewers)))
             last = await sender
             poses, renders, encodes = (counters.poses - before[0],
@@ -398,7 +387,7 @@ def test_distinct_views_render_once_each_per_drive_update(srv):
             await asyncio.sleep(0.3)  # frames of the side view settle
             poses, renders = counters.poses, counters.renders
             sender = asyncio.create_task(_drive_for(performer, 1.5, hz=10))
-            counts = await asyncio.gather(*(_count_frames(ws, 2.0) for ws in viewers))
+            counts = await asyncio.gather(*(count_frames(ws, 2.0) for ws in viewers))
             await sender
             return counts, counters.poses - poses, counters.renders - renders
 
@@ -420,7 +409,7 @@ async def _until_stalled(srv, *readers, timeout_s: float = 30.0) -> None:
     while time.monotonic() < end:
         if any(s.stalled and s.request.codec == "png" for s in srv.ctx.sessions.values()):
             return
-        await asyncio.gather(*(_count_frames(r, 0.1) for r in readers))
+        await asyncio.gather(*(count_frames(r, 0.1) for r in readers))
     raise AssertionError(f"no png participant stalled within {timeout_s} s")
 
 
@@ -430,8 +419,8 @@ def test_a_stalled_viewer_slows_neither_the_performer_nor_other_viewers(srv):
 
     async def window(performer, viewer) -> tuple[int, int]:
         sender = asyncio.create_task(_drive_for(performer, 1.5, hz=30))
-        counts = await asyncio.gather(_count_frames(performer, 1.5),
-                                      _count_frames(viewer, 1.5))
+        counts = await asyncio.gather(count_frames(performer, 1.5),
+                                      count_frames(viewer, 1.5))
         await sender
         return counts
 

@@ -15,7 +15,15 @@ import websockets
 from protocol import Drive, Limits, Ping, Request, encode
 from server.stream.drive import DriveState
 from server.stream.scheduler import RenderScheduler
-from tests.server_fixtures import is_type, recv_msg, recv_until, run_server, stream, wait_until
+from tests.server_fixtures import (
+    count_frames,
+    is_type,
+    recv_msg,
+    recv_until,
+    run_server,
+    stream,
+    wait_until,
+)
 
 MAX_SESSIONS = 3
 
@@ -118,23 +126,12 @@ async def _drive_for(ws, seconds: float, stop: asyncio.Event | None = None) -> i
     return seq - 1
 
 
-async def _count_frames(ws, seconds: float) -> int:
-    n, end = 0, time.monotonic() + seconds
-    while time.monotonic() < end:
-        try:
-            msg = await recv_msg(ws, timeout=max(0.01, end - time.monotonic()))
-        except TimeoutError:
-            break
-        n += msg.type == "frame"
-    return n
-
-
 def test_fair_sharing_between_sessions(srv):
     async def run():
         async with stream(srv) as a, stream(srv) as b:
             await asyncio.gather(*(ws.send(encode(Request(max_fps=60))) for ws in (a, b)))
             sent = asyncio.gather(_drive_for(a, 1.5), _drive_for(b, 1.5))
-            counts = await asyncio.gather(_count_frames(a, 1.5), _count_frames(b, 1.5))
+            counts = await asyncio.gather(count_frames(a, 1.5), count_frames(b, 1.5))
             await sent
             assert min(counts) > 5
             assert max(counts) / min(counts) < 1.6, counts
@@ -157,7 +154,7 @@ async def _until_stalled(srv, reader, codec: str, timeout_s: float = 30.0) -> No
     while time.monotonic() < end:
         if any(s.stalled and s.request.codec == codec for s in srv.ctx.sessions.values()):
             return
-        await _count_frames(reader, 0.1)
+        await count_frames(reader, 0.1)
     raise AssertionError(f"no {codec} session stalled within {timeout_s} s")
 
 
@@ -169,14 +166,14 @@ def test_slow_client_builds_no_lag_and_slows_nobody(srv):
             await slow.send(encode(Request(codec="png", width=256, height=256)))
             await recv_until(slow, lambda m: m.type == "frame" and m.codec == "png")
             solo_task = asyncio.create_task(_drive_for(fast, 1.0))
-            solo = await _count_frames(fast, 1.0)
+            solo = await count_frames(fast, 1.0)
             await solo_task
             # The slow client keeps driving but stops reading.
             slow_sender = asyncio.create_task(_drive_for(slow, 2.5))
             fast_sender = asyncio.create_task(_drive_for(fast, 2.5))
-            await _count_frames(fast, 1.0)  # until the slow connection's buffers are full
+            await count_frames(fast, 1.0)  # until the slow connection's buffers are full
             await _until_stalled(srv, fast, "png")  # on a loaded machine that takes longer
-            shared = await _count_frames(fast, 1.5) / 1.5
+            shared = await count_frames(fast, 1.5) / 1.5
             last = await slow_sender
             await fast_sender
             assert shared > 0.6 * solo, (shared, solo)  # the stalled session takes no slot
@@ -291,12 +288,12 @@ def _render_share(srv, cheap: str, big: str, seconds: float):
             await b.send(encode(Request(width=BIG, height=BIG, codec="png", max_fps=60,
                                         outputs=["rgb", "alpha", "depth"])))
             warm = asyncio.gather(_drive_for(a, 2.0), _drive_for(b, 2.0),
-                                  _count_frames(a, 2.0), _count_frames(b, 2.0))
+                                  count_frames(a, 2.0), count_frames(b, 2.0))
             await warm  # shares settle (window 1 s)
             before = sched.render_seconds(ids[big])
             start = time.monotonic()
             sent = asyncio.gather(_drive_for(a, seconds), _drive_for(b, seconds))
-            counts = await asyncio.gather(_count_frames(a, seconds), _count_frames(b, seconds))
+            counts = await asyncio.gather(count_frames(a, seconds), count_frames(b, seconds))
             window = time.monotonic() - start
             used = sched.render_seconds(ids[big]) - before
             await sent
