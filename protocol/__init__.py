@@ -31,6 +31,7 @@ from .messages import (
     SeatPresence,
     Stats,
     Timings,
+    Tracked,
     View,
     Welcome,
 )
@@ -40,7 +41,7 @@ __all__ = [
     "CLIENT_TYPES", "CODECS", "DEFAULT_LIMITS", "ERROR_CODES", "FAMILIES", "OUTPUTS",
     "PROTOCOL_MINOR", "PROTOCOL_VERSION", "SERVER_TYPES", "AvatarInfo", "CameraSpec", "Drive",
     "Error", "Frame", "Hello", "Image", "Limits", "Orbit", "Ping", "Pong", "Presence",
-    "ProtocolError", "Request", "RoomWelcome", "SeatPresence", "Stats", "Timings",
+    "ProtocolError", "Request", "RoomWelcome", "SeatPresence", "Stats", "Timings", "Tracked",
     "View", "Welcome", "decode_client", "decode_server", "encode", "pack_array",
     "unpack_array",
 ]

@@ -37,6 +37,7 @@ class Limits(BaseModel):
     max_fov_deg: float = Field(120.0, gt=0, lt=180)
     max_camera_size: int = Field(16384, ge=16)           # a full camera's own width / height
     min_fps: float = Field(1.0, gt=0)                    # lowest max_fps a request may ask
+    max_name_chars: int = Field(32, ge=1, le=200)        # a participant's display name
 
     @model_validator(mode="after")
     def _ordered(self) -> Limits:

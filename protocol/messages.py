@@ -3,9 +3,11 @@ JavaScript module) the browser page all use these.
 
 Every message is a msgpack map with a ``type``. Client -> server: ``hello``, ``drive``,
 ``view``, ``request``, ``image``, ``ping``. Server -> client: ``welcome``, ``frame``, ``error``,
-``stats``, ``pong``, ``presence`` (rooms). Unknown fields are errors, so a typo never passes
-silently. Minor version 1 (rooms) adds only optional fields, left out of plain sessions'
-messages, so a client of minor version 0 keeps working there.
+``stats``, ``pong``, ``presence`` (rooms), ``tracked`` (answers ``image``). Unknown fields are
+errors, so a typo never passes silently. Minor version 1 (rooms) adds only optional fields,
+left out of plain sessions' messages, so a client of minor version 0 keeps working there.
+Minor version 2 adds ``hello.name``, ``avatar.expression_names`` (left out when the avatar
+names none) and ``tracked``, which only a client that sends images gets.
 """
 
 from __future__ import annotations
@@ -25,12 +27,15 @@ from pydantic import (
 
 from .errors import ProtocolError
 from .limits import DEFAULT_LIMITS, Limits
+from .names import display_name
 from .params import validate_family
 
 PROTOCOL_VERSION = 1
-PROTOCOL_MINOR = 1  # 1: rooms (hello.role/seat, welcome.room/minor, presence)
+PROTOCOL_MINOR = 2  # 1: rooms (hello.role/seat, welcome.room/minor, presence)
+#                     2: hello.name, avatar.expression_names, tracked
 MAX_SEATS = 16      # seat indices on the wire; server settings bound a room's seats further
 MAX_SEQ = 2**53 - 1  # exact in a JavaScript number
+MAX_EXPRESSION_NAMES = 100  # as many as an expression vector may hold (params.FAMILIES)
 
 OUTPUTS = ("rgb", "alpha", "depth")
 CODECS = ("jpeg", "png", "h264")
@@ -71,9 +76,15 @@ class Hello(_Message):
     type: Literal["hello"] = "hello"
     version: int = PROTOCOL_VERSION
     token: str | None = Field(None, max_length=512)
-    client: str | None = Field(None, max_length=200)
+    client: str | None = Field(None, max_length=200)  # the software, never shown to others
     role: Role | None = None       # rooms: perform a seat or watch (default: the token's)
     seat: SeatIndex | None = None  # rooms: the seat to perform (or to follow, watching)
+    name: str | None = None        # the display name others see (protocol/names.py)
+
+    @field_validator("name")
+    @classmethod
+    def _name(cls, value: str | None, info: ValidationInfo) -> str | None:
+        return None if value is None else display_name(value, _limits(info).max_name_chars)
 
 
 class Drive(_Message):
@@ -269,6 +280,9 @@ class AvatarInfo(_Message):
     sh_degree: int
     owner: str | None = None
     metadata: dict[str, Any] = Field(default_factory=dict)
+    # What each expression coefficient means, in order (the body model's rig); None: unnamed.
+    expression_names: list[Annotated[str, Field(max_length=64)]] | None = Field(
+        None, max_length=MAX_EXPRESSION_NAMES)
 
 
 class RoomWelcome(_Message):
@@ -317,6 +331,16 @@ class Presence(_Message):
     event: Literal["join", "leave", "update"] = "update"
     who: str | None = None   # the client name that joined or left
     role: Role | None = None
+
+
+class Tracked(_Message):
+    """What the tracker found in image ``seq``: the groups seen (face, hands, pose); ``found``
+    is False when it saw no person, and then the avatar holds its last pose."""
+
+    type: Literal["tracked"] = "tracked"
+    seq: Seq
+    found: bool
+    seen: dict[str, bool] = Field(default_factory=dict)
 
 
 class Timings(_Message):
@@ -371,9 +395,9 @@ class Pong(_Message):
 
 ClientMessage = Annotated[Hello | Drive | View | Request | Image | Ping,
                           Field(discriminator="type")]
-ServerMessage = Annotated[Welcome | Frame | Error | Stats | Pong | Presence,
+ServerMessage = Annotated[Welcome | Frame | Error | Stats | Pong | Presence | Tracked,
                           Field(discriminator="type")]
 CLIENT_TYPES = {m.model_fields["type"].default: m for m in (Hello, Drive, View, Request, Image,
                                                              Ping)}
 SERVER_TYPES = {m.model_fields["type"].default: m for m in (Welcome, Frame, Error, Stats, Pong,
-                                                             Presence)}
+                                                             Presence, Tracked)}

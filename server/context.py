@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Any
 from avatar_core.body.models import MANOModel
 from avatar_core.gaussians.animate import AvatarAnimator
 from avatar_core.gaussians.loading import mano_models
+from avatar_core.motion.rig import model_rig
 
 from .auth import Principal, TokenStore, is_invitation
 from .config import Settings
@@ -77,6 +78,16 @@ class ServerContext:
             if manos is None:
                 manos = self._manos[avatar_id] = mano_models(loaded)
         return animator, manos
+
+    def rig(self, avatar_id: str) -> Rig:
+        """The avatar's rig (its expression names, gestures), cached per app; loads the
+        avatar (a race only computes one twice)."""
+        rig = self.motion_rigs.get(avatar_id)
+        if rig is None:
+            loaded = self.registry.open(avatar_id)
+            rig = self.motion_rigs[avatar_id] = model_rig(loaded.files,
+                                                          loaded.animator.body_model)
+        return rig
 
     def session_tracker(self, avatar_id: str) -> SessionTracker:
         """A session's own webcam tracker, fitting on the avatar's (shared, read-only) body

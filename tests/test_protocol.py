@@ -30,6 +30,7 @@ from protocol import (
     SeatPresence,
     Stats,
     Timings,
+    Tracked,
     View,
     Welcome,
     decode_client,
@@ -59,6 +60,7 @@ CLIENT_EXAMPLES = [
     Image(seq=3, format="png", data=b"\x89PNG fake but non-empty"),
     Ping(t=12.5),
     Hello(token="tsr_x", client="viewer", role="watch", seat=1),
+    Hello(token="t", client="telesplat-web", name="Zoë O'Brien-2"),
 ]
 SERVER_EXAMPLES = [
     Welcome(session="abc", avatar=AvatarInfo(id="demo", name="ada", num_gaussians=5,
@@ -77,6 +79,11 @@ SERVER_EXAMPLES = [
     Presence(room="r1", seats=[SeatPresence(index=0, avatar="demo", performer="cam",
                                             holding=False)],
              viewers=3, event="join", who="viewer", role="watch"),
+    Welcome(session="ghi", avatar=AvatarInfo(id="demo", name="ada", num_gaussians=5,
+                                             sh_degree=3, expression_names=["smile", "frown"]),
+            limits=Limits(), codecs=["jpeg"], request=Request(width=512)),
+    Tracked(seq=4, found=True, seen={"face": True, "left_hand": False}),
+    Tracked(seq=5, found=False),
 ]
 
 
@@ -85,6 +92,36 @@ def test_a_plain_welcome_carries_no_room_fields():
     plain = msgpack.unpackb(encode(SERVER_EXAMPLES[0]))
     assert "room" not in plain and "minor" not in plain
     assert "role" not in msgpack.unpackb(encode(Hello(token="t")))
+
+
+def test_an_avatar_without_expression_names_sends_none():
+    """Official body models name no expressions: the field is left out, not an empty list."""
+    assert "expression_names" not in msgpack.unpackb(encode(SERVER_EXAMPLES[0]))["avatar"]
+
+
+@pytest.mark.parametrize("name, shown", [
+    ("  Ann   Lee ", "Ann Lee"), ("李雷", "李雷"), ("o'neil_2.b-c", "o'neil_2.b-c"),
+    ("x" * 32, "x" * 32)])
+def test_display_names_are_trimmed_and_kept(name, shown):
+    back = decode_client(encode(Hello(name=name)))
+    assert back.name == shown
+
+
+@pytest.mark.parametrize("name, why", [
+    ("", "must not be empty"), ("   ", "must not be empty"),
+    ("x" * 33, "exceeds the limit 32"), ("<b>hi</b>", "letters, digits"),
+    ("a\u202eb", "letters, digits"), ("tab\there", None), ("emoji \U0001f600", "letters")])
+def test_display_names_are_bounded_and_plain(name, why):
+    if why is None:  # whitespace of any kind collapses to one space
+        assert decode_client(encode(Hello(name=name))).name == "tab here"
+        return
+    with pytest.raises(ProtocolError) as err:
+        decode_client(msgpack.packb({"type": "hello", "name": name}))
+    assert err.value.code == ("too_large" if "limit" in why else "invalid")
+    assert why in err.value.message
+    limits = Limits(max_name_chars=40)  # the limit is a setting
+    if len(name) == 33:
+        assert decode_client(msgpack.packb({"type": "hello", "name": name}), limits).name == name
 
 
 def _same(a, b):

@@ -8,7 +8,7 @@ import { decode as unpackMsgpack, encode as packMsgpack } from "./vendor/msgpack
 
 export const PROTOCOL_VERSION = Object.freeze(1);
 
-export const PROTOCOL_MINOR = Object.freeze(1);
+export const PROTOCOL_MINOR = Object.freeze(2);
 
 export const MAX_SEQ = Object.freeze(9007199254740991);
 
@@ -68,6 +68,7 @@ export const DEFAULT_LIMITS = Object.freeze({
   "max_image_pixels": 2073600,
   "max_message_bytes": 8388608,
   "max_messages_per_s": 240.0,
+  "max_name_chars": 32,
   "max_orbit_distance_m": 100.0,
   "max_position_m": 100.0,
   "max_rotation_rad": 12.566370614359172,
@@ -277,6 +278,7 @@ export const SERVER_TYPES = Object.freeze([
   "pong",
   "presence",
   "stats",
+  "tracked",
   "welcome"
 ]);
 
@@ -315,6 +317,23 @@ export const SCHEMA_DEFS = Object.freeze({
   "AvatarInfo": {
     "additionalProperties": false,
     "properties": {
+      "expression_names": {
+        "anyOf": [
+          {
+            "items": {
+              "maxLength": 64,
+              "type": "string"
+            },
+            "maxItems": 100,
+            "type": "array"
+          },
+          {
+            "type": "null"
+          }
+        ],
+        "default": null,
+        "title": "Expression Names"
+      },
       "id": {
         "title": "Id",
         "type": "string"
@@ -745,6 +764,18 @@ export const SCHEMA_DEFS = Object.freeze({
         "default": null,
         "title": "Client"
       },
+      "name": {
+        "anyOf": [
+          {
+            "type": "string"
+          },
+          {
+            "type": "null"
+          }
+        ],
+        "default": null,
+        "title": "Name"
+      },
       "role": {
         "anyOf": [
           {
@@ -905,6 +936,13 @@ export const SCHEMA_DEFS = Object.freeze({
         "exclusiveMinimum": 0,
         "title": "Max Messages Per S",
         "type": "number"
+      },
+      "max_name_chars": {
+        "default": 32,
+        "maximum": 200,
+        "minimum": 1,
+        "title": "Max Name Chars",
+        "type": "integer"
       },
       "max_orbit_distance_m": {
         "default": 100.0,
@@ -1449,6 +1487,41 @@ export const SCHEMA_DEFS = Object.freeze({
     "title": "Timings",
     "type": "object"
   },
+  "Tracked": {
+    "additionalProperties": false,
+    "description": "What the tracker found in image ``seq``: the groups seen (face, hands, pose); ``found``\nis False when it saw no person, and then the avatar holds its last pose.",
+    "properties": {
+      "found": {
+        "title": "Found",
+        "type": "boolean"
+      },
+      "seen": {
+        "additionalProperties": {
+          "type": "boolean"
+        },
+        "title": "Seen",
+        "type": "object"
+      },
+      "seq": {
+        "maximum": 9007199254740991,
+        "minimum": 0,
+        "title": "Seq",
+        "type": "integer"
+      },
+      "type": {
+        "const": "tracked",
+        "default": "tracked",
+        "title": "Type",
+        "type": "string"
+      }
+    },
+    "required": [
+      "seq",
+      "found"
+    ],
+    "title": "Tracked",
+    "type": "object"
+  },
   "View": {
     "additionalProperties": false,
     "description": "Where to look from: an orbit or a full camera (exactly one).",
@@ -1607,6 +1680,9 @@ export const SERVER_SCHEMAS = Object.freeze({
   },
   "stats": {
     "$ref": "#/$defs/Stats"
+  },
+  "tracked": {
+    "$ref": "#/$defs/Tracked"
   },
   "welcome": {
     "$ref": "#/$defs/Welcome"

@@ -146,8 +146,8 @@ async def join_stream(ws: WebSocket, ctx: ServerContext, avatar_id: str,
             role, seat = choose_role(room, who.hello.role, who.hello.seat, who.principal,
                                      who.invitation)
         admitted = admit(ctx, who.principal, who.invitation)
-        client = None if who.hello is None else who.hello.client
-        session, welcome = await seat_participant(ctx, room, role, seat, client,
+        name = None if who.hello is None else who.hello.name
+        session, welcome = await seat_participant(ctx, room, role, seat, name,
                                                   WebSocketTransport(ws))
         await serve(ctx, session, encode(welcome))
     except Refusal as refusal:
@@ -163,16 +163,18 @@ async def join_stream(ws: WebSocket, ctx: ServerContext, avatar_id: str,
 
 
 async def seat_participant(ctx: ServerContext, room: Room, role: str, seat: int,
-                           client: str | None, transport: Transport, *,
+                           name: str | None, transport: Transport, *,
                            request: Request | None = None) -> tuple[Session, Welcome]:
     """A session made and admitted to the room (Refusal otherwise), and the welcome it is
-    owed. ``request`` updates the default request (already checked against the limits)."""
+    owed. ``name``: the display name (already validated), else "performer" / "viewer N".
+    ``request`` updates the default request (already checked against the limits)."""
     s = ctx.settings
     spec = next(x for x in room.seats if x.index == seat)
     try:
         live = await open_live(ctx, room)
         record = ctx.registry.get(spec.avatar)
-        tracker = await asyncio.to_thread(ctx.session_tracker, spec.avatar)
+        tracker, rig = await asyncio.to_thread(
+            lambda: (ctx.session_tracker(spec.avatar), ctx.rig(spec.avatar)))
     except Exception as exc:  # noqa: BLE001 - a broken package must not take the server down
         log.exception("cannot open room %s", room.id)
         if room.private and room.live is not None:
@@ -183,7 +185,7 @@ async def seat_participant(ctx: ServerContext, room: Room, role: str, seat: int,
     effective = default_request(ctx, record)
     if request is not None:
         effective = Session.merged_request(effective, request, s.limits)
-    name = client or f"{'performer' if role == 'perform' else 'viewer'}-{uuid.uuid4().hex[:4]}"
+    name = name or live.default_name(role)
     session = Session(
         transport, live, role=role, seat_index=seat, name=name, tracker=tracker,
         track_scheduler=ctx.track_scheduler, metrics=ctx.metrics,
@@ -198,7 +200,8 @@ async def seat_participant(ctx: ServerContext, room: Room, role: str, seat: int,
             live.close(exc.message)
         raise Refusal(exc.code, exc.message, JOIN_CLOSE_CODES[exc.code]) from None
     try:
-        welcome = _welcome(session, record, room, role, seat, effective, s)
+        welcome = _welcome(session, record, rig.expression_names, room, role, seat, effective,
+                           s)
     except Exception:
         live.leave(session)  # admitted, never run: out again
         session.release()
@@ -206,10 +209,11 @@ async def seat_participant(ctx: ServerContext, room: Room, role: str, seat: int,
     return session, welcome
 
 
-def _welcome(session: Session, record: AvatarRecord, room: Room, role: str, seat: int,
-             request: Request, s: Any) -> Welcome:
+def _welcome(session: Session, record: AvatarRecord, expression_names: tuple[str, ...],
+             room: Room, role: str, seat: int, request: Request, s: Any) -> Welcome:
     info = AvatarInfo(id=record.id, name=record.name, num_gaussians=record.num_gaussians,
-                      sh_degree=record.sh_degree, owner=record.owner, metadata=record.metadata)
+                      sh_degree=record.sh_degree, owner=record.owner, metadata=record.metadata,
+                      expression_names=list(expression_names) or None)
     if room.private:  # a plain session: no room in its welcome
         return Welcome(session=session.id, avatar=info, limits=s.limits, codecs=list(CODECS),
                        request=request, encoders=encoders_info())

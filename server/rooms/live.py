@@ -75,6 +75,16 @@ class LiveRoom:
 
     # -- joining and leaving ----------------------------------------------------------------------
 
+    def default_name(self, role: str) -> str:
+        """The display name of a participant that gave none: "performer", or "viewer N" with
+        the smallest N no one here has (call it just before ``join``, with no await between,
+        so that two viewers never get the same one)."""
+        if role == "perform":
+            return "performer"
+        taken = {p.name for p in self.participants}
+        return next(f"viewer {n}" for n in range(1, len(taken) + 2)
+                    if f"viewer {n}" not in taken)
+
     def join(self, participant: Session) -> None:
         if self.closed:
             raise JoinRefused("gone", f"room {self.room.id!r} was closed")

@@ -13,11 +13,8 @@ from typing import Any
 from fastapi import APIRouter, HTTPException, Query
 from pydantic import BaseModel, Field
 
-from avatar_core.motion.keyframes import Rig
 from avatar_core.motion.library import ALIASES, MOTIONS, motion
-from avatar_core.motion.rig import model_rig
 
-from ..context import ServerContext
 from ..dependencies import Context, StreamPrincipal
 from .avatars import visible_avatar
 
@@ -48,15 +45,6 @@ def list_motions(principal: StreamPrincipal) -> MotionList:
                                for n, s in MOTIONS.items()])
 
 
-def _rig(ctx: ServerContext, avatar_id: str) -> Rig:
-    """The avatar's rig, cached per app (a race only computes one twice)."""
-    rigs = ctx.motion_rigs
-    if avatar_id not in rigs:
-        loaded = ctx.registry.open(avatar_id)
-        rigs[avatar_id] = model_rig(loaded.files, loaded.animator.body_model)
-    return rigs[avatar_id]
-
-
 @router.get("/{name}", summary="A clip sampled for one avatar", response_model=MotionFrames,
             responses={404: {"description": "Unknown motion or avatar"},
                        422: {"description": "The avatar's body model lacks a name the clip "
@@ -70,7 +58,7 @@ def get_motion(name: str, ctx: Context, principal: StreamPrincipal,
         raise HTTPException(404, f"unknown motion {name!r}; known: {sorted(MOTIONS)}")
     clip = motion(canonical)
     record = visible_avatar(ctx, principal, avatar)
-    rig = _rig(ctx, record.id)
+    rig = ctx.rig(record.id)
     count = max(1, int(round(clip.duration * fps)) + 1)
     frames = []
     for i in range(count):

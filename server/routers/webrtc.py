@@ -26,6 +26,7 @@ from fastapi import Request as HttpRequest
 from pydantic import ValidationError
 
 from protocol import ProtocolError, Request
+from protocol.names import display_name
 
 from ..auth import Principal, bearer_token
 from ..context import ServerContext
@@ -123,7 +124,8 @@ def _request(ctx: ServerContext, width: int | None, height: int | None,
 
 async def _open(kind: Literal["whep", "whip"], room_id: str, request: HttpRequest,
                 ctx: ServerContext, role: str | None, seat: int | None, width: int | None,
-                height: int | None, fps: float | None, stamp: bool) -> Response:
+                height: int | None, fps: float | None, stamp: bool,
+                name: str | None) -> Response:
     from ..webrtc.negotiate import OfferRefused, check_offer  # aiortc: loaded on first use
     from ..webrtc.peer import WebRTCPeer
     from ..webrtc.registry import PeerRefused
@@ -141,6 +143,11 @@ async def _open(kind: Literal["whep", "whip"], room_id: str, request: HttpReques
     except OfferRefused as exc:
         raise HTTPException(400, str(exc)) from None
     frame_request = _request(ctx, width, height, fps)
+    if name is not None:
+        try:
+            name = display_name(name, s.limits.max_name_chars)
+        except ValueError as exc:
+            raise HTTPException(400, f"name: {exc}") from None
     if s.webrtc_max_peers == 0:
         raise HTTPException(503, "WebRTC is off on this server (webrtc_max_peers = 0)")
     holder = principal.subject if principal is not None else f"invitation:{invitation.id}"
@@ -163,7 +170,7 @@ async def _open(kind: Literal["whep", "whip"], room_id: str, request: HttpReques
         raise
     ctx.webrtc_peers.add(peer)
     try:  # from here on a failure closes the peer, which frees its slots
-        answer = await peer.start(offer, role, seat, frame_request, stamp)
+        answer = await peer.start(offer, role, seat, frame_request, stamp, name)
     except OfferRefused as exc:
         raise HTTPException(400, str(exc)) from None
     except ProtocolError as exc:
@@ -205,6 +212,10 @@ Fps = Annotated[float | None, Query(description="frame-rate cap (default default
 Stamp = Annotated[bool, Query(description="stamp each frame's drive seq into its top-left "
                                           "corner (protocol/stamp.py), for latency "
                                           "measurements")]
+Name = Annotated[str | None, Query(description="the display name others see in the room's "
+                                               "presence (limits.max_name_chars; letters, "
+                                               "digits, spaces, . _ ' -); default "
+                                               "'performer' / 'viewer N'")]
 
 
 @router.post("/{room_id}/whep", status_code=201, response_class=Response,
@@ -212,10 +223,11 @@ Stamp = Annotated[bool, Query(description="stamp each frame's drive seq into its
              responses={**ANSWER, **ERRORS})
 async def whep(room_id: str, request: HttpRequest, ctx: Context, role: Role = None,
                seat: Seat = None, width: Width = None, height: Height = None,
-               fps: Fps = None, stamp: Stamp = False) -> Response:
+               fps: Fps = None, stamp: Stamp = False, name: Name = None) -> Response:
     """A WebRTC viewer (or, with a perform-capable token, a performer driving its seat over
     the data channel ``telesplat``): the avatar as a VP8 or H.264 video track."""
-    return await _open("whep", room_id, request, ctx, role, seat, width, height, fps, stamp)
+    return await _open("whep", room_id, request, ctx, role, seat, width, height, fps, stamp,
+                       name)
 
 
 @router.post("/{room_id}/whip", status_code=201, response_class=Response,
@@ -223,11 +235,11 @@ async def whep(room_id: str, request: HttpRequest, ctx: Context, role: Role = No
              openapi_extra=OFFER_BODY, responses={**ANSWER, **ERRORS})
 async def whip(room_id: str, request: HttpRequest, ctx: Context, seat: Seat = None,
                width: Width = None, height: Height = None, fps: Fps = None,
-               stamp: Stamp = False) -> Response:
+               stamp: Stamp = False, name: Name = None) -> Response:
     """The offer's sendonly video is tracked server-side and drives the performer's seat; a
     recvonly video in the same offer watches the room, a data channel carries messages."""
     return await _open("whip", room_id, request, ctx, "perform", seat, width, height, fps,
-                       stamp)
+                       stamp, name)
 
 
 DELETE_ERRORS: dict[int | str, dict[str, Any]] = {

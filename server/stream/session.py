@@ -50,6 +50,7 @@ from protocol import (
     ProtocolError,
     Request,
     Stats,
+    Tracked,
     View,
     encode,
 )
@@ -392,6 +393,10 @@ class Session:
                 self.send_error("internal", f"tracking failed: {type(exc).__name__}", answers)
                 continue
             self._track_ms = tracked.track_ms
+            # Found or not, the client hears it: a page says "no person found" instead of
+            # waiting for frames that an unchanged (held) pose never brings.
+            self.send_control(Tracked(seq=tracked.seq, found=any(tracked.seen.values()),
+                                      seen=tracked.seen))
             self._pending_drives += 1
             self._drive_changed()
 

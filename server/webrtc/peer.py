@@ -62,7 +62,7 @@ class WebRTCPeer:
     # -- opening --------------------------------------------------------------------------------
 
     async def start(self, offer: Offer, role: str, seat: int, request: Request | None,
-                    stamp: bool) -> str:
+                    stamp: bool, name: str | None = None) -> str:
         """Seat the participant, answer the offer, start everything; the answer SDP. Raises
         Refusal (seating) or OfferRefused (the SDP); the peer is closed then."""
         s = self.ctx.settings
@@ -76,8 +76,7 @@ class WebRTCPeer:
         try:
             transport = WebRTCTransport(self.channel, self.track, stamp)
             self.participant, welcome = await seat_participant(
-                self.ctx, self.room, role, seat, f"{self.kind}-{self.resource[:6]}",
-                transport, request=request)
+                self.ctx, self.room, role, seat, name, transport, request=request)
             self.channel.welcome = encode(welcome)
             self._run = self._spawn(self._serve(), "serve")
             sdp, self.codec = await answer(self.pc, offer, self.track, self.guard)
