@@ -16,10 +16,13 @@ import { MotionPlayer } from "./motions.js";
 import { OrbitControl } from "./orbit.js";
 import { backoffDelay, reconnectDecision, reconnectPolicy, stopReason } from "./reconnect.js";
 import { Session, streamUrl, takeToken } from "./session.js";
-import { canShare, inviteAll, presenceText, showLinks } from "./share.js";
+import {
+  canShare, chosenName, inviteAll, presenceNote, presenceText, showLinks, statusLine, storeName,
+} from "./share.js";
 import { demoBanner, watchDemoBuild } from "./demo_build.js";
-import { StreamStats, renderStats } from "./stats.js";
-import { Webcam } from "./webcam.js";
+import { StreamStats, overlayToggle, renderStats } from "./stats.js";
+import { askForToken, unauthorized } from "./token.js";
+import { Webcam, trackedText } from "./webcam.js";
 import {
   WhepSession, chooseTransport, deleteRoom, onVideoFrame, serverHealth, worthFallingBack,
 } from "./webrtc.js";
@@ -28,6 +31,7 @@ const $ = (id) => document.getElementById(id);
 const params = new URLSearchParams(location.search);
 const token = takeToken(window);
 const reconnect = reconnectPolicy(location.search);
+let myName = chosenName(location.search);
 
 // Shared with tests and the console: what the page is doing.
 const state = window.telesplat = {
@@ -36,7 +40,14 @@ const state = window.telesplat = {
   transport: null, transportWhy: null, privateRoom: null,  // privateRoom: the solo page's room id
   reconnecting: false, reconnects: 0, lastReconnect: null,  // {reason, downMs, attempts}
   demoBuild: null,  // the last /v1/demo status
+  tracked: null,  // the last `tracked` answer to a webcam image
 };
+
+/** A refused token: say so and offer the token field (token.js). */
+function tokenRefused(why) {
+  askForToken($("token-form"), token ? `the server refused this token: ${why}`
+    : `this server needs a token: ${why}`);
+}
 
 function notify(text, kind = "info") {
   const line = document.createElement("div");
@@ -105,12 +116,16 @@ function showFrame(frame) {
 const controls = new Controls($("sliders"), (families) => drive(families));
 const player = new MotionPlayer(api, (families, reset) => drive(families, reset));
 // On the stage, so that dragging the canvas or the video orbits alike.
-const orbit = new OrbitControl($("stage"), (view, moving) => state.session?.view(view, moving));
-const webcam = new Webcam((bytes) => state.session?.image(bytes));
+const orbit = new OrbitControl($("stage"), (view, moving) => {
+  state.stats.input();
+  state.session?.view(view, moving);
+});
+const webcam = new Webcam((bytes) => { state.stats.input(); state.session?.image(bytes); });
 state.orbit = orbit;
 state.player = player;
 
 function drive(families, reset = false) {
+  state.stats.input();
   try {
     state.session?.drive(families, reset);
   } catch (err) {
@@ -146,6 +161,8 @@ function setViewer(viewer) {
 function showPresence(presence) {
   state.presence = presence;
   $("presence").textContent = presenceText(presence);
+  const note = presenceNote(presence);
+  if (note) notify(note);
 }
 
 // ---- WebRTC: the private room of a solo page, the video's frames -------------------------
@@ -167,7 +184,9 @@ async function whepSession(target) {
     query = { seat: 0 };
   }
   const size = Number($("size").value);
-  return new WhepSession(roomId, token, { video, query: { width: size, height: size, ...query } });
+  return new WhepSession(roomId, token, {
+    video, stamps: true, query: { width: size, height: size, name: myName, ...query },
+  });
 }
 
 /** WebRTC refused or failed where the WebSocket may work (its limits, codecs, ICE): say so,
@@ -208,6 +227,7 @@ function sessionEnded(target, outcome) {
     const why = stopReason(outcome);
     $("status").textContent = `disconnected: ${why}; not reconnecting`;
     notify(`not reconnecting: ${why}`, "error");
+    if (unauthorized(outcome)) tokenRefused(why);
     return true;
   }
   if (decision !== "retry") return false;
@@ -246,10 +266,11 @@ async function connect(target, { retrying = false } = {}) {
   let session;
   try {
     session = state.transport === "webrtc" ? await whepSession(target)
-      : new Session(streamUrl(target), token, inRoom ? target : {});
+      : new Session(streamUrl(target), token, inRoom ? target : {}, myName);
   } catch (err) {
     if (retrying && sessionEnded(target, { failure: err })) return;
     if (!fallBack(err, target)) $("status").textContent = `could not connect: ${err.message}`;
+    if (unauthorized(err)) tokenRefused(err.message);
     return;
   }
   state.session = session;
@@ -263,6 +284,11 @@ async function connect(target, { retrying = false } = {}) {
   });
   session.addEventListener("stats", (e) => { state.stats.server = e.detail; });
   session.addEventListener("pong", (e) => { state.stats.rttMs = e.detail.rttMs; });
+  session.addEventListener("shown", (e) => state.stats.latency(e.detail.latencyMs));
+  session.addEventListener("tracked", (e) => {
+    state.tracked = e.detail;
+    if (webcam.running) $("webcam-status").textContent = trackedText(e.detail);
+  });
   session.addEventListener("close", (e) => {
     if (state.session !== session) return;
     if (rejoin && sessionEnded(rejoin, { closeCode: e.detail.code, errorCode: lastError })) return;
@@ -277,13 +303,10 @@ async function connect(target, { retrying = false } = {}) {
     $("room-bar").hidden = solo;
     $("avatar").disabled = !solo;
     setViewer(state.room?.role === "watch");
-    const where = !solo
-      ? `room ${state.room.name || state.room.id} (${state.room.role === "watch" ? "watching"
-        : `performing seat ${state.room.seat}`})`
-      : `session ${welcome.session}`;
-    const over = state.transport === "webrtc" ? "WebRTC" : "WebSocket";
-    $("status").textContent = `${info.name} — ${info.num_gaussians} Gaussians, ${where} (${over})`;
-    controls.build(info.metadata?.expression_names || []);
+    $("status").textContent = statusLine({
+      avatar: info, room: state.room, solo, session: welcome.session, transport: state.transport,
+    });
+    controls.build(info.expression_names || [], welcome.limits);
     sendRequest();
     session.view({ ...orbit.orbit }, false);
     session.ping();
@@ -291,6 +314,7 @@ async function connect(target, { retrying = false } = {}) {
       room: state.room.id, role: state.room.role,
       seat: state.room.role === "perform" ? state.room.seat : target.seat,
     };
+    state.rejoin = rejoin;
     if (retry) {
       state.reconnects += 1;
       state.lastReconnect = {
@@ -304,6 +328,7 @@ async function connect(target, { retrying = false } = {}) {
     if (retrying && sessionEnded(target, { failure: err })) return;
     if (fallBack(err, target)) return;
     $("status").textContent = `could not connect: ${err.code ? `${err.code}: ` : ""}${err.message}`;
+    if (unauthorized(err)) tokenRefused(err.message);
   }
 }
 
@@ -317,6 +342,7 @@ async function loadAvatars() {
     avatars = Array.isArray(body) ? body : body.avatars;
   } catch (err) {
     $("status").textContent = `cannot list avatars: ${err.message}`;
+    if (unauthorized(err)) tokenRefused(err.message);
     return;
   }
   select.replaceChildren(...avatars.map((a) => new Option(`${a.name || a.id} (${a.id})`, a.id)));
@@ -384,6 +410,11 @@ async function share() {
     state.shareLinks = await inviteAll(api, state.room.id, mySeat, location.origin);
     showLinks($("share-links"), state.shareLinks);
     $("room-bar").hidden = false;
+    state.rejoin = { room: state.room.id, role: state.room.role, seat: state.room.seat };
+    $("status").textContent = statusLine({  // now a room, not a session
+      avatar: state.session.welcome.avatar, room: state.room, solo: false,
+      session: state.session.welcome.session, transport: state.transport,
+    });
   } catch (err) {
     notify(`cannot share: ${err.message}`, "error");
   } finally {
@@ -412,13 +443,24 @@ function wire() {
     }
     try {
       await webcam.start();
-      $("webcam-status").textContent = "sending frames…";
+      $("webcam-status").textContent = "sending frames…";  // until the first `tracked`
     } catch (err) {
       e.target.checked = false;
       $("webcam-status").textContent = `camera unavailable: ${err.message}`;
     }
   });
+  overlayToggle($("stats-toggle"), $("stats"));
   setInterval(() => renderStats($("stats"), state.stats.summary()), 250);
+  $("my-name").value = myName ?? "";
+  $("my-name").addEventListener("change", (e) => {  // joins again under the new name
+    try {
+      myName = storeName(e.target.value, state.session?.welcome?.limits?.max_name_chars);
+    } catch (err) {
+      notify(`cannot use that name: ${err.message}`, "error");
+      return;
+    }
+    if (state.rejoin) connect(state.rejoin);
+  });
   setInterval(() => state.session?.ping(), 1000);
   setInterval(pollRtcStats, 1000);
   // Leaving the page ends the peer (DELETE of the WHEP resource) and the solo page's room.

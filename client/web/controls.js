@@ -4,7 +4,7 @@
 
 import { DEFAULT_LIMITS } from "./protocol.js";
 
-const EXPRESSION_SLIDERS = 10;
+const EXPRESSION_SLIDERS = 10;  // an avatar that names no expressions: its first ten
 // SMPL-X hand joints: index, middle, pinky, ring (3 each), then the thumb (3).
 const FINGER_JOINTS = 12;
 
@@ -49,8 +49,12 @@ export class Controls {
     this.inputs = [];
   }
 
+  /** `expressionNames`: the avatar's (welcome.avatar.expression_names), one slider each;
+   *  none: ten sliders "expression 0" … "expression 9". */
   build(expressionNames = [], limits = DEFAULT_LIMITS) {
     this.container.replaceChildren();
+    const count = expressionNames.length || EXPRESSION_SLIDERS;
+    this.expression = new Float32Array(count);
     const angle = (range) => within(range, limits.max_rotation_rad);
     const coefficient = (range) => within(range, limits.max_coefficient);
     const jaw = () => this.send({ smplx: { jaw_pose: new Float32Array([this.jaw.open, this.jaw.side, 0]) } });
@@ -58,7 +62,7 @@ export class Controls {
       slider(this.container, "jaw open", angle({ min: 0, max: 0.5 }), (v) => { this.jaw.open = v; jaw(); }),
       slider(this.container, "jaw side", angle({ min: -0.2, max: 0.2 }), (v) => { this.jaw.side = v; jaw(); }),
     ];
-    for (let i = 0; i < EXPRESSION_SLIDERS; i += 1) {
+    for (let i = 0; i < count; i += 1) {
       const label = expressionNames[i] || `expression ${i}`;
       this.inputs.push(slider(this.container, label, coefficient({ min: -1.5, max: 1.5 }), (v) => {
         this.expression[i] = v;

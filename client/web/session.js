@@ -1,8 +1,9 @@
 // One streaming session over the WebSocket: messages in and out, seq numbers, latency.
 //
-// Events (EventTarget): "welcome", "frame", "stats", "presence", "servererror", "pong",
-// "close";
-// each event's `detail` is the decoded message (close: {code, reason}).
+// Events (EventTarget): "welcome", "frame", "stats", "presence", "tracked", "servererror",
+// "pong", "shown", "close";
+// each event's `detail` is the decoded message (close: {code, reason}; shown: {seq,
+// latencyMs}, a WebRTC frame whose stamp names one of this page's drives).
 
 import { PROTOCOL_VERSION, ProtocolError, decode, encode } from "./protocol.js";
 
@@ -59,10 +60,7 @@ export class MessageSession extends EventTarget {
       this._resolve?.(message);
       this._emit("welcome", message);
     } else if (message.type === "frame") {
-      const sent = this.sentAt.get(message.seq);
-      message.latencyMs = sent === undefined ? null : performance.now() - sent;
-      // Frames may skip coalesced seqs: forget everything up to this one.
-      for (const seq of this.sentAt.keys()) if (seq <= message.seq) this.sentAt.delete(seq);
+      message.latencyMs = this._latency(message.seq);
       this._emit("frame", message);
     } else if (message.type === "error") {
       if (!this.welcome) this._reject?.(new ProtocolError(message.code, message.message));
@@ -73,6 +71,20 @@ export class MessageSession extends EventTarget {
     } else {
       this._emit(message.type, message);
     }
+  }
+
+  /** Milliseconds since drive `seq` was sent (null: not ours, or counted already; `at`: when
+   *  its frame showed). Frames may skip coalesced seqs: everything up to it is forgotten. */
+  _latency(seq, at = performance.now()) {
+    const sent = this.sentAt.get(seq);
+    for (const key of this.sentAt.keys()) if (key <= seq) this.sentAt.delete(key);
+    return sent === undefined ? null : Math.max(0, at - sent);
+  }
+
+  /** A frame that shows drive `seq` was presented at `at` (WebRTC: read from its stamp). */
+  shown(seq, at) {
+    const latencyMs = this._latency(seq, at);
+    if (latencyMs !== null) this._emit("shown", { seq, latencyMs });
   }
 
   _stamp() {
@@ -108,8 +120,8 @@ export class MessageSession extends EventTarget {
 
 export class Session extends MessageSession {
   /** `token` goes in the first message, the hello, which the server reads before anything;
-   *  `join` ({role, seat}) too, in a room. */
-  constructor(url, token = null, join = {}) {
+   *  `join` ({role, seat}) too, in a room; `name`: the display name others see. */
+  constructor(url, token = null, join = {}, name = null) {
     super();
     this.url = url;
     this.ws = new WebSocket(url);
@@ -123,6 +135,7 @@ export class Session extends MessageSession {
       if (token) hello.token = token;
       if (join.role) hello.role = join.role;
       if (Number.isInteger(join.seat)) hello.seat = join.seat;
+      if (name) hello.name = name;
       this._send(hello);
     });
     this.ws.addEventListener("message", (event) => this._receive(event.data));

@@ -1,9 +1,57 @@
-// Rooms on the page: the presence line, and "Share" (the owner's page): a room for the current
-// avatar if the page is not in one yet, then a watch invitation and a perform invitation per
-// free seat, shown as absolute links with copy buttons. Invitation tokens are shown once, in
-// those links; the server keeps only their hashes.
+// Rooms on the page: the status line, the presence line and the display name this page joins
+// with, and "Share" (the owner's page): a room for the current avatar if the page is not in
+// one yet, then a watch invitation and a perform invitation per free seat, shown as absolute
+// links with copy buttons. Invitation tokens are shown once, in those links; the server keeps
+// only their hashes.
 
-/** "seat 0 (demo): telesplat-web performing · 2 watching" from a presence message. */
+export const NAME_KEY = "telesplat.name";  // localStorage: the display name last chosen
+
+/** The display name to join with: `?name=` in the address, else the one stored; null: the
+ *  server's default ("performer", "viewer N"). The server validates it (protocol/names.py). */
+export function chosenName(search, storage = window.localStorage) {
+  const name = (new URLSearchParams(search).get("name") ?? storage.getItem(NAME_KEY) ?? "").trim();
+  return name || null;
+}
+
+// The server's rule (protocol/names.py), checked here too so a bad name is never stored.
+const NAME_CHARS = /^[\p{L}\p{N}_ .'-]+$/u;
+
+/** Keep `name` for the next joins (blank: forget it); an Error saying why it cannot be. */
+export function storeName(name, maxChars = 32, storage = window.localStorage) {
+  const clean = name.trim().split(/\s+/).join(" ");
+  if (clean.length > maxChars) throw new Error(`a name has at most ${maxChars} characters`);
+  if (clean && !NAME_CHARS.test(clean)) {
+    throw new Error("a name may hold letters, digits, spaces and . _ ' - only");
+  }
+  if (clean) storage.setItem(NAME_KEY, clean);
+  else storage.removeItem(NAME_KEY);
+  return clean || null;
+}
+
+/** How the status line names where the page is: "room Team sync" (a room's default name is
+ *  already "room abc123": never "room room …"). */
+export function roomLabel(room) {
+  const name = room.name || room.id;
+  return /^room\b/i.test(name) ? name : `room ${name}`;
+}
+
+/** The status line once connected: the avatar, where (a plain session or a room, and as
+ *  what) and over which transport. `solo`: not (yet) shared, a plain or private session. */
+export function statusLine({ avatar, room, solo, session, transport }) {
+  const where = solo ? `session ${session}` : `${roomLabel(room)} (${room.role === "watch"
+    ? "watching" : `performing seat ${room.seat}`})`;
+  const over = transport === "webrtc" ? "WebRTC" : "WebSocket";
+  return `${avatar.name} — ${avatar.num_gaussians} Gaussians, ${where} (${over})`;
+}
+
+/** "Ann joined (watching)" for a presence message that tells of a join or leave; null else. */
+export function presenceNote(presence) {
+  if (!presence?.who || !["join", "leave"].includes(presence.event)) return null;
+  const as = presence.role === "watch" ? "watching" : "performing";
+  return presence.event === "join" ? `${presence.who} joined (${as})` : `${presence.who} left`;
+}
+
+/** "seat 0 (demo): Ann performing · 2 watching" from a presence message. */
 export function presenceText(presence) {
   if (!presence) return "";
   const seats = presence.seats.map((seat) => {

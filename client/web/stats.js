@@ -1,9 +1,16 @@
 // Rolling client-side statistics for the overlay: frames per second, drive -> frame latency,
 // ping round trip, bytes per second; plus the server's own `stats` message. Over WebRTC the
 // frames are a video track the browser decodes: the figures come from getStats() (`rtc`, see
-// rtcstats.js) instead.
+// rtcstats.js) instead, and the latency from the frames' stamps.
+// Idle (nothing sent and no new frames for WINDOW_MS) reads "idle", not "fps: 0.0": the server
+// renders only when something changes. The overlay sits under the picture and can be hidden
+// (remembered in localStorage).
 
 const WINDOW_MS = 2000;
+// Over WebRTC the server repeats a still picture every 0.5 s (server/webrtc/track.py,
+// REPEAT_AFTER_S): up to this decode rate, with nothing sent, the stream is idle.
+const RTC_IDLE_FPS = 3;
+export const OVERLAY_KEY = "telesplat.stats";  // localStorage: "hidden" or "shown"
 
 function percentile(values, q) {
   if (!values.length) return null;
@@ -21,6 +28,19 @@ export class StreamStats {
     this.framesTotal = 0;
     this.transport = null;  // "websocket" or "webrtc"
     this.rtc = null;        // rtcSummary() of the WebRTC peer
+    this.inputAt = null;    // when this page last sent a drive, view, request or image
+  }
+
+  /** This page sent something that changes the picture. */
+  input() {
+    this.inputAt = performance.now();
+  }
+
+  /** A drive -> frame latency measured outside frame messages (WebRTC stamps). */
+  latency(ms) {
+    const now = performance.now();
+    this.latencies.push([now, ms]);
+    this._trim(this.latencies, now);
   }
 
   _trim(list, now) {
@@ -44,7 +64,13 @@ export class StreamStats {
     const seconds = WINDOW_MS / 1000;
     const bytes = this.frames.reduce((sum, [, b]) => sum + b, 0);
     const ms = this.latencies.map(([, v]) => v);
+    const quiet = this.inputAt === null || now - this.inputAt > WINDOW_MS;
+    const rtcFps = this.rtc?.fps;
+    const idle = quiet && (this.transport === "webrtc"
+      ? rtcFps != null && rtcFps <= RTC_IDLE_FPS : this.frames.length === 0);
     return {
+      idle,
+      waiting: !quiet && this.transport !== "webrtc" && this.frames.length === 0,
       fps: this.frames.length / seconds,
       bytesPerS: bytes / seconds,
       latencyP50: percentile(ms, 0.5),
@@ -61,11 +87,20 @@ export class StreamStats {
 
 const fmt = (value, digits = 0, unit = "") => (value == null ? "–" : `${value.toFixed(digits)}${unit}`);
 
+/** "idle", "waiting for frames" or the rate. */
+function fpsText(s, fps) {
+  if (s.idle) return "idle";
+  if (s.waiting) return "waiting for frames";
+  return fmt(fps, 1);
+}
+
 function rtcRows(s) {
   const rtc = s.rtc ?? {};
   return [
     ["transport", `webrtc${rtc.codec ? ` (${rtc.codec})` : ""}`],
-    ["fps", fmt(rtc.fps, 1)],
+    ["fps", fpsText(s, rtc.fps)],
+    ["latency p50", fmt(s.latencyP50, 0, " ms")],
+    ["latency p95", fmt(s.latencyP95, 0, " ms")],
     ["bit rate", fmt(rtc.bitrateKbps, 0, " kbit/s")],
     ["decoded", rtc.framesDecoded == null ? "–" : String(rtc.framesDecoded)],
     ["dropped", rtc.framesDropped == null ? "–" : String(rtc.framesDropped)],
@@ -79,7 +114,7 @@ function rtcRows(s) {
 export function renderStats(element, s) {
   const rows = s.transport === "webrtc" ? rtcRows(s) : [
     ["transport", s.transport || "–"],
-    ["fps", fmt(s.fps, 1)],
+    ["fps", fpsText(s, s.fps)],
     ["latency p50", fmt(s.latencyP50, 0, " ms")],
     ["latency p95", fmt(s.latencyP95, 0, " ms")],
     ["ping", fmt(s.rttMs, 0, " ms")],
@@ -97,4 +132,16 @@ export function renderStats(element, s) {
     row.textContent = `${k}: ${v}`;
     return row;
   }));
+}
+
+/** The overlay's show / hide checkbox: its state comes from and goes to localStorage (shown
+ *  unless hidden before). */
+export function overlayToggle(checkbox, element, storage = window.localStorage) {
+  const apply = () => { element.hidden = !checkbox.checked; };
+  checkbox.checked = storage.getItem(OVERLAY_KEY) !== "hidden";
+  apply();
+  checkbox.addEventListener("change", () => {
+    storage.setItem(OVERLAY_KEY, checkbox.checked ? "shown" : "hidden");
+    apply();
+  });
 }

@@ -1,6 +1,7 @@
 // Webcam driving: grab camera frames, encode them as JPEG and send `image` messages at a
-// capped rate. The server tracks them into parameters (or answers `unsupported` when its
-// landmark models are missing).
+// capped rate. The server tracks them into parameters and answers each with `tracked`
+// (whether it found a person), or with error `unsupported` when its landmark models are
+// missing.
 
 const MAX_FPS = 10;        // the tracker needs no more, and uplinks are often thin
 const WIDTH = 320;         // small frames: landmarks need little, the message stays small
@@ -58,4 +59,14 @@ export class Webcam {
       }
     }, "image/jpeg", JPEG_QUALITY);
   }
+}
+
+/** The webcam status for a `tracked` answer: "tracking (face, hands)" or "no person found". */
+export function trackedText(tracked) {
+  if (!tracked.found) return "no person found: face the camera, in good light";
+  const seen = Object.entries(tracked.seen ?? {}).filter(([, yes]) => yes).map(([group]) => group);
+  const hands = seen.filter((g) => g.endsWith("_hand")).length;
+  const parts = [seen.includes("face") && "face", hands && (hands === 2 ? "hands" : "one hand"),
+    seen.includes("pose") && "body"].filter(Boolean);
+  return parts.length ? `tracking (${parts.join(", ")})` : "tracking";
 }

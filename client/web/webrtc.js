@@ -5,7 +5,7 @@
 // the welcome, the same send methods, the same events, so app.js drives either transport.
 
 import { ProtocolError, encode } from "./protocol.js";
-import { rtcSample, rtcSummary } from "./rtcstats.js";
+import { rtcSample, rtcSummary, watchStamps } from "./rtcstats.js";
 import { MessageSession } from "./session.js";
 
 const GATHER_TIMEOUT_MS = 5000;    // non-trickle: the offer waits for its candidates, bounded
@@ -100,11 +100,13 @@ async function httpError(response) {
 }
 
 export class WhepSession extends MessageSession {
-  /** `video`: the <video> the track plays in; `query`: WHEP query (width, height, fps, seat). */
-  constructor(roomId, token, { video, query = {}, iceServers = [] } = {}) {
+  /** `video`: the <video> the track plays in; `query`: WHEP query (width, height, fps, seat,
+   *  name); `stamps`: frames carry their drive seq (stamp=1), read back for the latency. */
+  constructor(roomId, token, { video, query = {}, iceServers = [], stamps = false } = {}) {
     super();
     this.transport = "webrtc";
-    this.url = whepUrl(roomId, query);
+    this.url = whepUrl(roomId, stamps ? { ...query, stamp: 1 } : query);
+    this._unwatch = stamps && video ? watchStamps(video, (seq, at) => this.shown(seq, at)) : null;
     this.token = token;
     this.resource = null;     // the WHEP session's URL (Location), DELETEd on close
     this.closed = false;
@@ -196,6 +198,7 @@ export class WhepSession extends MessageSession {
       fetch(resource, { method: "DELETE", headers: this._headers(), keepalive: true })
         .catch(() => { /* the server drops a peer that goes silent anyway */ });
     }
+    this._unwatch?.();
     this.channel.close();
     this.pc.close();
     if (!this.closed) {
