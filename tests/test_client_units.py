@@ -46,9 +46,10 @@ def chromium_missing() -> str | None:
     return None
 
 
-def make_chromium(width: int = 1280, height: int = 900):
+def make_chromium(width: int = 1280, height: int = 900, camera_file: str | None = None):
     """Headless Chromium with Debian's chromedriver, given explicitly so that selenium-manager
-    never looks anything up or downloads a driver; a fake camera for getUserMedia."""
+    never looks anything up or downloads a driver; a fake camera for getUserMedia (its
+    built-in test pattern, or ``camera_file``: a .y4m / .mjpeg video, played in a loop)."""
     from selenium import webdriver
     from selenium.webdriver.chrome.service import Service
 
@@ -60,6 +61,8 @@ def make_chromium(width: int = 1280, height: int = 900):
                 "--use-fake-device-for-media-stream", "--mute-audio",
                 "--disable-background-timer-throttling", "--no-first-run"):
         options.add_argument(arg)
+    if camera_file is not None:
+        options.add_argument(f"--use-file-for-fake-video-capture={camera_file}")
     options.set_capability("goog:loggingPrefs", {"browser": "ALL"})
     driver = webdriver.Chrome(service=Service(executable_path=str(CHROMEDRIVER)),
                               options=options)
