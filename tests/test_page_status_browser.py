@@ -110,6 +110,11 @@ def test_stats_sit_under_the_picture_and_the_toggle_is_remembered(server, browse
         "return ['view', 'stats'].map(id => document.getElementById(id)"
         ".getBoundingClientRect().toJSON())")
     assert stats["height"] > 0 and stats["top"] >= picture["bottom"] - 0.5, (picture, stats)
+    # As wide as the picture, which stays where it was (the stats do not widen the stage).
+    assert abs(stats["left"] - picture["left"]) < 1 and abs(stats["width"] - picture["width"]) < 1
+    stage = browser.execute_script(
+        "return document.getElementById('stage').getBoundingClientRect().toJSON()")
+    assert abs(stage["width"] - picture["width"]) < 1, (stage, picture)
     toggle = browser.find_element("id", "stats-toggle")
     assert toggle.is_selected()
     toggle.click()
