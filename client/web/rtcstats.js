@@ -116,7 +116,8 @@ export function watchStamps(video, onSeq) {
   const tick = (now, meta) => {
     const cell = stampCell(meta.width);
     if (cell) {
-      video.style.clipPath = `inset(${(100 * cell) / meta.height}% 0 0 0)`;
+      // Twice the strip: the codec smears its edge into the rows below (seen at 512 px).
+      video.style.clipPath = `inset(${(200 * cell) / meta.height}% 0 0 0)`;
       canvas.width = STAMP.cells * cell;
       canvas.height = cell;
       ctx.drawImage(video, 0, 0, canvas.width, cell, 0, 0, canvas.width, cell);
