@@ -139,15 +139,17 @@ ROLES = ("perform", "watch")
 
 
 def room_hello(client_name: str, *, room: str | None = None, role: str | None = None,
-               seat: int | None = None) -> Hello:
-    """The hello: role and seat only in a room (a plain session's hello stays as it was)."""
+               seat: int | None = None, name: str | None = None) -> Hello:
+    """The hello: role, seat and the display name ``name`` (what others see in presence;
+    ValueError if the protocol refuses it) only in a room (a plain session's hello stays as it
+    was)."""
     if room is None:
-        if role is not None or seat is not None:
-            raise ValueError("role and seat are for rooms only")
+        if role is not None or seat is not None or name is not None:
+            raise ValueError("role, seat and name are for rooms only")
         return Hello(client=client_name)
     if role is not None and role not in ROLES:
         raise ValueError(f"role must be one of {ROLES}, not {role!r}")
-    fields = {k: v for k, v in (("role", role), ("seat", seat)) if v is not None}
+    fields = {k: v for k, v in (("role", role), ("seat", seat), ("name", name)) if v is not None}
     return Hello.model_validate({"client": client_name, **fields})
 
 
@@ -210,23 +212,26 @@ class StreamClient:
                       *, room: str | None = None, role: str | None = None,
                       seat: int | None = None, client_name: str = "telesplat-python",
                       timeout: float = 30.0, queue_size: int = 64,
-                      reconnect: Backoff | None = None) -> StreamClient:
+                      reconnect: Backoff | None = None, name: str | None = None
+                      ) -> StreamClient:
         """Open a session on ``avatar``, or join ``room`` (``role`` "perform" or "watch" and
-        ``seat``; both default to what the token allows); returns once ``welcome`` arrived
+        ``seat``; both default to what the token allows; ``name``: the display name others
+        see, default "performer" / "viewer N"); returns once ``welcome`` arrived
         (StreamError if the server refuses). ``server`` is the base URL (http://host:port) or
         a full ws:// URL. ``reconnect``: reconnect by itself after a restart or a dropped
         connection (see the module); None: the session ends with its connection."""
         join = {"server": server, "avatar": avatar, "token": token, "room": room,
-                "role": role, "seat": seat, "client_name": client_name, "timeout": timeout}
+                "role": role, "seat": seat, "client_name": client_name, "timeout": timeout,
+                "name": name}
         ws, welcome = await cls._open(**join)
         return cls(ws, welcome, queue_size, join=join, reconnect=reconnect)
 
     @classmethod
     async def _open(cls, server: str, avatar: str | None, token: str | None, room: str | None,
                     role: str | None, seat: int | None, client_name: str,
-                    timeout: float) -> tuple[Any, Welcome]:
+                    timeout: float, name: str | None = None) -> tuple[Any, Welcome]:
         """A connection and its welcome."""
-        hello = room_hello(client_name, room=room, role=role, seat=seat)
+        hello = room_hello(client_name, room=room, role=role, seat=seat, name=name)
         from websockets.asyncio.client import connect
         from websockets.exceptions import ConnectionClosed
 

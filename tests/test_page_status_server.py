@@ -89,3 +89,21 @@ def test_each_tracked_image_says_whether_a_person_was_found(server):  # noqa: F8
     empty, person = asyncio.run(run())
     assert (empty.seq, empty.found) == (1, False) and not any(empty.seen.values())
     assert person.found and person.seen["face"], person
+
+
+def test_the_python_client_joins_under_its_name(server):  # noqa: F811
+    from client import StreamClient
+
+    room = create_room(server)
+    watch = invite(server, room["id"], "watch")
+
+    async def run():
+        client = await StreamClient.connect(server.url, token=server.token, room=room["id"],
+                                            name="Eve", timeout=30)
+        try:
+            async with join(server, room["id"], watch["token"]) as viewer:
+                return await recv_until(viewer, is_type("presence"))
+        finally:
+            await client.close()
+    presence = asyncio.run(run())
+    assert presence.seats[0].performer == "Eve" and presence.who == "viewer 1"

@@ -35,6 +35,8 @@ def test_plain_hello_is_unchanged_and_role_needs_a_room():
         exclude_none=True)
     with pytest.raises(ValueError, match="rooms only"):
         room_hello("c", role="watch")
+    with pytest.raises(ValueError, match="rooms only"):
+        room_hello("c", name="Ann")
     with pytest.raises(ValueError, match="role must be"):
         room_hello("c", room="r", role="drive")
 
@@ -43,6 +45,9 @@ def test_room_hello_carries_role_and_seat():
     hello = room_hello("c", room="r", role="perform", seat=2)
     assert (hello.role, hello.seat, hello.client) == ("perform", 2, "c")
     assert room_hello("c", room="r").role is None  # the token's scope decides
+    assert room_hello("c", room="r", name=" Ann  Lee").name == "Ann Lee"  # shown in presence
+    with pytest.raises(ValueError, match="letters, digits"):
+        room_hello("c", room="r", name="<b>")
 
 
 def test_cli_drive_and_watch_room_arguments(capsys):
