@@ -1,8 +1,13 @@
 """A room's default view for its welcome: every seat's avatar posed at rest and placed, framed by
-``avatar_core.render.framing``; the face is the performed seat's (a viewer's: seat 0's)."""
+``avatar_core.render.framing``; the face is the performed seat's (a viewer's: seat 0's).
+
+The rest geometry is kept per animator (the registry's shared one lives as long as the avatar
+is loaded): a join after the first costs no forward pass (bench/page_view.py)."""
 
 from __future__ import annotations
 
+import threading
+import weakref
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -17,20 +22,36 @@ from avatar_core.render.camera_path import NECK_JOINT
 from avatar_core.render.framing import frame_scene, head_box
 from protocol import Framing
 
-__all__ = ["room_framing"]
+__all__ = ["pose_at_rest", "rest_boxes", "room_framing"]
 
 
-def _rest_geometry(animator: AvatarAnimator) -> tuple[np.ndarray, np.ndarray]:
-    """(vertices [V, 3], neck joint [3]) of the avatar at rest, in its own frame. A forward pass
-    of its own (no stage cache): the shared animator and its caches are left alone."""
-    model = animator.body_model
+Box = tuple[np.ndarray, np.ndarray]  # lo [3], hi [3]
+_REST: weakref.WeakKeyDictionary[AvatarAnimator, tuple[Box, Box]] = weakref.WeakKeyDictionary()
+_REST_LOCK = threading.Lock()
+
+
+def rest_boxes(animator: AvatarAnimator) -> tuple[Box, Box]:
+    """(the body's box, the head's box) at rest in the avatar's own frame, kept per animator."""
+    with _REST_LOCK:
+        kept = _REST.get(animator)
+    if kept is None:
+        kept = pose_at_rest(animator)
+        with _REST_LOCK:
+            _REST[animator] = kept
+    return kept
+
+
+def pose_at_rest(animator: AvatarAnimator) -> tuple[Box, Box]:
+    """The boxes, from a forward pass of its own (no stage cache: the shared animator and its
+    caches are left alone)."""
     params = {"body_pose": rest_body_pose()}
     if animator.betas is not None:
         params["betas"] = animator.betas
     with torch.no_grad():
-        out = model(params, cache=StageCache(enabled=False))
-    return (out.vertices[0].cpu().numpy().astype(np.float64),
-            out.joints[0, NECK_JOINT].cpu().numpy().astype(np.float64))
+        out = animator.body_model(params, cache=StageCache(enabled=False))
+    vertices = out.vertices[0].cpu().numpy().astype(np.float64)
+    neck = out.joints[0, NECK_JOINT].cpu().numpy().astype(np.float64)
+    return (vertices.min(0), vertices.max(0)), head_box(vertices, neck)
 
 
 def _placed(points: np.ndarray, placement: Any) -> np.ndarray:
@@ -50,9 +71,8 @@ def room_framing(seats: Sequence[Any], face_seat: int,
     gives an avatar id's (shared) animator."""
     boxes, head = [], None
     for seat in seats:
-        vertices, neck = _rest_geometry(animator_of(seat.avatar))
-        for lo, hi, is_head in ((vertices.min(0), vertices.max(0), False),
-                                (*head_box(vertices, neck), True)):
+        body, head_rest = rest_boxes(animator_of(seat.avatar))
+        for (lo, hi), is_head in ((body, False), (head_rest, True)):
             corners = _placed(_corners(lo, hi), seat.placement)  # a rotated box's new box
             box = (corners.min(0), corners.max(0))
             if not is_head:
