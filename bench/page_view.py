@@ -2,7 +2,8 @@
 in the T-pose from the old default orbit (chest, 2.7 m) against the rest pose from the same
 orbit and from the welcome's framing (the page's new default, closer, so the avatar covers
 more pixels), interleaved in one process so the ratios hold on a noisy machine; and the time
-the welcome's framing adds to a join (a rest forward pass at an avatar's first join, kept).
+the welcome's framing adds to a join (a rest forward pass at an avatar's first join, kept),
+and how many pixels the page's hand-curl slider changes in each case.
 
     OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 .venv/bin/python bench/page_view.py [--repeats 10]
 """
@@ -63,6 +64,16 @@ def main() -> None:
     for name, ms in times.items():
         med = statistics.median(ms[1:])
         print(f"  {name:34s} {med:7.1f} ms  x{med / base:4.2f}  tile pairs {pairs[name]}")
+    # What the page's "left hand curl" slider at 1.5 (client/web/controls.js) changes: pixels
+    # (sum of |RGB| over 60 of 765) of the same frames.
+    curl = np.zeros((15, 3))
+    curl[:12, 2], curl[12:, 2] = -1.5, -0.75
+    for name, (pose, camera) in cases.items():
+        frames = [render_views(animator.pose({"body_pose": pose, **hand}).gaussians, [camera],
+                               RenderRequest(backend="cpu", background=(1, 1, 1)))[0].rgb
+                  for hand in ({}, {"left_hand_pose": curl})]
+        changed = int(((frames[0] - frames[1]).abs().sum(-1) * 255 > 60).sum())
+        print(f"  hand curl changes, {name:34s} {changed:6d} px")
     for what, run in (("first join of an avatar", lambda: pose_at_rest(animator)),
                       ("a later join", lambda: room_framing([seat], 0, lambda _: animator))):
         ms = []

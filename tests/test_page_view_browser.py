@@ -7,23 +7,26 @@ WebSocket here and over WebRTC in the second half."""
 
 from __future__ import annotations
 
+import json
+import os
 import time
 
 import numpy as np
 import pytest
 import torch
 
+from avatar_core.render.camera import orbit
 from avatar_core.render.camera_path import NECK_JOINT, framing_target
 from protocol import Orbit, View
 from server.stream.drive import DriveState
 from server.stream.scene import view_camera
 from tests.server_fixtures import server_fixture  # noqa: F401 (the `server` fixture)
 from tests.test_client_browser import CANVAS_PROBE, thumb_diff, wait_for
-from tests.test_client_units import chromium_missing, make_chromium
-from tests.test_webrtc_browser import NO_BROWSER_TEST, make_webrtc_chromium, wait_playing
+from tests.test_client_units import chromium_missing, make_chromium, node, run_node
+from tests.test_webrtc_browser import NO_BROWSER_TEST, WEB, make_webrtc_chromium, wait_playing
 
-pytestmark = pytest.mark.skipif(chromium_missing() is not None,
-                                reason=chromium_missing() or "")
+browser_test = pytest.mark.skipif(chromium_missing() is not None,
+                                  reason=chromium_missing() or "")
 
 SIZES = (256, 384, 512, 768)
 EBML = "1a45dfa3"  # the first four bytes of every WebM (Matroska) file
@@ -100,6 +103,7 @@ def settled_probe(page, previous: dict | None = None, changed: bool = True) -> d
         time.sleep(0.05)
 
 
+@browser_test
 def test_default_view_frames_the_whole_upper_body(page, server):  # noqa: F811
     framing = page.execute_script("return window.telesplat.session.welcome.framing")
     orbit = orbit_of(page)
@@ -113,6 +117,7 @@ def test_default_view_frames_the_whole_upper_body(page, server):  # noqa: F811
     assert orbit["yaw_deg"] == 0 and orbit["pitch_deg"] == 0
 
 
+@browser_test
 def test_wheel_zooms_toward_the_face_and_never_cuts_the_head(page, server):  # noqa: F811
     page.find_element("id", "reset-view").click()
     framing = page.execute_script("return window.telesplat.session.welcome.framing")
@@ -138,6 +143,7 @@ def test_wheel_zooms_toward_the_face_and_never_cuts_the_head(page, server):  # n
     page.find_element("id", "reset-view").click()
 
 
+@browser_test
 def test_pan_by_shift_drag_and_right_drag_then_reset(page):
     from selenium.webdriver.common.action_chains import ActionChains
     from selenium.webdriver.common.keys import Keys
@@ -179,6 +185,7 @@ def test_pan_by_shift_drag_and_right_drag_then_reset(page):
     assert orbit_of(page) == home
 
 
+@browser_test
 def test_picture_fits_the_window_at_every_size(page):
     from selenium.webdriver.support.ui import Select
 
@@ -199,6 +206,7 @@ def test_picture_fits_the_window_at_every_size(page):
     wait_for(page, "document.getElementById('view').width === 512", 30, "512 px")
 
 
+@browser_test
 def test_fullscreen_button_puts_the_stage_in_fullscreen(page):
     page.find_element("id", "fullscreen").click()
     wait_for(page, "document.fullscreenElement?.id === 'stage'", 10, "fullscreen")
@@ -236,6 +244,7 @@ def saved_count(page, kind: str) -> int:
         f"return window.telesplat.saved.filter(s => s.kind === '{kind}').length")
 
 
+@browser_test
 def test_snapshot_saves_a_png_of_the_frame(page):
     n = saved_count(page, "snapshot")
     page.find_element("id", "snapshot").click()
@@ -248,6 +257,7 @@ def test_snapshot_saves_a_png_of_the_frame(page):
     assert facts["link"].endswith(".png") and facts["href"].startswith("blob:")
 
 
+@browser_test
 def test_record_saves_a_webm_and_stops_at_its_length_limit(page, server):  # noqa: F811
     n = saved_count(page, "recording")
     page.find_element("id", "record").click()
@@ -292,6 +302,7 @@ def pick_background(page, hex_colour: str) -> None:
         input.dispatchEvent(new Event('input', {bubbles: true}));""", hex_colour)
 
 
+@browser_test
 def test_background_colour_changes_the_frames_corners(page, server):  # noqa: F811
     page.get(f"{server.url}/?transport=ws#token={server.token}")
     wait_for(page, "window.telesplat?.framesShown > 0", 60, "a frame")
@@ -362,3 +373,36 @@ def test_webrtc_snapshot_recording_and_background(rtc_page):
         time.sleep(0.1)
     assert corner and corner[2] > 150 and corner[0] < 60 and corner[1] < 90, corner
 
+
+
+# -- the pure parts in node: the same camera axes as the server's orbit, zoom, parsing ---------
+
+@pytest.mark.skipif(node() is None, reason="node is not installed")
+def test_view_math_agrees_with_the_servers_orbit_camera():
+    web = os.path.abspath(WEB)
+    angles = [(0, 0), (30, 10), (-120, -45), (179, 80)]
+    script = f"""
+    import {{ screenAxes, zoomTarget }} from "{web}/view.js";
+    import {{ hexToRgb, recordSeconds }} from "{web}/capture.js";
+    const framing = {{target: [0, 0.4, 0.1], face: [0, 0.66, 0], distance: 1.9,
+                      min_distance: 0.7, fov_y_deg: 30}};
+    const errors = [];
+    const seconds = ["", "?record_s=5", "?record_s=0", "?record_s=301", "?record_s=x",
+                     "?record_s="].map((q) => recordSeconds(q, (e) => errors.push(e)));
+    console.log(JSON.stringify({{
+      axes: {json.dumps(angles)}.map(([y, p]) => screenAxes(y, p)),
+      zoom: [5, 1.9, 1.3, 0.7, 0.3].map((d) => zoomTarget(framing, d)),
+      seconds, errors, red: hexToRgb("#ff8000"),
+    }}));"""
+    out = json.loads(run_node(script))
+    for (yaw, pitch), axes in zip(angles, out["axes"], strict=True):
+        camera = orbit(np.zeros(3), yaw, pitch, 2.0, width=64, height=64)
+        assert np.allclose(axes["right"], camera.R[0], atol=1e-9)  # image x, world
+        assert np.allclose(axes["up"], -camera.R[1], atol=1e-9)    # image -y, world
+    far, default, middle, closest, past = (np.asarray(z) for z in out["zoom"])
+    assert np.allclose(far, [0, 0.4, 0.1]) and np.allclose(default, [0, 0.4, 0.1])
+    assert np.allclose(middle, [0, 0.53, 0.05]) and np.allclose(closest, [0, 0.66, 0])
+    assert np.allclose(past, closest)
+    assert out["seconds"] == [30, 5, 30, 30, 30, 30] and len(out["errors"]) == 4
+    assert "1 to 300 seconds" in out["errors"][0]
+    assert out["red"] == pytest.approx([1, 128 / 255, 0])
