@@ -159,3 +159,31 @@ def test_framing_fits_boxes_and_keeps_the_head_whole():
         frame_scene([], head)
     with pytest.raises(ValueError, match="above the neck"):
         head_box(np.zeros((4, 3)), np.array([0, 1.0, 0]))
+
+
+def test_room_framing_covers_every_placed_seat_and_faces_the_performed_one(server):
+    from types import SimpleNamespace as Seat
+
+    from server.stream.framing import room_framing
+
+    animator = server.ctx.registry.open("demo").animator
+    here = Seat(rotation=(0, 0, 0), translation=(0, 0, 0))
+    there = Seat(rotation=(0, -0.4, 0), translation=(0.8, 0, 0))
+    seats = [Seat(index=0, avatar="demo", placement=here),
+             Seat(index=1, avatar="demo", placement=there)]
+    solo = room_framing(seats[:1], 0, lambda _: animator)
+    duet = room_framing(seats, 1, lambda _: animator)
+    assert duet.target[0] == pytest.approx(0.4, abs=0.05)  # between the two
+    assert duet.distance > solo.distance  # twice as wide: farther
+    assert duet.face[0] == pytest.approx(solo.face[0] + 0.8, abs=0.02)  # seat 1's head
+    assert room_framing(seats, 0, lambda _: animator).face == pytest.approx(solo.face)
+    # every vertex of both seats at rest inside a square frame of the duet's framing
+    params = DriveState().smplx_params(animator.body_model, {})
+    params["betas"] = animator.betas
+    with torch.no_grad():
+        vertices = animator.body_model(params).vertices[0].numpy().astype(np.float64)
+    rot = cv2.Rodrigues(np.asarray(there.rotation, np.float64))[0]
+    both = np.concatenate([vertices, vertices @ rot.T + there.translation])
+    camera = view_camera(framing_view(duet), SIZE, SIZE, np.zeros(3))
+    uv = project(camera, both)
+    assert ((uv >= 0) & (uv <= SIZE)).all(), (uv.min(0), uv.max(0))
