@@ -20,6 +20,7 @@ from .messages import (
     Drive,
     Error,
     Frame,
+    Framing,
     Hello,
     Image,
     Orbit,
@@ -40,7 +41,7 @@ from .params import FAMILIES
 __all__ = [
     "CLIENT_TYPES", "CODECS", "DEFAULT_LIMITS", "ERROR_CODES", "FAMILIES", "OUTPUTS",
     "PROTOCOL_MINOR", "PROTOCOL_VERSION", "SERVER_TYPES", "AvatarInfo", "CameraSpec", "Drive",
-    "Error", "Frame", "Hello", "Image", "Limits", "Orbit", "Ping", "Pong", "Presence",
+    "Error", "Frame", "Framing", "Hello", "Image", "Limits", "Orbit", "Ping", "Pong", "Presence",
     "ProtocolError", "Request", "RoomWelcome", "SeatPresence", "Stats", "Timings", "Tracked",
     "View", "Welcome", "decode_client", "decode_server", "encode", "pack_array",
     "unpack_array",

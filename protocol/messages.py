@@ -301,6 +301,21 @@ class EncodersInfo(_Message):
     h264: Literal["h264_nvenc", "libx264"]
 
 
+class Framing(_Message):
+    """Where to look to see the scene at rest whole (a page's default view), and its face.
+
+    Orbit around ``target`` at ``distance`` (at ``fov_y_deg``, a square frame) to see every
+    seat's upper body and hands; zooming in goes toward ``face`` (the performed seat's head, or
+    seat 0's), and no closer than ``min_distance`` from it, where the whole head still fits.
+    """
+
+    target: Vec3
+    distance: float = Field(gt=0)
+    fov_y_deg: float = Field(gt=0, lt=180)
+    face: Vec3
+    min_distance: float = Field(gt=0)
+
+
 class Welcome(_Message):
     type: Literal["welcome"] = "welcome"
     version: int = PROTOCOL_VERSION
@@ -312,6 +327,7 @@ class Welcome(_Message):
     request: Request  # the effective render request (defaults filled in)
     room: RoomWelcome | None = None
     encoders: EncodersInfo | None = None  # what encodes the frames (servers that report it)
+    framing: Framing | None = None  # the default view of the scene at rest (servers that send it)
 
 
 class SeatPresence(_Message):

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+from avatar_core.body.rest_pose import rest_body_pose
 from avatar_core.cli import main
 from avatar_core.gaussians.animate import synthetic_package
 from avatar_core.gaussians.package import save_package
@@ -63,7 +64,9 @@ def test_npz_motion_file_frames_and_errors(synthetic_files, tmp_path):
     seq = motion_frames(str(path), files, model, fps=25.0)
     assert len(seq) == 3 and seq[1]["expression"].shape == (10,)
     assert len(motion_frames(str(path), files, model, fps=25.0, frames=2)) == 2
-    assert motion_frames("rest", files, model, fps=25.0, frames=4) == [{}] * 4
+    rest = motion_frames("rest", files, model, fps=25.0, frames=4)
+    assert len(rest) == 4 and all(set(f) == {"body_pose"} for f in rest)
+    np.testing.assert_array_equal(rest[0]["body_pose"], rest_body_pose())  # not the T-pose
     np.savez(path, jaw_pose=np.zeros((3, 3)), expression=np.ones((2, 10)))
     with pytest.raises(ValueError, match="disagree on the number of frames"):
         motion_frames(str(path), files, model, fps=25.0)

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from ..body.model_paths import BodyModelFiles
+from ..body.rest_pose import rest_body_pose
 from ..body.upper_body import UpperBodyModel
 from .library import ALIASES, MOTIONS, demo_clip, motion, unknown_clip_message
 from .rig import model_rig
@@ -24,8 +25,8 @@ def motion_frames(spec: str, files: BodyModelFiles, model: UpperBodyModel, fps: 
     ``library.clip_names()``), a .json list of
     per-frame dicts, or an .npz of arrays with a leading frame axis. ``files`` and ``model``
     (the avatar's body model) rig the built-in clip."""
-    if spec == "rest":
-        return [{} for _ in range(frames or 1)]
+    if spec == "rest":  # the live rest pose (body/rest_pose.py), not the T-pose
+        return [{"body_pose": rest_body_pose()} for _ in range(frames or 1)]
     if spec == "demo" or spec in MOTIONS or spec in ALIASES:
         clip = demo_clip() if spec == "demo" else motion(spec)
         rig = model_rig(files, model)

@@ -12,8 +12,8 @@
 // 0.25 s -> 4 s, jittered, `?reconnect=N` tries); a room that is gone stops it.
 
 import { Controls } from "./controls.js";
+import { Capture, recordSeconds } from "./capture.js";
 import { MotionPlayer } from "./motions.js";
-import { OrbitControl } from "./orbit.js";
 import { backoffDelay, reconnectDecision, reconnectPolicy, stopReason } from "./reconnect.js";
 import { Session, streamUrl, takeToken } from "./session.js";
 import {
@@ -22,6 +22,8 @@ import {
 import { demoBanner, watchDemoBuild } from "./demo_build.js";
 import { StreamStats, overlayToggle, renderStats } from "./stats.js";
 import { askForToken, unauthorized } from "./token.js";
+import { ViewControl, fitToViewport } from "./view.js";
+import { chosenBackground, showBackground, wireViewBar } from "./viewbar.js";
 import { Webcam, trackedText } from "./webcam.js";
 import {
   WhepSession, chooseTransport, deleteRoom, onVideoFrame, serverHealth, worthFallingBack,
@@ -115,11 +117,16 @@ function showFrame(frame) {
 
 const controls = new Controls($("sliders"), (families) => drive(families));
 const player = new MotionPlayer(api, (families, reset) => drive(families, reset));
-// On the stage, so that dragging the canvas or the video orbits alike.
-const orbit = new OrbitControl($("stage"), (view, moving) => {
+// On the canvas and the video alike (view.js: orbit, zoom toward the face, pan, reset).
+const orbit = new ViewControl([canvas, video], (view, moving) => {
   state.stats.input();
   state.session?.view(view, moving);
 });
+const capture = new Capture($("stage"), () => (canvas.hidden ? video : canvas),
+  { maxSeconds: recordSeconds(location.search, (why) => notify(why, "error")) });
+state.capture = capture;
+state.saved = [];  // what snapshots and recordings saved: {kind, blob, url, name, size, ...}
+capture.onSaved = (saved) => state.saved.push(saved);
 const webcam = new Webcam((bytes) => { state.stats.input(); state.session?.image(bytes); });
 state.orbit = orbit;
 state.player = player;
@@ -135,7 +142,9 @@ function drive(families, reset = false) {
 
 function sendRequest() {
   const size = Number($("size").value);
-  state.session?.request({ width: size, height: size, codec: "jpeg" });
+  const background = chosenBackground();
+  state.session?.request({ width: size, height: size, codec: "jpeg",
+    ...(background ? { background } : {}) });
 }
 
 function onServerError(message) {
@@ -307,8 +316,13 @@ async function connect(target, { retrying = false } = {}) {
       avatar: info, room: state.room, solo, session: welcome.session, transport: state.transport,
     });
     controls.build(info.expression_names || [], welcome.limits);
+    showBackground(welcome.request?.background);
     sendRequest();
-    session.view({ ...orbit.orbit }, false);
+    // A new scene starts from its default framing; a reconnection keeps the view it had.
+    if (JSON.stringify(welcome.framing ?? null) !== JSON.stringify(orbit.framing)) {
+      orbit.setFraming(welcome.framing, welcome.limits);
+    }
+    session.view(orbit.current(), false);
     session.ping();
     rejoin = solo ? target : {
       room: state.room.id, role: state.room.role,
@@ -423,6 +437,11 @@ async function share() {
 }
 
 function wire() {
+  fitToViewport($("stage"));
+  wireViewBar({
+    view: orbit, capture, notify,
+    sendBackground: (background) => state.session?.request({ background }),
+  });
   $("share").hidden = !canShare(token);
   $("share").addEventListener("click", share);
   $("avatar").addEventListener("change", (e) => connect(e.target.value));

@@ -747,6 +747,71 @@ export const SCHEMA_DEFS = Object.freeze({
     "title": "Frame",
     "type": "object"
   },
+  "Framing": {
+    "additionalProperties": false,
+    "description": "Where to look to see the scene at rest whole (a page's default view), and its face.\n\nOrbit around ``target`` at ``distance`` (at ``fov_y_deg``, a square frame) to see every\nseat's upper body and hands; zooming in goes toward ``face`` (the performed seat's head, or\nseat 0's), and no closer than ``min_distance`` from it, where the whole head still fits.",
+    "properties": {
+      "distance": {
+        "exclusiveMinimum": 0,
+        "title": "Distance",
+        "type": "number"
+      },
+      "face": {
+        "maxItems": 3,
+        "minItems": 3,
+        "prefixItems": [
+          {
+            "type": "number"
+          },
+          {
+            "type": "number"
+          },
+          {
+            "type": "number"
+          }
+        ],
+        "title": "Face",
+        "type": "array"
+      },
+      "fov_y_deg": {
+        "exclusiveMaximum": 180,
+        "exclusiveMinimum": 0,
+        "title": "Fov Y Deg",
+        "type": "number"
+      },
+      "min_distance": {
+        "exclusiveMinimum": 0,
+        "title": "Min Distance",
+        "type": "number"
+      },
+      "target": {
+        "maxItems": 3,
+        "minItems": 3,
+        "prefixItems": [
+          {
+            "type": "number"
+          },
+          {
+            "type": "number"
+          },
+          {
+            "type": "number"
+          }
+        ],
+        "title": "Target",
+        "type": "array"
+      }
+    },
+    "required": [
+      "target",
+      "distance",
+      "fov_y_deg",
+      "face",
+      "min_distance"
+    ],
+    "title": "Framing",
+    "type": "object"
+  },
   "Hello": {
     "additionalProperties": false,
     "description": "First message of a session (optional when the token came in the URL or a header).",
@@ -1580,6 +1645,17 @@ export const SCHEMA_DEFS = Object.freeze({
         "anyOf": [
           {
             "$ref": "#/$defs/EncodersInfo"
+          },
+          {
+            "type": "null"
+          }
+        ],
+        "default": null
+      },
+      "framing": {
+        "anyOf": [
+          {
+            "$ref": "#/$defs/Framing"
           },
           {
             "type": "null"

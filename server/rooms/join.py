@@ -26,6 +26,7 @@ from starlette.websockets import WebSocketDisconnect, WebSocketState
 from protocol import (
     PROTOCOL_MINOR,
     AvatarInfo,
+    Framing,
     Request,
     RoomWelcome,
     View,
@@ -39,6 +40,7 @@ from ..context import ServerContext
 from ..registry import AvatarNotFound, AvatarRecord
 from ..stream.admission import Admitted, admit
 from ..stream.encoders import encoders_info
+from ..stream.framing import room_framing
 from ..stream.gate import (
     CLOSE_FORBIDDEN,
     CLOSE_INTERNAL,
@@ -200,8 +202,10 @@ async def seat_participant(ctx: ServerContext, room: Room, role: str, seat: int,
             live.close(exc.message)
         raise Refusal(exc.code, exc.message, JOIN_CLOSE_CODES[exc.code]) from None
     try:
+        framing = await asyncio.to_thread(room_framing, room.seats, seat,
+                                          lambda avatar: ctx.registry.open(avatar).animator)
         welcome = _welcome(session, record, rig.expression_names, room, role, seat, effective,
-                           s)
+                           framing, s)
     except Exception:
         live.leave(session)  # admitted, never run: out again
         session.release()
@@ -210,16 +214,17 @@ async def seat_participant(ctx: ServerContext, room: Room, role: str, seat: int,
 
 
 def _welcome(session: Session, record: AvatarRecord, expression_names: tuple[str, ...],
-             room: Room, role: str, seat: int, request: Request, s: Any) -> Welcome:
+             room: Room, role: str, seat: int, request: Request, framing: Framing,
+             s: Any) -> Welcome:
     info = AvatarInfo(id=record.id, name=record.name, num_gaussians=record.num_gaussians,
                       sh_degree=record.sh_degree, owner=record.owner, metadata=record.metadata,
                       expression_names=list(expression_names) or None)
     if room.private:  # a plain session: no room in its welcome
         return Welcome(session=session.id, avatar=info, limits=s.limits, codecs=list(CODECS),
-                       request=request, encoders=encoders_info())
+                       request=request, encoders=encoders_info(), framing=framing)
     return Welcome(session=session.id, minor=PROTOCOL_MINOR, avatar=info, limits=s.limits,
                    codecs=list(CODECS), request=request, encoders=encoders_info(),
-                   room=RoomWelcome(id=room.id, name=room.name, role=role,
+                   framing=framing, room=RoomWelcome(id=room.id, name=room.name, role=role,
                                     seat=seat if role == "perform" else None))
 
 

@@ -17,7 +17,7 @@ import numpy as np
 
 from protocol import Presence, SeatPresence
 
-from ..stream.drive import DriveState
+from ..stream.drive import DriveState, rest_value
 from ..stream.scene import Scene
 from .registry import Room, SeatSpec
 
@@ -29,6 +29,12 @@ log = logging.getLogger(__name__)
 EASE_STEP_S = 1 / 20   # easing back to rest: a new pose this often
 KEEP_ON_EASE = frozenset({"betas", "shape"})  # identity, not pose: kept until the reset
 CLOSE_GONE = 4410
+
+
+def _toward_rest(family: str, name: str, value: np.ndarray, weight: float) -> np.ndarray:
+    """``weight`` of the way from the rest value to ``value`` (1: ``value``, 0: at rest)."""
+    rest = rest_value(family, name, value)
+    return rest + (value - rest) * weight
 
 
 @dataclass
@@ -156,8 +162,8 @@ class LiveRoom:
         for step in range(1, steps):
             weight = 1.0 - step / steps
             seat.drive.families = {
-                family: {name: value if name in KEEP_ON_EASE else np.asarray(value) * weight
-                         for name, value in values.items()}
+                family: {name: value if name in KEEP_ON_EASE else _toward_rest(
+                    family, name, np.asarray(value), weight) for name, value in values.items()}
                 for family, values in held.items()}
             seat.drive.version += 1
             self.seat_changed()

@@ -15,6 +15,7 @@ import numpy as np
 
 from avatar_core.body.fusion import FusionModels
 from avatar_core.body.models import MANOModel, SMPLXModel
+from avatar_core.body.rest_pose import rest_body_pose
 from protocol import Drive, ProtocolError
 from protocol.params import FAMILIES, FLAME_FIELDS
 
@@ -23,6 +24,17 @@ FAMILY_NAMES = tuple(FAMILIES)  # smplx, flame, mano_left, mano_right
 # FLAME fields fusion reads live: the protocol's fixed-shape ones, plus expr (fitted to the
 # body model's size below); `shape` (identity) is not driven live.
 FLAME_SHAPES = {name: shape for name, (kind, shape) in FLAME_FIELDS.items() if kind == "fixed"}
+
+# What a parameter nobody has sent is: the rest pose's body_pose (body/rest_pose.py), else zero.
+REST_BODY_POSE = rest_body_pose()
+REST_BODY_POSE.flags.writeable = False
+
+
+def rest_value(family: str, name: str, like: np.ndarray) -> np.ndarray:
+    """The rest value of one parameter, shaped like ``like``: where easing back to rest goes."""
+    if family == "smplx" and name == "body_pose" and np.shape(like) == REST_BODY_POSE.shape:
+        return REST_BODY_POSE
+    return np.zeros_like(like)
 
 
 def drive_shapes(model: SMPLXModel, manos: dict[str, MANOModel]
@@ -114,5 +126,5 @@ class DriveState:
 
         Raises ValueError (ParameterError) when the parameters do not fit the model."""
         hands = {side: self.families[f"mano_{side}"] for side in ("left", "right")}
-        return FusionModels(model, manos).fuse(self.families["smplx"], self.families["flame"],
-                                               hands)
+        body = {"body_pose": REST_BODY_POSE, **self.families["smplx"]}  # unsent: at rest
+        return FusionModels(model, manos).fuse(body, self.families["flame"], hands)
