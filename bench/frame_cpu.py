@@ -13,7 +13,7 @@ the rasterizer and torch spread a frame over). Each Python thread's CPU is split
 stages in proportion to its samples (py-spy records only samples where the thread runs).
 
     .venv/bin/python bench/frame_cpu.py [--sessions 4] [--seconds 10] [--size 512]
-                                        [--render-threads 1] [--rate 200]
+                                        [--render-threads auto|N] [--rate 200]
                                         [--samples FILE]
 
 py-spy: ``.venv/bin/pip install py-spy``. Prints one Markdown table: ms of server CPU per
@@ -94,7 +94,8 @@ def main() -> int:
     parser.add_argument("--sessions", type=int, default=4)
     parser.add_argument("--seconds", type=float, default=10.0)
     parser.add_argument("--size", type=int, default=512)
-    parser.add_argument("--render-threads", type=int, default=1)
+    parser.add_argument("--render-threads", default="auto",
+                        help="the server's render threads; auto: its own choice")
     parser.add_argument("--rate", type=int, default=200, help="py-spy samples per second")
     parser.add_argument("--avatar", default="synthetic")
     parser.add_argument("--samples", type=Path, default=None,
@@ -105,8 +106,8 @@ def main() -> int:
         parser.error("py-spy is not installed (.venv/bin/pip install py-spy)")
 
     with tempfile.TemporaryDirectory(prefix="telesplat-bench-") as tmp:
-        proc, url, token = start_server(Path(tmp), args.render_threads, args.sessions,
-                                        args.avatar)
+        threads = None if args.render_threads == "auto" else int(args.render_threads)
+        proc, url, token = start_server(Path(tmp), threads, args.sessions, args.avatar)
         try:
             asyncio.run(run_config(url, token, 1, args.size, 2.0, "lockstep", 30.0))  # warm
             raw = Path(tmp) / "spy.txt"

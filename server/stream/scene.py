@@ -200,6 +200,7 @@ class SceneFrames:
         self.encoders = encoders if encoders is not None else FrameEncoders()
         self.counters = FrameCounters()
         self._on_device = DeviceCopies(render_device(backend))  # CUDA: one upload a state
+        self._checked: tuple[int, ...] | None = None  # versions whose Gaussians were scanned
 
     @property
     def chest(self) -> np.ndarray:
@@ -234,10 +235,13 @@ class SceneFrames:
             cams = [view_camera(job.view, width, height, self.chest) for job in jobs]
             outputs = tuple(dict.fromkeys(("rgb", *req.outputs)))
             budget = None if req.quality >= 1.0 else float(req.quality)
+            versions = jobs[0].versions
             outs = render_views(gaussians, cams, RenderRequest(
                 outputs=outputs, background=tuple(req.background),
                 sh_degree=min(req.sh_degree, gaussians.sh_degree), budget=budget,
-                backend=self.backend, max_tile_pairs=self.max_tile_pairs))
+                backend=self.backend, max_tile_pairs=self.max_tile_pairs),
+                check_finite=versions != self._checked)  # once per posed state, not per view
+            self._checked = versions
             c.renders += 1
             c.previews += int(jobs[0].preview)
             if scale < 1.0:
