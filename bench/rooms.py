@@ -485,8 +485,10 @@ async def orbit_part(url: str, token: str, rest: RestClient, pid: int,
     rows = []
     for n in args.orbit_counts:
         rows.append((n, await orbiting(url, token, rest, pid, n, args)))
-        print(f"{n} orbiting viewer(s): {np.mean(rows[-1][1].fps('viewer')):.1f} fps each",
-              file=sys.stderr, flush=True)
+        got = ", ".join(f"{r.name} {r.frames} ({r.previews} previews)"
+                        for r in rows[-1][1].receivers)
+        print(f"{n} orbiting viewer(s): {np.mean(rows[-1][1].fps('viewer')):.1f} fps each; "
+              f"frames: {got}", file=sys.stderr, flush=True)
     return ["### 1 performer + N viewers, each orbiting its own view", ""] + orbit_table(rows)
 
 
