@@ -139,3 +139,25 @@ def test_a_lone_frame_spreads_and_concurrent_frames_take_a_core_each():
         assert (alone, beside, first.result(timeout=60)) == (2, 1, 2)
     finally:
         scheduler.shutdown()
+
+
+def test_the_chosen_pool_is_logged_and_shapes_the_scheduler(caplog, tmp_path, monkeypatch):
+    import logging
+
+    from server.app import render_scheduler
+    from server.config import Settings
+
+    monkeypatch.setenv(THREADS_VAR, "2")
+    with caplog.at_level(logging.INFO, logger="telesplat.server"):
+        auto = render_scheduler(Settings(data_dir=tmp_path))
+        over = render_scheduler(Settings(data_dir=tmp_path, render_threads=2, torch_threads=2))
+    try:
+        assert (auto.render_threads, auto.threads_per_render, auto.spread) == (2, 1, 2)
+        assert (over.render_threads, over.threads_per_render) == (2, 2)
+        levels = {r.getMessage(): r.levelno for r in caplog.records}
+        assert levels["render threads: 2 render thread(s) x 1 thread(s) per frame, a lone "
+                      "frame on 2 (auto: one render thread per core of 2)"] == logging.INFO
+        assert any("oversubscribe" in m and lv == logging.WARNING for m, lv in levels.items())
+    finally:
+        auto.shutdown()
+        over.shutdown()
