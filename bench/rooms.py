@@ -18,10 +18,16 @@ measured in the same run so that the ratios compare like with like:
 3. seats: 2 and 4 seats in one room (placed side by side, each driven by its performer, all
    at one view: one rasterizer call over every seat) against the same avatars in 2 and 4
    plain sessions.
+4. orbiting viewers: 1 performer + N viewers (``--orbit``), each viewer turning its own view
+   at ``--orbit-rate`` Hz as the page does while dragging (``view.moving`` set): fps per
+   viewer, the performer's fps, server CPU per delivered frame (everyone's), the share of
+   frames that were previews (rendered cheaper while moving, where the server does that).
 
     .venv/bin/python bench/rooms.py [--avatar synthetic|trained|PACKAGE] [--seconds 6]
                                     [--viewers 1,4,16,32] [--seats 2,4] [--size 512]
                                     [--rate 30] [--repeat 1] [--torch-threads N] [--quick]
+                                    [--orbit 1,2,4] [--orbit-rate 30] [--only orbit]
+                                    [--render-threads N|auto]
 
 Prints Markdown tables. Target (issue 14, 2 cores): 16 viewers at one view, each >= 25 fps
 with p95 <= 80 ms; distinct views min/max fps >= 0.8.
@@ -58,6 +64,12 @@ SEAT_SPACING_M = 0.8      # seats side by side along x
 BASE_VIEW = {"yaw_deg": 0.0, "pitch_deg": 0.0, "distance": 2.4}
 WIDE_VIEW = {"yaw_deg": 0.0, "pitch_deg": 0.0, "distance": 4.0}  # 4 seats fit the frame
 DISTINCT_YAWS = (0.0, 25.0, 50.0, 75.0)
+ORBIT_PERIOD_S = 8.0      # an orbiting viewer turns once around in this time
+
+
+def orbit_yaw(start: float, t: float) -> float:
+    """Degrees in [-180, 180): ``start`` turned for ``t`` seconds."""
+    return (start + 360.0 * t / ORBIT_PERIOD_S + 180.0) % 360.0 - 180.0
 
 
 # -- measuring ------------------------------------------------------------------------------
@@ -81,6 +93,7 @@ class Receiver:
     stage_ms: dict[str, list[float]] = field(default_factory=lambda: {
         "pose": [], "render": [], "encode": []})
     seconds: float = 0.0
+    previews: int = 0     # frames marked preview (a moving view's cheaper render)
 
     @property
     def fps(self) -> float:
@@ -128,6 +141,7 @@ async def receive(client: StreamClient, out: Receiver, sent: dict[int, float] | 
         if got < measure_from:
             continue
         out.frames += 1
+        out.previews += int(getattr(frame, "preview", False))
         out.bytes += len(frame.data)
         if sent is not None and frame.seq in sent:
             out.latencies_ms.append(1000 * (got - sent[frame.seq]))
@@ -142,10 +156,11 @@ class Participant:
     name: str
     drives: bool          # sends the motion at --rate
     phase: float = 0.0    # of the motion: seats move differently
+    orbit_from: float | None = None  # turns its view from this yaw (degrees) while measured
 
 
 async def measure(participants: list[Participant], server_pid: int, seconds: float,
-                  rate: float, same_drive: bool = False) -> Run:
+                  rate: float, same_drive: bool = False, orbit_rate: float = 30.0) -> Run:
     """Drive and receive on every participant together; server CPU over the measured window.
     With `same_drive`, every driver sends the same motion (today's path of N copies)."""
     t0 = time.monotonic()
@@ -164,6 +179,12 @@ async def measure(participants: list[Participant], server_pid: int, seconds: flo
                 rate, end, sent[p.name],
                 lambda _, c=p.client, ph=phase: c.drive(motion_frame(time.monotonic() - t0,
                                                                      ph)))))
+        if p.orbit_from is not None:  # one turn per ORBIT_PERIOD_S, dragging
+            tasks.append(asyncio.create_task(paced(
+                orbit_rate, end, {},
+                lambda _, c=p.client, yaw=p.orbit_from: c.view(
+                    {**BASE_VIEW, "yaw_deg": orbit_yaw(yaw, time.monotonic() - t0)},
+                    moving=True))))
     for p in participants:
         r = Receiver(p.name)
         receivers.append(r)
@@ -302,6 +323,28 @@ async def seats(url: str, token: str, rest: RestClient, pid: int, count: int,
     return shared, separate
 
 
+async def orbiting(url: str, token: str, rest: RestClient, pid: int, viewers: int,
+                   args: argparse.Namespace) -> Run:
+    """1 performer (still view) + `viewers` viewers, each orbiting from its own yaw."""
+    room, watch = new_room(rest, 1)
+    people: list[Participant] = []
+    try:
+        performer = await join_room(url, token, room, "perform", 0, "performer")
+        people.append(Participant(await setup(performer, args.size, BASE_VIEW), "performer",
+                                  drives=True))
+        for i in range(viewers):
+            yaw = 360.0 * (i + 1) / (viewers + 1)  # spread around: no two views alike
+            client = await join_room(url, watch, room, "watch", None, f"viewer-{i}")
+            people.append(Participant(await setup(client, args.size,
+                                                  {**BASE_VIEW, "yaw_deg": yaw}),
+                                      f"viewer-{i}", drives=False, orbit_from=yaw))
+        await asyncio.sleep(JOIN_SETTLE_S)
+        return await measure(people, pid, args.seconds, args.rate, orbit_rate=args.orbit_rate)
+    finally:
+        await close_all(people)
+        rest.delete_room(room)
+
+
 # -- reporting -----------------------------------------------------------------------------
 
 
@@ -335,6 +378,23 @@ def same_view_table(rows: list[tuple[int, Run]]) -> list[str]:
     return out
 
 
+def orbit_table(rows: list[tuple[int, Run]]) -> list[str]:
+    out = ["| viewers orbiting | fps / viewer (mean) | fps (min) | performer fps "
+           "| server CPU (s/s) | CPU per frame (ms) | previews | pose / render / encode (ms) "
+           "| JPEG (kB) |",
+           "|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for n, run in rows:
+        fps = run.fps("viewer")
+        frames = sum(r.frames for r in run.receivers)
+        previews = sum(r.previews for r in run.receivers)
+        out.append(
+            f"| {n} | {np.mean(fps):.1f} | {min(fps):.1f} | {run.fps('performer')[0]:.1f} "
+            f"| {run.cpu_per_s:.2f} | {run.cpu_ms_per_frame():.1f} "
+            f"| {100 * previews / max(frames, 1):.0f}% | {run.stage('pose'):.1f} / "
+            f"{run.stage('render'):.1f} / {run.stage('encode'):.1f} | {run.kb_per_frame():.0f} |")
+    return out
+
+
 def versus_table(label: str, rows: list[tuple[str, Run, str]]) -> list[str]:
     out = [f"| {label} | fps / participant (mean) | min/max fps | p50 (ms) | p95 (ms) "
            "| server CPU (s/s) | CPU per frame (ms) | pose / render / encode (ms) |",
@@ -357,6 +417,8 @@ async def run_all(url: str, token: str, pid: int, args: argparse.Namespace,
                   viewer_counts: list[int]) -> list[str]:
     lines: list[str] = []
     with RestClient(url, token) as rest:
+        if args.only == "orbit":
+            return await orbit_part(url, token, rest, pid, args)
         rows = []
         for n in viewer_counts:
             rows.append((n, await same_view(url, token, rest, pid, n, args)))
@@ -414,7 +476,20 @@ async def run_all(url: str, token: str, pid: int, args: argparse.Namespace,
         lines += ["", "### Seats: one room (one rasterizer call) against separate sessions", ""]
         lines += versus_table("avatars", seat_rows)
         lines += [""] + [f"- {note}" for note in seat_notes]
+        lines += [""] + await orbit_part(url, token, rest, pid, args)
     return lines
+
+
+async def orbit_part(url: str, token: str, rest: RestClient, pid: int,
+                     args: argparse.Namespace) -> list[str]:
+    rows = []
+    for n in args.orbit_counts:
+        rows.append((n, await orbiting(url, token, rest, pid, n, args)))
+        got = ", ".join(f"{r.name} {r.frames} ({r.previews} previews)"
+                        for r in rows[-1][1].receivers)
+        print(f"{n} orbiting viewer(s): {np.mean(rows[-1][1].fps('viewer')):.1f} fps each; "
+              f"frames: {got}", file=sys.stderr, flush=True)
+    return ["### 1 performer + N viewers, each orbiting its own view", ""] + orbit_table(rows)
 
 
 def main() -> int:
@@ -425,7 +500,13 @@ def main() -> int:
     parser.add_argument("--seconds", type=float, default=6.0, help="measured per config")
     parser.add_argument("--size", type=int, default=512)
     parser.add_argument("--rate", type=float, default=30.0, help="performer drives per second")
-    parser.add_argument("--render-threads", type=int, default=1)
+    parser.add_argument("--render-threads", default="1",
+                        help="the server's render threads; auto: its own choice")
+    parser.add_argument("--orbit", default="1,2,4", help="orbiting viewer counts")
+    parser.add_argument("--orbit-rate", type=float, default=30.0,
+                        help="view messages per second of each orbiting viewer")
+    parser.add_argument("--only", choices=("all", "orbit"), default="all",
+                        help="orbit: only the orbiting viewers part")
     parser.add_argument("--torch-threads", type=int, default=None,
                         help="the server's torch/numba threads per render (default: its own)")
     parser.add_argument("--avatar", default="synthetic",
@@ -441,13 +522,15 @@ def main() -> int:
         args.seconds, args.viewers, args.seats, args.repeat = 2.0, "1,4", "2", 1
     viewer_counts = [int(n) for n in args.viewers.split(",")]
     args.seat_counts = [int(n) for n in args.seats.split(",")]
+    args.orbit_counts = [int(n) for n in args.orbit.split(",")]
+    threads = None if args.render_threads == "auto" else int(args.render_threads)
 
     if args.torch_threads is not None:  # start_server passes the environment on
         os.environ["TELESPLAT_TORCH_THREADS"] = str(args.torch_threads)
     with tempfile.TemporaryDirectory(prefix="telesplat-bench-") as tmp:
         # Room participants are sessions too: room for the largest room plus slack.
-        proc, url, token = start_server(Path(tmp), args.render_threads,
-                                        max(viewer_counts) + 8, args.avatar)
+        proc, url, token = start_server(Path(tmp), threads,
+                                        max(viewer_counts + args.orbit_counts) + 8, args.avatar)
         try:
             lines = asyncio.run(run_all(url, token, proc.pid, args, viewer_counts))
         finally:

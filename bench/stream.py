@@ -168,10 +168,13 @@ async def run_config(url: str, token: str, sessions: int, size: int, seconds: fl
 # -- the server ----------------------------------------------------------------------------
 
 
-def start_server(data_dir: Path, render_threads: int, max_sessions: int, avatar: str):
+def start_server(data_dir: Path, render_threads: int | None, max_sessions: int, avatar: str):
+    """``render_threads`` None: the server's own choice (its default)."""
     # A bench's crowd of viewers joins with one watch invitation: it may take every session.
-    env = {**os.environ, "TELESPLAT_RENDER_THREADS": str(render_threads),
-           "TELESPLAT_MAX_SESSIONS": str(max_sessions),
+    env = {k: v for k, v in os.environ.items() if k != "TELESPLAT_RENDER_THREADS"}
+    if render_threads is not None:
+        env["TELESPLAT_RENDER_THREADS"] = str(render_threads)
+    env = {**env, "TELESPLAT_MAX_SESSIONS": str(max_sessions),
            "TELESPLAT_MAX_SESSIONS_PER_INVITATION": str(max_sessions),
            "TELESPLAT_RESERVED_SESSIONS": "0", "PYTHONUNBUFFERED": "1"}
     proc = subprocess.Popen(

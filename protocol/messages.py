@@ -379,6 +379,7 @@ class Frame(_Message):
     depth: bytes | None = None  # 16-bit PNG, millimetres, when depth was requested
     keyframe: bool = True       # h264: the stream can start here
     timings: Timings = Field(default_factory=Timings)
+    preview: bool = False       # a moving view's cheaper frame; a full one follows when still
 
 
 class Answers(_Message):

@@ -137,6 +137,15 @@ def cors_options(settings: Settings) -> dict:
             "allow_credentials": False, "max_age": settings.cors_max_age_s}
 
 
+def render_scheduler(settings: Settings) -> RenderScheduler:
+    """The render threads, shaped by the settings or chosen from the machine (logged)."""
+    pool = settings.render_pool()
+    level = logging.WARNING if "oversubscribe" in pool.why else logging.INFO
+    log.log(level, "render threads: %s", pool)
+    return RenderScheduler(pool.workers, pool.per_frame, settings.fair_share,
+                           settings.fair_share_window_s, spread=pool.spread)
+
+
 def create_app(settings: Settings) -> FastAPI:
     install_log_redaction()  # before uvicorn logs a URL with ?token= in it
     private_dir(settings.data_dir)  # 0700: tokens, uploads, avatars and logs live below
@@ -147,8 +156,7 @@ def create_app(settings: Settings) -> FastAPI:
     ctx = ServerContext(
         settings=settings, tokens=tokens,
         registry=AvatarRegistry.from_settings(settings),
-        scheduler=RenderScheduler(settings.render_threads, settings.torch_threads,
-                                  settings.fair_share, settings.fair_share_window_s),
+        scheduler=render_scheduler(settings),
         track_scheduler=RenderScheduler(settings.track_threads, 1),
         metrics=ServerMetrics(), slots=SessionSlots(settings.max_sessions),
         rooms=RoomRegistry(settings, RoomStore(store_path(settings.data_dir))),

@@ -16,7 +16,13 @@ from urllib.parse import urlsplit
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from avatar_core.gaussians.validate import GaussianRanges
-from avatar_core.threads import machine_threads
+from avatar_core.threads import (
+    THREADS_VAR,
+    RenderThreads,
+    machine_threads,
+    render_threads,
+    usable_cores,
+)
 from protocol import Limits
 
 ENV_PREFIX = "TELESPLAT_"
@@ -109,6 +115,19 @@ class Settings(BaseModel):
     jpeg_quality: int = Field(85, ge=1, le=100, description="JPEG quality of still views.")
     jpeg_quality_moving: int = Field(60, ge=1, le=100,
                                      description="JPEG quality while view.moving is set.")
+    moving_view_settle_ms: float = Field(
+        150.0, ge=0, le=10_000, description="A view whose camera changed twice within this "
+                                            "many ms (or whose view.moving is set) is moving: "
+                                            "its frames are previews (moving_view_scale, "
+                                            "moving_view_quality, jpeg_quality_moving). Still "
+                                            "this long: one full-quality frame follows.")
+    moving_view_scale: float = Field(
+        0.5, gt=0, le=1, description="A moving view renders at this fraction of the asked "
+                                     "width and height, upscaled back before encoding "
+                                     "(1: full resolution).")
+    moving_view_quality: float = Field(
+        1.0, ge=0.01, le=1, description="A moving view renders at most this fraction of the "
+                                        "Gaussians (the render budget; 1: all of them).")
     default_width: int = Field(512, ge=16, description="Frame width until a request sets it.")
     default_height: int = Field(512, ge=16, description="Frame height until a request sets it.")
     default_max_fps: float = Field(30.0, gt=0, description="Per-session frame-rate cap until "
@@ -150,8 +169,12 @@ class Settings(BaseModel):
                           "FLAME_NEUTRAL.pkl, ...), for avatars, training jobs and tracking "
                           "bound to licensed models; None: only the synthetic family. "
                           "Also TELESPLAT_BODY_MODELS, which every command reads.")
-    render_threads: int = Field(1, ge=1, le=64, description="Render worker threads shared by "
-                                                            "all sessions (see fair_share).")
+    render_threads: int | None = Field(
+        None, ge=1, le=64, description="Render worker threads shared by all sessions (see "
+                                       "fair_share). None (auto): one per usable core "
+                                       "(affinity mask and cgroup quota; TELESPLAT_THREADS "
+                                       "overrides the count), or what torch_threads leaves; "
+                                       "the choice is logged at start-up.")
     fair_share: Literal["time", "frames"] = Field(
         "time", description="How render threads are shared. time: the waiting session with the "
                             "least recent render time goes first, and with N sessions active "
@@ -186,11 +209,13 @@ class Settings(BaseModel):
                             "choice is reported in welcome.encoders.")
     track_threads: int = Field(1, ge=1, le=64, description="Webcam-tracking worker threads "
                                                            "shared by all sessions.")
-    torch_threads: int = Field(
-        default_factory=lambda: machine_threads(cap=2), ge=1, le=64,
-        description="torch / numba threads per render worker (default: the cores this process "
-                    "may use, at most 2; TELESPLAT_THREADS overrides the count). "
-                    "render_threads x torch_threads should not exceed the cores; training jobs "
+    torch_threads: int | None = Field(
+        None, ge=1, le=64,
+        description="torch / numba threads per render worker. None (auto): the usable cores "
+                    "divided by render_threads; with both auto, 1 per frame while the workers "
+                    "are all busy and a lone frame's kernels on every core "
+                    "(avatar_core/threads.py render_threads). render_threads x torch_threads "
+                    "above the cores oversubscribes them (logged as such); training jobs "
                     "run niced in their own process.")
     send_buffer_bytes: int = Field(
         64 * 1024, ge=0, description="Kernel send buffer per connection (SO_SNDBUF; Linux "
@@ -471,6 +496,12 @@ class Settings(BaseModel):
             raise ValueError("job_backend / render_backend 'ray' needs cluster_address "
                              "(host:port of a Ray head, or 'auto')")
         return self
+
+    def render_pool(self) -> RenderThreads:
+        """Render threads x threads per frame: the settings, or chosen from the usable cores
+        (``TELESPLAT_THREADS`` overrides the machine's count)."""
+        cores = machine_threads() if os.environ.get(THREADS_VAR, "").strip() else usable_cores()
+        return render_threads(cores, self.render_threads, self.torch_threads)
 
     @property
     def cluster_storage_dir(self) -> Path:

@@ -718,6 +718,11 @@ export const SCHEMA_DEFS = Object.freeze({
         "title": "Keyframe",
         "type": "boolean"
       },
+      "preview": {
+        "default": false,
+        "title": "Preview",
+        "type": "boolean"
+      },
       "seq": {
         "title": "Seq",
         "type": "integer"

@@ -55,6 +55,7 @@ from ..stream.gate import (
 )
 from ..stream.session import Session, SessionConfig
 from ..stream.transport import Transport, WebSocketTransport
+from ..stream.view_motion import MovingViewCost
 from .live import CLOSE_GONE, JoinRefused, LiveRoom
 from .registry import Invitation, Room, RoomError, SeatSpec
 
@@ -192,7 +193,9 @@ async def seat_participant(ctx: ServerContext, room: Room, role: str, seat: int,
         transport, live, role=role, seat_index=seat, name=name, tracker=tracker,
         track_scheduler=ctx.track_scheduler, metrics=ctx.metrics,
         config=SessionConfig(s.limits, s.jpeg_quality, s.jpeg_quality_moving,
-                             s.stats_interval_s, inbound_limits(s)),
+                             s.stats_interval_s, inbound_limits(s),
+                             MovingViewCost(s.moving_view_settle_ms / 1000,
+                                            s.moving_view_scale, s.moving_view_quality)),
         request=effective, view=View(orbit=Orbit()), session_count=lambda: ctx.slots.count)
     try:
         live.join(session)

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import collections
 import concurrent.futures
+import dataclasses
 import threading
 import time
 from collections.abc import Hashable
@@ -46,7 +47,7 @@ from avatar_core.gaussians.animate import AvatarAnimator
 from avatar_core.gaussians.placement import place, placed_point, seat_transform, union
 from avatar_core.render.camera import Camera, orbit
 from avatar_core.render.camera_path import framing_target
-from avatar_core.render.types import GaussianSet, RenderRequest, to_uint8
+from avatar_core.render.types import GaussianSet, RenderOutput, RenderRequest, to_uint8
 from avatar_core.render.views import render_views
 from protocol import Request, Timings, View
 
@@ -75,6 +76,8 @@ class FrameJob:
     previous_codec: str | None = None  # the codec of the participant's last frame
     track_ms: float = 0.0             # tracking time of the webcam image it first shows
     raw: bool = False                 # the RGB array itself, not encoded (a WebRTC track)
+    preview: bool = False             # a moving view's cheaper frame (server/stream/view_motion.py)
+    render_scale: float = 1.0         # rendered at this fraction of the size, upscaled back
 
     @property
     def versions(self) -> tuple[int, ...]:
@@ -94,6 +97,7 @@ class Frame:
     seat_seqs: tuple[int, ...] = ()   # each seat's newest drive seq
     versions: tuple[int, ...] = ()    # each seat's drive version this frame shows
     rgb: np.ndarray | None = None     # [H, W, 3] uint8, raw frames only
+    preview: bool = False             # rendered cheaper while its view moves
 
 
 @dataclass
@@ -110,6 +114,7 @@ class FrameCounters:
     cost_degraded: int = 0   # renders the pair bound degraded (splats dropped to fit)
     tile_pairs_max: int = 0  # most (Gaussian, tile) pairs one render composited
     pairs_allocated_max: int = 0  # most pairs one render's tile lists held (cpu backend)
+    previews: int = 0        # renders of moving views (smaller, upscaled; fewer Gaussians)
 
 
 class FrameAbandoned(RuntimeError):
@@ -126,6 +131,28 @@ def view_camera(view: View, width: int, height: int, default_target: np.ndarray)
     target = default_target if o.target is None else np.asarray(o.target, dtype=np.float64)
     return orbit(target, o.yaw_deg, o.pitch_deg, o.distance, width=width, height=height,
                  fov_y_deg=o.fov_y_deg)
+
+
+def scaled(size: int, scale: float) -> int:
+    """A side of a preview render: ``scale`` of ``size``, at least 16 px (the smallest
+    request)."""
+    return size if scale >= 1.0 else max(16, round(size * scale))
+
+
+def upscaled(out: RenderOutput, width: int, height: int) -> RenderOutput:
+    """A smaller render brought back to ``width`` x ``height``: colour and alpha bilinear,
+    depth nearest (no depth between a surface and the background)."""
+    def resize(t: torch.Tensor | None, mode: str) -> torch.Tensor | None:
+        if t is None:
+            return None
+        x = t.unsqueeze(0).unsqueeze(0) if t.ndim == 2 else t.permute(2, 0, 1).unsqueeze(0)
+        kw = {"align_corners": False} if mode == "bilinear" else {}
+        y = torch.nn.functional.interpolate(x, size=(height, width), mode=mode, **kw)[0]
+        return y[0] if t.ndim == 2 else y.permute(1, 2, 0)
+
+    return dataclasses.replace(out, rgb=resize(out.rgb, "bilinear"),
+                               alpha=resize(out.alpha, "bilinear"),
+                               depth=resize(out.depth, "nearest"))
 
 
 class SeatPoser:
@@ -173,6 +200,7 @@ class SceneFrames:
         self.encoders = encoders if encoders is not None else FrameEncoders()
         self.counters = FrameCounters()
         self._on_device = DeviceCopies(render_device(backend))  # CUDA: one upload a state
+        self._checked: tuple[int, ...] | None = None  # versions whose Gaussians were scanned
 
     @property
     def chest(self) -> np.ndarray:
@@ -202,14 +230,22 @@ class SceneFrames:
                                                               strict=True)]))
             t1 = time.perf_counter()
             self._stage()
-            cams = [view_camera(job.view, req.width, req.height, self.chest) for job in jobs]
+            scale = jobs[0].render_scale
+            width, height = scaled(req.width, scale), scaled(req.height, scale)
+            cams = [view_camera(job.view, width, height, self.chest) for job in jobs]
             outputs = tuple(dict.fromkeys(("rgb", *req.outputs)))
             budget = None if req.quality >= 1.0 else float(req.quality)
+            versions = jobs[0].versions
             outs = render_views(gaussians, cams, RenderRequest(
                 outputs=outputs, background=tuple(req.background),
                 sh_degree=min(req.sh_degree, gaussians.sh_degree), budget=budget,
-                backend=self.backend, max_tile_pairs=self.max_tile_pairs))
+                backend=self.backend, max_tile_pairs=self.max_tile_pairs),
+                check_finite=versions != self._checked)  # once per posed state, not per view
+            self._checked = versions
             c.renders += 1
+            c.previews += int(jobs[0].preview)
+            if scale < 1.0:
+                outs = [upscaled(o, req.width, req.height) for o in outs]
             c.batched += len(jobs) if len(jobs) > 1 else 0
             self._count_cost([o.stats for o in outs])
             alpha_asked = "alpha" in req.outputs
@@ -218,7 +254,7 @@ class SceneFrames:
                        None if o.depth is None else o.depth.cpu().numpy()) for o in outs]
         t2 = time.perf_counter()
         frames = []
-        for job, cam, (rgb, alpha, depth) in zip(jobs, cams, images, strict=True):
+        for job, (rgb, alpha, depth) in zip(jobs, images, strict=True):
             self._stage()
             t3 = time.perf_counter()
             if job.raw:  # a WebRTC track encodes it
@@ -232,9 +268,9 @@ class SceneFrames:
                               render=(t2 - t1) * 1e3,
                               encode=(time.perf_counter() - t3) * 1e3)
             seqs = tuple(d.seq for d in job.seats)
-            frames.append(Frame(seqs[0], codec, cam.width, cam.height, data, depth_png,
+            frames.append(Frame(seqs[0], codec, req.width, req.height, data, depth_png,
                                 keyframe, timings, seat_seqs=seqs, versions=job.versions,
-                                rgb=rgb if job.raw else None))
+                                rgb=rgb if job.raw else None, preview=job.preview))
         return frames
 
     def _count_cost(self, stats: list[dict]) -> None:
@@ -293,7 +329,7 @@ class Scene:
         versions = job.versions
         owner = FrameEncoders.output_key(job.participant, job.request)
         group = (job.view.model_dump_json(exclude={"moving"}), job.request.model_dump_json(),
-                 job.jpeg_quality, owner, job.raw)
+                 job.jpeg_quality, owner, job.raw, job.render_scale)
         key = (versions, *group)
         with self._lock:
             render = self._frames.get(key)

@@ -33,7 +33,10 @@ cannot stop it, but records the wish (``stop_asked``); the job reads it on its o
 
 Threads: torch's intra-op pool is process-wide and numba's thread count is per calling
 thread; both are set to ``threads_per_render`` so that ``render_threads`` workers do not
-oversubscribe the cores (on 2 cores: 1 x 2 or 2 x 1, never 2 x 2).
+oversubscribe the cores (on 2 cores: 1 x 2 or 2 x 1, never 2 x 2). With ``spread`` (the
+automatic choice, avatar_core/threads.py ``render_threads``), a job's numba kernels use
+``spread // running`` threads: a lone frame spreads over the cores, concurrent frames get one
+core each.
 """
 
 from __future__ import annotations
@@ -59,10 +62,17 @@ def limit_threads(threads: int) -> None:
 
     if torch.get_num_threads() != threads:
         torch.set_num_threads(threads)
+    numba_threads(threads)
+
+
+def numba_threads(threads: int) -> None:
+    """numba's threads for the calling thread's parallel kernels (per thread, cheap)."""
     try:
         import numba
 
-        numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+        threads = min(threads, numba.config.NUMBA_NUM_THREADS)
+        if numba.get_num_threads() != threads:
+            numba.set_num_threads(threads)
     except (ImportError, ValueError):
         pass
 
@@ -209,11 +219,12 @@ class RenderScheduler:
     order the policy gives. Jobs without a key (warm-up) are served but not accounted."""
 
     def __init__(self, render_threads: int = 1, threads_per_render: int = 1,
-                 policy: Policy = "time", window_s: float = 2.0) -> None:
+                 policy: Policy = "time", window_s: float = 2.0, spread: int = 0) -> None:
         if policy not in POLICIES:
             raise ValueError(f"unknown fair-share policy {policy!r}; expected one of {POLICIES}")
         self.render_threads = render_threads
         self.threads_per_render = threads_per_render
+        self.spread = spread  # > threads_per_render: numba threads per job = spread // running
         self.policy = policy
         self.share = FairShare(window_s, render_threads)
         self._cond = threading.Condition()
@@ -303,9 +314,12 @@ class RenderScheduler:
                 if not job.future.set_running_or_notify_cancel():
                     continue  # cancelled while queued
                 self.running += 1
+                spread = self.spread // self.running
                 charged = 0.0
                 if job.key is not None:  # charged as it starts, settled when it ends
                     charged = self.share.start(job.key, time.monotonic())
+            if self.spread > self.threads_per_render:
+                numba_threads(max(self.threads_per_render, spread))
             started = time.perf_counter()
             result, error = None, None
             future = job.future

@@ -69,6 +69,7 @@ from .tracking import (
     TrackingUnavailable,
 )
 from .transport import Transport
+from .view_motion import MovingViewCost, ViewMotion
 
 if TYPE_CHECKING:
     from ..rooms.live import LiveRoom
@@ -107,6 +108,7 @@ class SessionConfig:
     jpeg_quality_moving: int
     stats_interval_s: float
     inbound: InboundLimits = InboundLimits()
+    moving: MovingViewCost = MovingViewCost()
 
 
 def error_message(code: str, message: str, answers: dict | None = None) -> Error:
@@ -138,6 +140,9 @@ class Session:
         self.limits = config.limits
         self.request = request
         self.view = view
+        self.motion = ViewMotion(config.moving.settle_s)  # moving views render previews
+        self.motion.update(view, time.monotonic())
+        self._preview_shown = False  # the last frame sent was a preview: a full one follows
         self.session_count = session_count  # () -> int, for stats
         self.bucket = TokenBucket(self.limits.max_messages_per_s)
         self._rate_noticed = -RATE_NOTICE_S  # when the client was last told it is too fast
@@ -243,6 +248,7 @@ class Session:
             self._drive_changed()
         elif isinstance(msg, View):
             self.view = msg
+            self.motion.update(msg, time.monotonic())
             self._changed()
         elif isinstance(msg, Request):
             self.request = self.merged_request(self.request, msg, self.limits)
@@ -292,8 +298,13 @@ class Session:
     def _snapshot(self) -> FrameJob:
         req = self.request
         quality = req.jpeg_quality
-        if self.view.moving:
+        cost = self.config.moving
+        moving = self.motion.moving(time.monotonic())
+        if moving:
             quality = min(quality, self.config.jpeg_quality_moving)
+        preview = moving and cost.cheaper
+        if preview and cost.quality < req.quality:
+            req = req.model_copy(update={"quality": cost.quality})
         # Every input since the last frame but one lost its own frame; likewise for drives.
         self.dropped += max(0, self._pending_inputs - 1)
         self.metrics.dropped.inc(max(0, self._pending_inputs - 1))
@@ -303,7 +314,8 @@ class Session:
         track_ms, self._track_ms = self._track_ms, 0.0
         return FrameJob(self.live.snapshot(), self.view, req, quality, participant=self.id,
                         previous_codec=self._last_codec, track_ms=track_ms,
-                        raw=self.transport.raw_frames)
+                        raw=self.transport.raw_frames, preview=preview,
+                        render_scale=cost.render_scale if preview else 1.0)
 
     def _next_frame_at(self, started: float) -> float:
         """When the next frame may start: the frame-rate cap and the fair share of render
@@ -325,7 +337,7 @@ class Session:
             await asyncio.get_running_loop().create_future()  # until the session ends
         started = -math.inf
         while True:
-            await self._dirty.wait()
+            await self._until_dirty()
             await self._pace(started)
             self._dirty.clear()
             job = self._snapshot()
@@ -349,6 +361,21 @@ class Session:
                 continue
             self._good = job
             await self._send_watched(frame)
+
+    async def _until_dirty(self) -> None:
+        """Until there is something new to render; after a preview, also until the view has
+        been still for the settle time (its full-quality frame, even if nothing changed)."""
+        loop = asyncio.get_running_loop()
+        while not self._dirty.is_set():
+            if not self._preview_shown:
+                await self._dirty.wait()
+                return
+            delay = self.motion.still_at() - loop.time()  # loop.time() is time.monotonic()
+            if delay <= 0:
+                self._dirty.set()
+                return
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._dirty.wait(), delay)
 
     def _restore(self, failed: FrameJob, drive_only: bool) -> None:
         """Put back the last state that rendered wherever the failed frame's state is still
@@ -420,6 +447,7 @@ class Session:
         if f.versions != self._asked:
             self._dirty.set()  # it joined an older render: its own state comes next
         self._last_codec = f.codec
+        self._preview_shown = f.preview
         async with self._send_lock:  # one message at a time on the transport
             sent = await self.transport.deliver(f, self.frames)
         self.frames += 1

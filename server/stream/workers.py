@@ -89,8 +89,8 @@ class LocalWorkers:
         one render_views call when batching is on (server/stream/batching.py)."""
         if scene.batches is None:
             return self.scheduler.submit(scene.frames.make_one, job, key=scene.share_key)
-        return scene.batches.submit(self.scheduler, (job.versions, job.request.model_dump_json()),
-                                    job, share_key=scene.share_key)
+        key = (job.versions, job.request.model_dump_json(), job.render_scale)
+        return scene.batches.submit(self.scheduler, key, job, share_key=scene.share_key)
 
     def pace_s(self, share_key: Hashable) -> float:
         return self.scheduler.pace_s(share_key)
@@ -109,9 +109,9 @@ class LocalWorkers:
         scene.frames.close()
 
     def placement(self, ctx: ServerContext) -> dict[str, Any]:
-        s = ctx.settings
-        return {"backend": "local", "render_threads": s.render_threads,
-                "torch_threads": s.torch_threads, "render_queue": self.scheduler.queued}
+        return {"backend": "local", "render_threads": self.scheduler.render_threads,
+                "torch_threads": self.scheduler.threads_per_render,
+                "render_queue": self.scheduler.queued}
 
     def observe(self, metrics: Any) -> None:
         """No render workers here."""
