@@ -250,6 +250,30 @@ def _track_fit(args: argparse.Namespace) -> int:
     return 0
 
 
+def _track_build_embedding(args: argparse.Namespace) -> int:
+    from .synth.embedding_build import build_embedding
+    from .synth.embedding_spec import BuildSpec
+
+    try:
+        spec = BuildSpec(train_identities=tuple(args.identities),
+                         held_out_identities=tuple(args.held_out_identities),
+                         train_clips=tuple(args.clips), held_out_clips=tuple(args.held_out_clips),
+                         frames_per_view=args.frames_per_view, seed=args.seed)
+        with tqdm(total=spec.count(), unit="frame", desc="studio frames") as bar:
+            emb, report = build_embedding(spec, args.body_models, progress=lambda: bar.update(),
+                                          samples_out=args.samples)
+        npz, sidecar = emb.save(args.out)
+    except (OSError, ValueError) as exc:
+        print(f"telesplat: error: {exc}", file=sys.stderr)
+        return 2
+    held = report.get("held_out", {})
+    for name, row in held.items():
+        print(f"{name:28s} {row['before_px']:6.2f} -> {row['after_px']:6.2f} px "
+              f"({row['samples']} held-out samples)")
+    print(f"embedding -> {npz} (+ {sidecar.name})")
+    return 0
+
+
 def _add_track(groups: argparse._SubParsersAction) -> None:
     track = groups.add_parser(
         "track", help="monocular tracking (MediaPipe models as ONNX); "
@@ -293,6 +317,39 @@ def _add_track(groups: argparse._SubParsersAction) -> None:
     fit.add_argument("--cache", type=Path, default=None, help="model cache folder")
     _add_body_models(fit)
     fit.set_defaults(func=_track_fit)
+    _add_build_embedding(track_cmds)
+
+
+def _add_build_embedding(track_cmds: argparse._SubParsersAction) -> None:
+    from .synth.embedding_spec import (
+        HELD_OUT_CLIPS,
+        HELD_OUT_IDENTITIES,
+        TRAIN_CLIPS,
+        TRAIN_IDENTITIES,
+    )
+
+    build = track_cmds.add_parser(
+        "build-embedding", help="fit the learned landmark embedding (where each MediaPipe "
+        "landmark lies on the body model) on studio renders, validated on held-out "
+        "identities and clips; writes OUT.npz + OUT.json")
+    build.add_argument("--out", type=Path, required=True, help="OUT.npz (and OUT.json)")
+    build.add_argument("--identities", type=int, nargs="+", default=list(TRAIN_IDENTITIES),
+                       help="synthetic identities to fit on")
+    build.add_argument("--held-out-identities", type=int, nargs="*",
+                       default=list(HELD_OUT_IDENTITIES), help="identities to validate on")
+    build.add_argument("--clips", nargs="+", default=list(TRAIN_CLIPS),
+                       help="library clips to fit on")
+    build.add_argument("--held-out-clips", nargs="*", default=list(HELD_OUT_CLIPS),
+                       help="library clips to validate on")
+    build.add_argument("--frames-per-view", type=int, default=2,
+                       help="frames per (identity, clip, yaw, framing)")
+    build.add_argument("--seed", type=int, default=0)
+    build.add_argument("--samples", type=Path, default=None,
+                       help="also write the studio samples (npz) for bench/webcam_embedding.py")
+    build.add_argument("--body-models", type=Path, default=None,
+                       help="the synthetic family's folder (default: a cache folder beside "
+                            "the default models, written on first use)")
+    build.set_defaults(func=_track_build_embedding)
 
 
 COMMAND_PLUGINS = "telesplat.commands"
