@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from ..body.skeleton import SMPLX_PARENTS
 from ..track.fit import correspondence as cor
 from ..track.fit.camera import WebcamCamera
 from ..track.fit.embedding import LandmarkEmbedding, anchor_joints
@@ -87,7 +88,7 @@ class _Studio:
         world = np.full((cor.NUM_POSE, 3), np.nan) if obs.world is None else obs.world
         return {"pixels": obs.pixels, "weights": obs.weights, "points": points,
                 "rotations": rot, "image_z": obs.depth, "world": world,
-                "params": x}
+                "params": x, "poses": f.full_pose(x)}
 
 
 def collect(spec: BuildSpec, identities: Sequence[int], clips: Sequence[str], root: Path,
@@ -112,39 +113,65 @@ def collect(spec: BuildSpec, identities: Sequence[int], clips: Sequence[str], ro
                 if progress:
                     progress()
     stack = {k: np.stack([r[k] for r in rows]) for k in rows[0]}
-    samples = solve.Samples(stack["pixels"], stack["weights"], stack["points"],
-                            stack["rotations"], stack["image_z"], stack["world"], camera)
     stack["label"] = np.array([f"{i}:{c}:{y:g}:{f}" for i, c, y, f in labels])
-    return samples, stack
+    return samples_from_arrays(stack, camera), stack
+
+
+def samples_from_arrays(arrays: dict, camera: WebcamCamera, prefix: str = "") -> solve.Samples:
+    a = {k[len(prefix):]: v for k, v in arrays.items() if k.startswith(prefix)}
+    groups = np.array([int(str(lab).split(":")[0]) for lab in a["label"]])
+    return solve.Samples(a["pixels"], a["weights"], a["points"], a["rotations"], a["image_z"],
+                         a["world"], camera, a["poses"], groups)
 
 
 def build_embedding(spec: BuildSpec, model_dir: Path | None = None,
                     progress: Callable[[], None] | None = None,
-                    samples_out: Path | None = None) -> tuple[LandmarkEmbedding, dict]:
+                    samples_out: Path | None = None, samples_in: Path | None = None
+                    ) -> tuple[LandmarkEmbedding, dict]:
     """The embedding and its report (validation tables, z scales, counts); `samples_out`:
-    also write the studio samples there (npz: train_* and held_* arrays) for benchmarks."""
-    root = _family(max(*spec.train_identities, *spec.held_out_identities, 0) + 1, model_dir)
-    train, raw = collect(spec, spec.train_identities, spec.train_clips, root, progress)
-    arrays = {f"train_{k}": v for k, v in raw.items()}
-    held = None
-    if spec.held_out_identities and spec.held_out_clips:
-        held, raw = collect(spec, spec.held_out_identities, spec.held_out_clips, root, progress)
-        arrays.update({f"held_{k}": v for k, v in raw.items()})
+    also write the studio samples there (npz: train_* and held_* arrays) for benchmarks;
+    `samples_in`: fit on such a file instead of filming (the spec is then only recorded)."""
+    from .tracking_eval.scene import webcam_camera
+
+    render_camera = webcam_camera()
+    camera = WebcamCamera(render_camera.width, render_camera.height, 60.0)
+    if samples_in is not None:
+        with np.load(samples_in) as data:
+            arrays = {k: data[k] for k in data.files}
+        root = Path(str(arrays.pop("family")))
+    else:
+        root = _family(max(*spec.train_identities, *spec.held_out_identities, 0) + 1,
+                       model_dir)
+        _, raw = collect(spec, spec.train_identities, spec.train_clips, root, progress)
+        arrays = {f"train_{k}": v for k, v in raw.items()}
+        if spec.held_out_identities and spec.held_out_clips:
+            _, raw = collect(spec, spec.held_out_identities, spec.held_out_clips, root,
+                             progress)
+            arrays.update({f"held_{k}": v for k, v in raw.items()})
     if samples_out is not None:
         Path(samples_out).parent.mkdir(parents=True, exist_ok=True)
         np.savez_compressed(samples_out, family=str(root), **arrays)
+    train = samples_from_arrays(arrays, camera, "train_")
+    held = samples_from_arrays(arrays, camera, "held_") if "held_label" in arrays else None
     anchors = anchor_joints()
-    offset, count = solve.fit_offsets(train, anchors)
-    scales = solve.z_scales(train, offset)
+    parents = np.asarray(SMPLX_PARENTS)
+    offset, basis, count, modes, cv = solve.fit_offsets(train, anchors, parents,
+                                                        min_samples=spec.min_samples)
+    f_train = solve.pose_features(train, anchors, parents)
+    scales = solve.z_scales(train, offset, basis, f_train)
     report = {"spec": asdict(spec), "train_frames": len(train),
               "train_samples_per_row": {solve.row_name(k): int(c) for k, c in enumerate(count)
                                         if c},
-              "z": scales, "train": solve.per_landmark_table(train, offset)}
+              "mode_per_row": {solve.row_name(k): m for k, m in enumerate(modes) if count[k]},
+              "cross_validated_median_px": cv, "z": scales,
+              "train": solve.per_landmark_table(train, offset, basis, f_train)}
     if held is not None:
+        f_held = solve.pose_features(held, anchors, parents)
         report["held_out_frames"] = len(held)
-        report["held_out"] = solve.per_landmark_table(held, offset)
-        report["held_out_z"] = solve.z_scales(held, offset)
+        report["held_out"] = solve.per_landmark_table(held, offset, basis, f_held)
+        report["held_out_z"] = solve.z_scales(held, offset, basis, f_held)
     clip = lambda v: float(np.clip(v, 0.1, 10.0))  # noqa: E731
     emb = LandmarkEmbedding(anchors, offset, clip(scales["world_z_scale"]),
-                            clip(scales["image_z_scale"]), report)
+                            clip(scales["image_z_scale"]), report,
+                            basis if np.abs(basis).max(initial=0) > 0 else None)
     return emb, report

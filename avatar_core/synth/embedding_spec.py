@@ -25,6 +25,7 @@ class BuildSpec:
     frames_per_view: int = 2   # random instants of each clip per (identity, clip, view)
     seed: int = 0
     supersample: int = 2
+    min_samples: int = 40      # a landmark seen fewer times keeps offset 0
 
     def __post_init__(self) -> None:
         if self.frames_per_view < 1 or not self.train_identities or not self.train_clips:

@@ -4,18 +4,20 @@ Each row of the fitter's keypoint layout (`correspondence`: face iBUG-68 from th
 hands 21 x 2, pose 33) keeps its model point (a joint, a vertex or a face triangle with its
 barycentric weights) and gains an offset carried by one joint's frame:
 
-    keypoint_k(theta) = base_k(theta) + Rw_{joint_k}(theta) @ offset_k
+    keypoint_k(theta) = base_k(theta) + Rw_j(theta) (offset_k + B_k [theta_j, theta_par(j)])
 
-so the offset turns with the bone: MediaPipe's elbow sits on the elbow's surface, not at the
-joint centre, wherever the arm points. The offsets are fitted on studio renders with known
-parameters (`avatar_core.synth.embedding_build`, `telesplat track build-embedding`) and stored
-as a versioned asset: an .npz of arrays beside a .json of its version and metadata. The fitter
+(j = joint_k) so the offset turns with the bone (BlazePose's ears sit above the ear vertices
+whichever way the head turns); B_k, a pose-dependent correction linear in the anchor's and
+its parent's axis-angle, is non-zero only where cross-validation calls for it. Fitted on
+studio renders with known parameters (`avatar_core.synth.embedding_build`,
+`telesplat track build-embedding`) and stored as a versioned asset: an .npz of arrays beside a .json of its version and metadata. The fitter
 loads it as data; nothing here imports the studio.
 """
 
 from __future__ import annotations
 
 import json
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -67,9 +69,17 @@ class LandmarkEmbedding:
     world_z_scale: float = 1.0
     image_z_scale: float = 1.0
     metadata: dict = field(default_factory=dict)
+    # [K, 3, 6] m/rad: the pose-dependent correction (None: none).
+    pose_basis: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         joint, offset = np.asarray(self.joint), np.asarray(self.offset)
+        if self.pose_basis is not None:
+            basis = np.asarray(self.pose_basis)
+            if basis.shape != (cor.NUM_KEYPOINTS, 3, 6) or not np.isfinite(basis).all() or \
+                    np.abs(basis).max(initial=0) > MAX_OFFSET_M:
+                raise EmbeddingError(f"pose_basis must be finite [{cor.NUM_KEYPOINTS}, 3, 6] "
+                                     f"within {MAX_OFFSET_M} m/rad, got {list(basis.shape)}")
         if joint.shape != (cor.NUM_KEYPOINTS,) or offset.shape != (cor.NUM_KEYPOINTS, 3):
             raise EmbeddingError(
                 f"embedding arrays must be joint [{cor.NUM_KEYPOINTS}] and offset "
@@ -93,8 +103,11 @@ class LandmarkEmbedding:
         """Writes PATH (.npz) and its .json sidecar; returns both paths."""
         npz = Path(path).with_suffix(".npz")
         npz.parent.mkdir(parents=True, exist_ok=True)
+        basis = np.zeros((cor.NUM_KEYPOINTS, 3, 6)) if self.pose_basis is None else \
+            self.pose_basis
         np.savez_compressed(npz, joint=np.asarray(self.joint, dtype=np.int64),
-                            offset=np.asarray(self.offset, dtype=np.float64))
+                            offset=np.asarray(self.offset, dtype=np.float64),
+                            pose_basis=np.asarray(basis, dtype=np.float64))
         meta = {"format": EMBEDDING_FORMAT, "version": EMBEDDING_VERSION,
                 "layout": {"keypoints": cor.NUM_KEYPOINTS, "face": "ibug68",
                            "hands": 21, "pose": cor.NUM_POSE},
@@ -126,7 +139,8 @@ def load_embedding(path: str | Path = DEFAULT_EMBEDDING) -> LandmarkEmbedding:
     try:
         with np.load(npz, allow_pickle=False) as data:
             joint, offset = np.asarray(data["joint"]), np.asarray(data["offset"])
-    except (OSError, ValueError, KeyError, EOFError) as exc:
+            basis = np.asarray(data["pose_basis"]) if "pose_basis" in data.files else None
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
         raise EmbeddingError(f"{npz}: not a readable embedding array file ({exc})") from exc
     if joint.dtype.kind != "i" or offset.dtype.kind != "f":
         raise EmbeddingError(f"{npz}: joint must be integer and offset float arrays")
@@ -136,5 +150,8 @@ def load_embedding(path: str | Path = DEFAULT_EMBEDDING) -> LandmarkEmbedding:
             scales.append(float(meta.get(name, 1.0)))
         except (TypeError, ValueError) as exc:
             raise EmbeddingError(f"{sidecar}: {name} is not a number") from exc
+    if basis is not None and basis.dtype.kind != "f":
+        raise EmbeddingError(f"{npz}: pose_basis must be a float array")
     return LandmarkEmbedding(joint.astype(np.int64), offset.astype(np.float64), *scales,
-                             dict(meta.get("metadata") or {}))
+                             dict(meta.get("metadata") or {}),
+                             None if basis is None else basis.astype(np.float64))

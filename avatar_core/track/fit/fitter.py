@@ -166,7 +166,8 @@ class FrameFitter:
         self.kinematics = KeypointKinematics(self.keypoints, b)
         self.embedding = self.config.embedding
         if self.embedding is not None:
-            self.kinematics.set_offsets(self.embedding.joint, self.embedding.offset)
+            self.kinematics.set_offsets(self.embedding.joint, self.embedding.offset,
+                                        self.embedding.pose_basis)
         kp_model = self.keypoints.model
         self.hand_mean = np.concatenate([kp_model.left_hand_mean.double().numpy(),
                                          kp_model.right_hand_mean.double().numpy()])  # [30, 3]
