@@ -10,8 +10,8 @@ barycentric weights) and gains an offset carried by one joint's frame:
 whichever way the head turns); B_k, a pose-dependent correction linear in the anchor's and
 its parent's axis-angle, is non-zero only where cross-validation calls for it. Fitted on
 studio renders with known parameters (`avatar_core.synth.embedding_build`,
-`telesplat track build-embedding`) and stored as a versioned asset: an .npz of arrays beside a .json of its version and metadata. The fitter
-loads it as data; nothing here imports the studio.
+`telesplat track build-embedding`) and stored as a versioned asset: an .npz of arrays beside
+a .json of its version and metadata. The fitter loads it as data; nothing here imports the studio.
 """
 
 from __future__ import annotations
