@@ -158,7 +158,7 @@ def fit_offsets(s: Samples, anchors: np.ndarray, parents: np.ndarray,
         cv[row_name(k)] = scores
         modes[k] = "none" if "none" in scores else "constant"
         for mode in MODES[MODES.index(modes[k]) + 1:]:  # richer only where it clearly wins
-            if scores[mode] < (1.0 - MIN_GAIN) * scores[modes[k]]:
+            if mode in scores and scores[mode] < (1.0 - MIN_GAIN) * scores[modes[k]]:
                 modes[k] = mode
         if modes[k] == "none":
             continue
