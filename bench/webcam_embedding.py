@@ -87,6 +87,10 @@ def main() -> None:
     ap.add_argument("--tune", type=int, default=1, help="held-out identity to set weights on")
     ap.add_argument("--weights", type=float, nargs="+", default=[0.1, 0.3, 1.0, 3.0])
     ap.add_argument("--out", default=None, help="JSON of the results")
+    ap.add_argument("--fixed-world", type=float, default=None,
+                    help="no sweep: this world weight (image z off), reported on --tune's "
+                         "complement")
+    ap.add_argument("--stride", type=int, default=1, help="every K-th held-out frame")
     args = ap.parse_args()
     with np.load(args.samples) as raw:
         arrays = {k: raw[k] for k in raw.files}
@@ -94,6 +98,14 @@ def main() -> None:
     emb = load_embedding(args.embedding)
     identity = np.array([int(str(lab).split(":")[0]) for lab in arrays["held_label"]])
     tune, report = np.flatnonzero(identity == args.tune), np.flatnonzero(identity != args.tune)
+    tune, report = tune[::args.stride], report[::args.stride]
+    if args.fixed_world is not None:
+        final = {"today": FitConfig(), "embedding": FitConfig(embedding=emb),
+                 "embedding+world": FitConfig(embedding=emb, world_weight=args.fixed_world),
+                 "world only": FitConfig(world_weight=args.fixed_world)}
+        report_table(run(arrays, family, final, report), args.out, {
+            "world_weight": args.fixed_world, "stride": args.stride})
+        return
     sweep = {"today": FitConfig(), "embedding": FitConfig(embedding=emb)}
     for w in args.weights:
         sweep[f"embedding+world {w:g}"] = FitConfig(embedding=emb, world_weight=w)
@@ -110,18 +122,21 @@ def main() -> None:
              "embedding+world+image_z": FitConfig(embedding=emb, world_weight=best_world,
                                                   image_z_weight=best_z),
              "world only": FitConfig(world_weight=best_world)}
-    reported = run(arrays, family, final, report)
-    result = {"tune_identity": args.tune, "tuned": tuned, "world_weight": best_world,
-              "image_z_weight": best_z, "reported": reported}
     print(f"weights set on identity {args.tune}: world {best_world:g}, image z {best_z:g}")
+    report_table(run(arrays, family, final, report), args.out, {
+        "tune_identity": args.tune, "tuned": tuned, "world_weight": best_world,
+        "image_z_weight": best_z})
+
+
+def report_table(reported: dict, out: str | None, extra: dict) -> None:
     print("| fit | root deg | shoulders deg | elbows deg | neck/head deg | fit ms/frame |")
     print("|---|---:|---:|---:|---:|---:|")
     for name, r in reported.items():
         print(f"| {name} | {r['root']:.1f} | {r['shoulders']:.1f} | {r['elbows']:.1f} | "
               f"{r['neck/head']:.1f} | {r['fit_ms_median']:.1f} |")
-    if args.out:
-        with open(args.out, "w") as fh:
-            json.dump(result, fh, indent=1)
+    if out:
+        with open(out, "w") as fh:
+            json.dump({**extra, "reported": reported}, fh, indent=1)
 
 
 if __name__ == "__main__":
