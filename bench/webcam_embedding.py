@@ -39,7 +39,7 @@ def observations(arrays: dict, i: int) -> Observations:
     world = arrays["held_world"][i]
     return Observations(np.array(arrays["held_pixels"][i]), w, (CAMERA.width, CAMERA.height),
                         seen, np.array(arrays["held_image_z"][i]),
-                        None if not np.isfinite(world).any() else np.array(world))
+                        world=None if not np.isfinite(world).any() else np.array(world))
 
 
 def angle_errors(fitter: FrameFitter, x_fit: np.ndarray, x_true: np.ndarray) -> dict:
@@ -87,9 +87,11 @@ def main() -> None:
     ap.add_argument("--tune", type=int, default=1, help="held-out identity to set weights on")
     ap.add_argument("--weights", type=float, nargs="+", default=[0.1, 0.3, 1.0, 3.0])
     ap.add_argument("--out", default=None, help="JSON of the results")
-    ap.add_argument("--fixed-world", type=float, default=None,
-                    help="no sweep: this world weight (image z off), reported on --tune's "
-                         "complement")
+    ap.add_argument("--fixed-world", type=float, nargs="+", default=None,
+                    help="no sweep: these world weights, with --image-z-weight, on --tune's "
+                         "complement (or on --tune itself with --on-tune)")
+    ap.add_argument("--image-z-weight", type=float, default=0.0)
+    ap.add_argument("--on-tune", action="store_true")
     ap.add_argument("--stride", type=int, default=1, help="every K-th held-out frame")
     args = ap.parse_args()
     with np.load(args.samples) as raw:
@@ -100,11 +102,11 @@ def main() -> None:
     tune, report = np.flatnonzero(identity == args.tune), np.flatnonzero(identity != args.tune)
     tune, report = tune[::args.stride], report[::args.stride]
     if args.fixed_world is not None:
-        final = {"today": FitConfig(), "embedding": FitConfig(embedding=emb),
-                 "embedding+world": FitConfig(embedding=emb, world_weight=args.fixed_world),
-                 "world only": FitConfig(world_weight=args.fixed_world)}
-        report_table(run(arrays, family, final, report), args.out, {
-            "world_weight": args.fixed_world, "stride": args.stride})
+        zw = args.image_z_weight
+        final = {f"embedding+world {w:g}+image_z {zw:g}": FitConfig(
+            embedding=emb, world_weight=w, image_z_weight=zw) for w in args.fixed_world}
+        report_table(run(arrays, family, final, tune if args.on_tune else report), args.out,
+                     {"world_weights": args.fixed_world, "stride": args.stride})
         return
     sweep = {"today": FitConfig(), "embedding": FitConfig(embedding=emb)}
     for w in args.weights:
