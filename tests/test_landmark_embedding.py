@@ -94,14 +94,19 @@ def test_bad_or_corrupt_files_give_a_clear_error(tmp_path, damage, message):
 
 def test_embedded_keypoints_have_the_exact_jacobian(setup):
     model, betas, _ = setup
-    fitter = FrameFitter(model, betas, FitConfig(embedding=_offsets()))
+    known = _offsets()
+    basis = np.zeros((cor.NUM_KEYPOINTS, 3, 6))  # a pose-dependent part on arms and face
+    basis[cor.POSE_SLICE.start + 13: cor.POSE_SLICE.start + 17] = 0.02
+    basis[cor.FACE_SLICE.start + 30] = -0.01
+    fitter = FrameFitter(model, betas, FitConfig(embedding=LandmarkEmbedding(
+        known.joint, known.offset, pose_basis=basis)))
     rng = np.random.default_rng(0)
     x = fitter.pack(neutral_params(model)) + rng.normal(0, 0.2, fitter.pack(
         neutral_params(model)).size)
     points, jac = fitter._keypoints(x, True)
     ok = np.isfinite(points).all(1)
     eps = 1e-6
-    for i in rng.choice(x.size, 25, replace=False):
+    for i in [*rng.choice(x.size, 25, replace=False), *range(3, 3 + 3 * 13)]:  # + the body
         step = np.zeros(x.size)
         step[i] = eps
         num = (fitter._keypoints(x + step, False)[0] - fitter._keypoints(x - step, False)[0])
