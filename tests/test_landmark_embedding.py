@@ -204,5 +204,6 @@ def test_builder_is_seeded_and_reproducible(tmp_path):
     assert a.world_z_scale == b.world_z_scale
     assert np.abs(a.offset[cor.POSE_SLICE]).max() > 0  # fitted where the pose was seen
     assert report["held_out_frames"] == 2 and "pose:left_shoulder" in report["held_out"]
+    assert report["z"]["world_z_pairs"] > 0  # BlazePose's world landmarks were read
     npz, _ = a.save(tmp_path / "tiny.npz")
     assert np.array_equal(load_embedding(npz).offset, a.offset)
