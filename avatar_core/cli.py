@@ -104,11 +104,19 @@ def _eval(args: argparse.Namespace) -> int:
     if args.protocol == "webcam":
         from .metrics.webcam import evaluate_webcam, webcam_markdown
 
+        fit_config = None
+        if args.embedding or args.world_weight or args.image_z_weight:
+            from .track.fit.embedding import load_embedding
+            from .track.fit.fitter import FitConfig
+
+            fit_config = FitConfig(
+                embedding=load_embedding(args.embedding) if args.embedding else None,
+                world_weight=args.world_weight, image_z_weight=args.image_z_weight)
         with tqdm(desc="evaluating webcam", unit="frame") as bar:
             result = evaluate_webcam(
                 args.avatar, args.dataset, max_frames=args.max_views,
                 frame_stride=args.frame_stride, size=args.size, out_dir=args.out,
-                model_dir=args.body_models,
+                model_dir=args.body_models, fit_config=fit_config,
                 progress=lambda i, n: (setattr(bar, "total", n), bar.update(i - bar.n)))
         print(webcam_markdown(result).split("\n## ")[0].rstrip())
         return 0
@@ -250,6 +258,34 @@ def _track_fit(args: argparse.Namespace) -> int:
     return 0
 
 
+def _track_build_embedding(args: argparse.Namespace) -> int:
+    from .synth.embedding_build import build_embedding
+    from .synth.embedding_spec import BuildSpec
+
+    try:
+        spec = BuildSpec(train_identities=tuple(args.identities),
+                         held_out_identities=tuple(args.held_out_identities),
+                         train_clips=tuple(args.clips), held_out_clips=tuple(args.held_out_clips),
+                         frames_per_view=args.frames_per_view, seed=args.seed)
+        total = 0 if args.from_samples else spec.count()
+        with tqdm(total=total, unit="frame", desc="studio frames") as bar:
+            emb, report = build_embedding(spec, args.body_models, progress=lambda: bar.update(),
+                                          samples_out=args.samples,
+                                          samples_in=args.from_samples)
+        npz, sidecar = emb.save(args.out)
+    except (OSError, ValueError) as exc:
+        print(f"telesplat: error: {exc}", file=sys.stderr)
+        return 2
+    held = report.get("held_out", {})
+    for name, row in held.items():
+        print(f"{name:24s} {report['mode_per_row'].get(name, 'none'):8s} mean "
+              f"{row['before_px']:6.2f} -> {row['after_px']:6.2f} px, median "
+              f"{row['before_median_px']:6.2f} -> {row['after_median_px']:6.2f} px "
+              f"({row['samples']} held-out samples)")
+    print(f"embedding -> {npz} (+ {sidecar.name})")
+    return 0
+
+
 def _add_track(groups: argparse._SubParsersAction) -> None:
     track = groups.add_parser(
         "track", help="monocular tracking (MediaPipe models as ONNX); "
@@ -293,6 +329,41 @@ def _add_track(groups: argparse._SubParsersAction) -> None:
     fit.add_argument("--cache", type=Path, default=None, help="model cache folder")
     _add_body_models(fit)
     fit.set_defaults(func=_track_fit)
+    _add_build_embedding(track_cmds)
+
+
+def _add_build_embedding(track_cmds: argparse._SubParsersAction) -> None:
+    from .synth.embedding_spec import (
+        HELD_OUT_CLIPS,
+        HELD_OUT_IDENTITIES,
+        TRAIN_CLIPS,
+        TRAIN_IDENTITIES,
+    )
+
+    build = track_cmds.add_parser(
+        "build-embedding", help="fit the learned landmark embedding (where each MediaPipe "
+        "landmark lies on the body model) on studio renders, validated on held-out "
+        "identities and clips; writes OUT.npz + OUT.json")
+    build.add_argument("--out", type=Path, required=True, help="OUT.npz (and OUT.json)")
+    build.add_argument("--identities", type=int, nargs="+", default=list(TRAIN_IDENTITIES),
+                       help="synthetic identities to fit on")
+    build.add_argument("--held-out-identities", type=int, nargs="*",
+                       default=list(HELD_OUT_IDENTITIES), help="identities to validate on")
+    build.add_argument("--clips", nargs="+", default=list(TRAIN_CLIPS),
+                       help="library clips to fit on")
+    build.add_argument("--held-out-clips", nargs="*", default=list(HELD_OUT_CLIPS),
+                       help="library clips to validate on")
+    build.add_argument("--frames-per-view", type=int, default=2,
+                       help="frames per (identity, clip, yaw, framing)")
+    build.add_argument("--seed", type=int, default=0)
+    build.add_argument("--samples", type=Path, default=None,
+                       help="also write the studio samples (npz) for bench/webcam_embedding.py")
+    build.add_argument("--from-samples", type=Path, default=None,
+                       help="fit on samples a previous --samples wrote instead of filming")
+    build.add_argument("--body-models", type=Path, default=None,
+                       help="the synthetic family's folder (default: a cache folder beside "
+                            "the default models, written on first use)")
+    build.set_defaults(func=_track_build_embedding)
 
 
 COMMAND_PLUGINS = "telesplat.commands"
@@ -430,6 +501,12 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--max-views", type=int, default=None, help="the first N views")
     ev.add_argument("--frame-stride", type=int, default=1, help="every K-th frame")
     ev.add_argument("--size", type=int, default=None, help="render width (default: dataset's)")
+    ev.add_argument("--embedding", type=Path, default=None,
+                    help="webcam protocol: fit with this learned landmark embedding (.npz)")
+    ev.add_argument("--world-weight", type=float, default=0.0,
+                    help="webcam protocol: weight of BlazePose's world-z term in the fit")
+    ev.add_argument("--image-z-weight", type=float, default=0.0,
+                    help="webcam protocol: weight of BlazePose's image-z term in the fit")
     _add_body_models(ev)
     ev.set_defaults(func=_eval)
 
@@ -444,7 +521,7 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-TRACK_COMMANDS = ("fetch-models", "landmarks", "fit", "-h", "--help")
+TRACK_COMMANDS = ("fetch-models", "landmarks", "fit", "-h", "--help", "build-embedding")
 
 
 def _expand_shorthands(argv: list[str]) -> list[str]:

@@ -44,6 +44,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from ..body.fusion import FusionModels, fuse_sequence
+from ..body.skeleton import JOINT, SMPLX_PARENTS
 from ..dataset import Dataset, load_dataset
 from ..dataset.preview import write_png
 from ..gaussians.loading import LoadedAvatar, load_avatar, mano_models
@@ -70,7 +71,10 @@ DRIVES = ("true", "trackers", "webcam", "webcam_true_root")
 DRIVE_LABELS = {"true": "true parameters", "trackers": "simulated trackers + fusion",
                 "webcam": "webcam tracking (live config)",
                 "webcam_true_root": "webcam tracking, true root orientation"}
-METRICS = ("psnr", "ssim", "l1", "akd_face", "akd_hands", "akd_torso", "tje")
+# World-rotation errors (deg) of the joints the issue's table names, against the truth.
+ANGLE_JOINTS = {"deg_root": ("pelvis",), "deg_shoulders": ("left_shoulder", "right_shoulder"),
+                "deg_elbows": ("left_elbow", "right_elbow"), "deg_neck_head": ("head",)}
+METRICS = ("psnr", "ssim", "l1", "akd_face", "akd_hands", "akd_torso", *ANGLE_JOINTS, "tje")
 STAGES = ("track", "fit", "pose", "render")
 JPEG_QUALITY = 90        # what a browser / client sends the server
 SCORE_ANGLE_DEG = 30.0   # default score camera: the front camera nearest this from the webcam
@@ -163,7 +167,7 @@ def _fov_x_deg(cam: Camera) -> float:
     return math.degrees(2 * math.atan(0.5 * cam.width / cam.K[0, 0]))
 
 
-def _live_tracking(loaded: LoadedAvatar, webcam: Camera):
+def _live_tracking(loaded: LoadedAvatar, webcam: Camera, fit_config=None):
     """The server's tracker and fit (server/stream/tracking.py SessionTracker._ensure), with the
     webcam's own field of view. Raises RuntimeError with the reason when it cannot run."""
     try:
@@ -175,8 +179,10 @@ def _live_tracking(loaded: LoadedAvatar, webcam: Camera):
         raise RuntimeError(f"webcam tracking is not available: {exc} (the MediaPipe "
                            "models: telesplat track fetch-models)") from exc
     betas = np.asarray(loaded.package.body.betas, dtype=np.float64)
-    fit = SequenceFit(loaded.animator.body_model, betas if betas.size else None,
-                      SequenceFitConfig(fov_x_deg=_fov_x_deg(webcam)))
+    config = SequenceFitConfig(fov_x_deg=_fov_x_deg(webcam))
+    if fit_config is not None:
+        config.fit = fit_config
+    fit = SequenceFit(loaded.animator.body_model, betas if betas.size else None, config)
     return tracker, fit
 
 
@@ -205,7 +211,7 @@ class _Scorer:
     render_ms: list[float] = field(default_factory=list)
 
     def score(self, drive: str, key, params: Mapping[str, np.ndarray], truth_out,
-              gt: np.ndarray, keep: np.ndarray) -> np.ndarray:
+              gt: np.ndarray, keep: np.ndarray, truth: Mapping[str, np.ndarray]) -> np.ndarray:
         t0 = time.perf_counter()
         posed = self.loaded.animator.pose(dict(params))
         t1 = time.perf_counter()
@@ -222,9 +228,35 @@ class _Scorer:
         driven_out = self.loaded.animator.body_model(batch)
         rec.update({f"akd_{g}": v for g, v in
                     body_akd(driven_out, truth_out, self.camera).items()})
+        rec.update(joint_angle_errors(params, truth))
         self.records.setdefault(drive, []).append(rec)
         self.jitter.setdefault(drive, _TemporalJitter(self.stride)).add(key, pred_b, gt_b, keep)
         return pred
+
+
+def _world_rotations(params: Mapping[str, np.ndarray]) -> np.ndarray:
+    """[22, 3, 3] world rotations of the body joints (root and body_pose; no hands)."""
+    local = np.concatenate([np.asarray(params["global_orient"], dtype=np.float64).reshape(1, 3),
+                            np.asarray(params["body_pose"], dtype=np.float64).reshape(-1, 3)])
+    rot = Rotation.from_rotvec(local[:22]).as_matrix()
+    out = rot.copy()
+    for j in range(1, 22):
+        out[j] = out[SMPLX_PARENTS[j]] @ rot[j]
+    return out
+
+
+def joint_angle_errors(params: Mapping[str, np.ndarray], truth: Mapping[str, np.ndarray]
+                       ) -> dict[str, float]:
+    """`ANGLE_JOINTS` -> mean world-rotation error (deg) of its joints."""
+    a, b = _world_rotations(params), _world_rotations(truth)
+    out = {}
+    for key, joints in ANGLE_JOINTS.items():
+        errs = []
+        for name in joints:
+            r = a[JOINT[name]].T @ b[JOINT[name]]
+            errs.append(math.degrees(math.acos(float(np.clip((np.trace(r) - 1) / 2, -1, 1)))))
+        out[key] = float(np.mean(errs))
+    return out
 
 
 def _stats(values: list[float]) -> dict[str, float]:
@@ -253,9 +285,11 @@ def evaluate_webcam(avatar: str | Path | LoadedAvatar, dataset: str | Path | Dat
                     frame_stride: int = 1, max_frames: int | None = None,
                     size: int | None = None, out_dir: str | Path | None = None,
                     max_images: int = 4, model_dir: Path | None = None,
-                    progress: Progress | None = None) -> WebcamResult:
+                    progress: Progress | None = None, fit_config=None) -> WebcamResult:
     """The webcam protocol (module docstring); writes ``webcam.json`` / ``webcam.md`` and
-    ``images/`` (ground truth | webcam-driven render | error) with ``out_dir``."""
+    ``images/`` (ground truth | webcam-driven render | error) with ``out_dir``. `fit_config`:
+    the live fit's `FitConfig` (default: as the server runs it), e.g. with the learned
+    landmark embedding and the 3D cues."""
     if frame_stride < 1 or (max_frames is not None and max_frames < 1) or max_images < 0:
         raise ValueError("frame_stride and max_frames must be at least 1, max_images >= 0")
     ds = dataset if isinstance(dataset, Dataset) else load_dataset(dataset)
@@ -267,7 +301,7 @@ def evaluate_webcam(avatar: str | Path | LoadedAvatar, dataset: str | Path | Dat
     frames = frames[:max_frames]
     loaded = avatar if isinstance(avatar, LoadedAvatar) else load_avatar(str(avatar), model_dir)
     webcam_cam = ds.cameras[webcam_name].camera
-    tracker, sequence_fit = _live_tracking(loaded, webcam_cam)
+    tracker, sequence_fit = _live_tracking(loaded, webcam_cam, fit_config)
     from ..track.fit.observations import from_track_result
     from ..track.fit.sequence import GROUPS as TRACK_GROUPS
     from ..track.fit.sequence import drive_params
@@ -319,15 +353,15 @@ def evaluate_webcam(avatar: str | Path | LoadedAvatar, dataset: str | Path | Dat
                 truth_out = _output_row(loaded.animator.body_model(
                     {k: np.asarray(v)[None] for k, v in true_row.items()}), 0)
                 key = view.key
-                scorer.score("true", key, true_row, truth_out, gt, keep)
+                scorer.score("true", key, true_row, truth_out, gt, keep, true_row)
                 scorer.score("trackers", key, {k: v[frame] for k, v in tracked.items()},
-                             truth_out, gt, keep)
-                pred = scorer.score("webcam", key, webcam, truth_out, gt, keep)
+                             truth_out, gt, keep, true_row)
+                pred = scorer.score("webcam", key, webcam, truth_out, gt, keep, true_row)
                 # the root is what a monocular fit of an upper body sees worst: this row
                 # shows how much of the webcam's error is the rest (a diagnostic, not live)
                 scorer.score("webcam_true_root", key,
                              {**webcam, "global_orient": true_row["global_orient"]},
-                             truth_out, gt, keep)
+                             truth_out, gt, keep, true_row)
                 if out_dir is not None and len(images) < max_images and \
                         i % max(1, len(frames) // max(max_images, 1)) == 0:
                     name = f"images/{seq}_{frame:05d}_{score_name}.png"
@@ -368,13 +402,16 @@ def webcam_markdown(result: WebcamResult) -> str:
              f"Take {', '.join(result.sequences)}: {result.num_frames} frames (stride "
              f"{result.frame_stride}); webcam {result.webcam_camera}, scored at "
              f"{result.score_camera} ({w}x{h}); truth: {result.truth}.", "",
-             "| drive | PSNR (dB) | SSIM | L1 | AKD face / hands / torso (px) | TJE |",
-             "|---|---:|---:|---:|---:|---:|"]
+             "| drive | PSNR (dB) | SSIM | L1 | AKD face / hands / torso (px) "
+             "| root / shoulders / elbows / neck-head (deg) | TJE |",
+             "|---|---:|---:|---:|---:|---:|---:|"]
     for drive, row in result.drives.items():
         akd = " / ".join(_fmt(row.get(f"akd_{g}"), f"akd_{g}") for g in GROUPS)
+        angles = " / ".join("n/a" if row.get(k) is None else f"{row[k]:.1f}"
+                            for k in ANGLE_JOINTS)
         lines.append(f"| {DRIVE_LABELS.get(drive, drive)} | {_fmt(row.get('psnr'), 'psnr')} "
                      f"| {_fmt(row.get('ssim'), 'ssim')} | {_fmt(row.get('l1'), 'l1')} "
-                     f"| {akd} | {_fmt(row.get('tje'), 'tje')} |")
+                     f"| {akd} | {angles} | {_fmt(row.get('tje'), 'tje')} |")
     lines += ["", "| live path stage | median ms | p95 ms |", "|---|---:|---:|"]
     lines += [f"| {stage} | {v['median']:.1f} | {v['p95']:.1f} |"
               for stage, v in result.latency_ms.items()]

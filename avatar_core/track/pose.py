@@ -64,6 +64,16 @@ def refine_from_heatmap(points: np.ndarray, heatmap: np.ndarray, kernel: int = 7
     return out
 
 
+def world_from_output(world: np.ndarray, rotation: float) -> np.ndarray:
+    """The model's world output [1, 117] -> [33, 3] metres, turned by the ROI's rotation about
+    the camera axis (MediaPipe's WorldLandmarkProjectionCalculator)."""
+    w = np.asarray(world, dtype=np.float32).reshape(39, 3)[:NUM_LANDMARKS].copy()
+    c, s = np.float32(np.cos(rotation)), np.float32(np.sin(rotation))
+    x, y = w[:, 0].copy(), w[:, 1].copy()
+    w[:, 0], w[:, 1] = c * x - s * y, s * x + c * y
+    return w
+
+
 class PosePipeline(SingleTargetPipeline):
     def __init__(self, models: ModelSource = None, providers: Sequence | None = None,
                  threads: int | None = None, min_detection: float = 0.5,
@@ -93,7 +103,7 @@ class PosePipeline(SingleTargetPipeline):
                   ) -> tuple[PoseLandmarks, RotatedRect] | None:
         w, _h = self.landmarker.input_size
         x = self.input_tensor(frame_bgr, roi)
-        raw, flag, _seg, heatmap = self.landmarker(x)[:4]  # [1,195] [1,1] _ [1,64,64,39]
+        raw, flag, _seg, heatmap, world = self.landmarker(x)[:5]  # [1,195] [1,1] _ hm [1,117]
         score = float(flag.reshape(-1)[0])  # the model ends in a sigmoid
         if score < self.min_presence:
             return None
@@ -102,5 +112,6 @@ class PosePipeline(SingleTargetPipeline):
         if self.refine:
             points = refine_from_heatmap(points, heatmap[0])
         px = project(points, roi)  # [39, 3]
-        pose = PoseLandmarks(px[:NUM_LANDMARKS], _sigmoid(values[:NUM_LANDMARKS, 3]), score, roi)
+        pose = PoseLandmarks(px[:NUM_LANDMARKS], _sigmoid(values[:NUM_LANDMARKS, 3]), score, roi,
+                             world_from_output(world, roi.rotation))
         return pose, roi_from_alignment(px[33], px[34])

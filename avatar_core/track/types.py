@@ -65,6 +65,9 @@ class PoseLandmarks:
     visibility: np.ndarray  # [33] float32, 0..1
     score: float  # pose presence, 0..1
     roi: RotatedRect | None = None
+    # [33, 3] float32 metres: BlazePose's world landmarks (origin between the hips, x right,
+    # y down, z away from the camera, turned by the ROI's rotation as MediaPipe does), or None.
+    world: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

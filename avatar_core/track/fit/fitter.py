@@ -29,8 +29,9 @@ from ...body.joint_limits import EXPRESSION_LIMIT, JOINT_LIMITS_DEG, RELAXED_ARM
 from ...body.models import SMPLXModel
 from ...body.skeleton import JOINT, LEFT_HAND_JOINTS, RIGHT_HAND_JOINTS, SMPLX_JOINT_NAMES
 from . import correspondence as cor
-from . import palm_retry
+from . import palm_retry, world_cues
 from .camera import MIN_DEPTH_M, WebcamCamera, project_points
+from .embedding import LandmarkEmbedding
 from .hand_prior import hinge_matrix, hinge_rows
 from .keypoints import BodyKeypoints
 from .kinematics import KeypointKinematics, rodrigues_and_left_jacobian
@@ -116,6 +117,13 @@ class FitConfig:
     # (`hand_prior.py`; 0: off): the landmarks pin a finger's bend far better than its
     # twist, which the fit otherwise bends to meet MediaPipe's offset finger points.
     finger_hinge_weight: float = 10.0
+    # The learned landmark embedding (`embedding.py`: where each landmark lies on the model);
+    # None: today's correspondence (joint centres, vertices, the iBUG triangles).
+    embedding: LandmarkEmbedding | None = None
+    # BlazePose's metric world z and its image z, against the model's depth differences
+    # (`world_cues.py`; 0: off). Set on held-out renders (docs/tracking.md).
+    world_weight: float = 0.0
+    image_z_weight: float = 0.0
     dtype: torch.dtype = torch.float64
 
 
@@ -156,6 +164,10 @@ class FrameFitter:
         b = np.pad(b[:n_betas], (0, max(0, n_betas - b.size)))
         self.betas = torch.as_tensor(b, dtype=self.config.dtype)[None]
         self.kinematics = KeypointKinematics(self.keypoints, b)
+        self.embedding = self.config.embedding
+        if self.embedding is not None:
+            self.kinematics.set_offsets(self.embedding.joint, self.embedding.offset,
+                                        self.embedding.pose_basis)
         kp_model = self.keypoints.model
         self.hand_mean = np.concatenate([kp_model.left_hand_mean.double().numpy(),
                                          kp_model.right_hand_mean.double().numpy()])  # [30, 3]
@@ -314,6 +326,10 @@ class FrameFitter:
         terms = [_Term(data.reshape(-1), d_data)]
         if problem.depth_pairs is not None:
             terms.append(self._depth_term(seen, problem, jacobian))
+        if problem.world_pairs is not None:
+            terms.append(_Term(*world_cues.world_residuals(
+                seen.depth, seen.d_depth, problem.world_pairs, problem.camera.focal,
+                problem.scale, jacobian)))
         # Quadratic priors toward rest, and the temporal term: diagonal Jacobians.
         terms.append(_Term(self.prior_sqrt * (x - self.prior_rest), None, self.prior_sqrt))
         if problem.previous is not None:
@@ -423,7 +439,8 @@ class FrameFitter:
         x = self.pack(start)
         problem = _Problem(camera, np.asarray(obs.pixels, dtype=np.float64),
                            max(camera.width, camera.height) / 100.0,
-                           x.copy() if warm else None, self._depth_pairs(obs, weight))
+                           x.copy() if warm else None, self._depth_pairs(obs, weight),
+                           self._world_pairs(obs, weight))
         stats = {"iterations": 0, "evaluations": 0}
         if not warm:  # coarse to fine: place the head and torso first, then the limbs
             n = self.config.placement_iterations
@@ -484,9 +501,21 @@ class FrameFitter:
             k = rows[(rows != ref) & (weight[rows] > 0) & np.isfinite(obs.depth[rows])]
             parts.append((k, np.full(len(k), ref), z_scale * (obs.depth[k] - obs.depth[ref]),
                           np.sqrt(w * weight[k])))
+        image_z = world_cues.pose_pairs(obs, weight, obs.depth[cor.POSE_SLICE], self._z_scale(
+            "image_z_scale"), cfg.image_z_weight)
+        if image_z is not None:
+            parts.append(image_z)
         if not parts or not sum(len(p[0]) for p in parts):
             return None
         return tuple(np.concatenate(column) for column in zip(*parts, strict=True))
+
+    def _z_scale(self, name: str) -> float:
+        return 1.0 if self.embedding is None else float(getattr(self.embedding, name))
+
+    def _world_pairs(self, obs: Observations, weight: np.ndarray):
+        """The world term's pairs (`world_cues.pose_pairs`), or None."""
+        return world_cues.pose_pairs(obs, weight, None if obs.world is None else obs.world[:, 2],
+                                     self._z_scale("world_z_scale"), self.config.world_weight)
 
     def _levenberg_marquardt(self, x: np.ndarray, free: np.ndarray, iterations: int,
                              problem: _Problem, weight: np.ndarray, stats: dict) -> np.ndarray:
@@ -571,6 +600,7 @@ class _Problem:
     # Relative-depth pairs: (keypoint [D], its reference [D], target z - z_ref px [D],
     # sqrt weight [D]), or None.
     depth_pairs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+    world_pairs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
 
 
 @dataclass(frozen=True)

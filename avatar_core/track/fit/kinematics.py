@@ -117,6 +117,29 @@ class KeypointKinematics:
         corrective = np.abs(self.posedirs.reshape(n_j, 9, n_v, 3)).sum((1, 3)) > 0
         self.moved = ((self.below @ self.weights.T) > 0) | corrective
         self._block_cache: dict[tuple[int, ...], list] = {}
+        self.offset_rows = np.zeros(0, dtype=np.int64)  # `set_offsets`: none by default
+        self.offset_joints = np.zeros(0, dtype=np.int64)
+        self.offsets = np.zeros((0, 3))
+        self.offset_basis = np.zeros((0, 3, 6))
+
+    def set_offsets(self, joint: np.ndarray, offset: np.ndarray,
+                    basis: np.ndarray | None = None) -> None:
+        """A learned landmark embedding (`embedding.LandmarkEmbedding`): keypoint k moves by
+        Rw_j (offset[k] + basis[k] @ [theta_j, theta_parent(j)]), j = joint[k] (rows with
+        joint -1, no offset or no model point: none)."""
+        joint, offset = np.asarray(joint), np.asarray(offset, dtype=np.float64)
+        basis = np.zeros((len(joint), 3, 6)) if basis is None else np.asarray(
+            basis, dtype=np.float64)
+        some = (np.abs(offset).sum(1) > 0) | (np.abs(basis).sum((1, 2)) > 0)
+        rows = np.flatnonzero((joint >= 0) & self.available & some)
+        self.offset_rows, self.offset_joints = rows, joint[rows]
+        self.offsets, self.offset_basis = offset[rows], basis[rows]
+        self.offset_parents = self.parents[self.offset_joints]
+
+    def _offset_features(self, theta: np.ndarray) -> np.ndarray:
+        """[R, 6] each embedded row's pose features: its joint's and its parent's axis-angle."""
+        par = theta[np.maximum(self.offset_parents, 0)] * (self.offset_parents >= 0)[:, None]
+        return np.concatenate([theta[self.offset_joints], par], axis=1)
 
     def _landmark_map(self, rot: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
         """(corner vertex ids [L, 3], barycentric weights [L, 3]) of the face landmarks."""
@@ -163,13 +186,29 @@ class KeypointKinematics:
         lmk = self._landmark_map(rot)
         shift = np.asarray(transl, dtype=np.float64).reshape(3)
         points = self._gather(jw + shift, verts + shift, lmk)
+        local = self.offsets
+        if len(self.offset_rows):
+            local = local + np.einsum("rab,rb->ra", self.offset_basis,
+                                      self._offset_features(theta))
+        moved = np.einsum("rab,rb->ra", rw[self.offset_joints], local)  # [R, 3]
+        points[self.offset_rows] += moved
         d_pose = d_expr = None
         if joints is not None:
             d_pose = self._gather(*self._pose_jacobian(list(joints), rot, jl, rw, jw, t,
                                                        v_posed, rb), lmk)
+            if len(self.offset_rows):
+                d_pose[self.offset_rows] += self._offset_jacobian(list(joints), jl, rw, moved)
         if expression_jacobian:
             d_expr = self._gather(*self._expression_jacobian(rw, rb), lmk)
         return points, d_pose, d_expr
+
+    def world_rotations(self, full_pose: np.ndarray) -> np.ndarray:
+        """[J, 3, 3] each joint's world rotation at `full_pose` [J, 3]."""
+        rot, _ = rodrigues_and_left_jacobian(np.asarray(full_pose, dtype=np.float64))
+        rw = rot.copy()
+        for level, parents in self.levels:
+            rw[level] = rw[parents] @ rot[level]
+        return rw
 
     def _pose_jacobian(self, joints: list[int], rot, jl, rw, jw, t, v_posed, rb):
         """([J, 3, n, 3] joints', [V, 3, n, 3] vertices' derivatives) by joints[n]'s theta."""
@@ -207,6 +246,26 @@ class KeypointKinematics:
             else:
                 d_verts[verts[:, None], :, cols] = block.transpose(0, 2, 1, 3)
         return d_joints.transpose(3, 2, 0, 1), d_verts
+
+    def _offset_jacobian(self, joints: list[int], jl, rw, moved) -> np.ndarray:
+        """[R, 3, n, 3] derivatives of the embedded offsets Rw_j o by joints[n]'s theta:
+        omega x (Rw_j o) for every joint at or above j."""
+        idx = np.asarray(joints)
+        n = len(idx)
+        par = self.parents[idx]
+        rw_par = np.where((par >= 0)[:, None, None], rw[np.maximum(par, 0)], np.eye(3))
+        turn = skew((rw_par @ jl[idx]).transpose(0, 2, 1)).reshape(n, 9, 3)
+        d = (turn @ moved.T).reshape(n, 3, 3, -1)                          # [n, 3i, 3, R]
+        d = d * self.below[idx][:, self.offset_joints][:, None, None, :]
+        d = d.transpose(3, 2, 0, 1).copy()                                 # [R, 3, n, 3i]
+        # The pose-dependent part: d (Rw_j B f) / d theta = Rw_j B[:, the joint's 3 columns].
+        column = {int(j): c for c, j in enumerate(idx)}
+        direct = rw[self.offset_joints] @ self.offset_basis                 # [R, 3, 6]
+        for r, (j, p) in enumerate(zip(self.offset_joints, self.offset_parents, strict=True)):
+            for joint, cols in ((int(j), slice(0, 3)), (int(p), slice(3, 6))):
+                if joint in column:
+                    d[r, :, column[joint]] += direct[r, :, cols]
+        return d
 
     def _blocks(self, joints: tuple[int, ...]) -> list[tuple[np.ndarray, np.ndarray]]:
         """(columns, vertices) blocks of a joint list: joints grouped by how many vertices they

@@ -30,6 +30,9 @@ class Observations:
     depth: np.ndarray | None = None
     # [2, 2] iris centres px (the person's right eye, then left; NaN: not read), or None.
     iris: np.ndarray | None = None
+    # [33, 3] BlazePose's metric world landmarks (m, hip-centred, z away from the camera),
+    # NaN where unused, or None when the tracker gave none.
+    world: np.ndarray | None = None
 
 
 def empty_observations(image_size: tuple[int, int]) -> Observations:
@@ -55,9 +58,11 @@ def _put(obs: Observations, group: str, points: np.ndarray, weights: np.ndarray)
 def from_landmarks(image_size: tuple[int, int], *, face: np.ndarray | None = None,
                    left_hand: np.ndarray | None = None, right_hand: np.ndarray | None = None,
                    pose: np.ndarray | None = None,
-                   pose_visibility: np.ndarray | None = None) -> Observations:
+                   pose_visibility: np.ndarray | None = None,
+                   pose_world: np.ndarray | None = None) -> Observations:
     """Observations from raw landmark arrays: face [468, 2+] (MediaPipe face mesh), hands
-    [21, 2+], pose [33, 2+] with visibility [33]. None: not detected."""
+    [21, 2+], pose [33, 2+] with visibility [33] and world landmarks [33, 3] (m). None: not
+    detected."""
     obs = empty_observations(image_size)
     if face is not None:
         face = np.asarray(face, dtype=np.float64)
@@ -74,6 +79,13 @@ def from_landmarks(image_size: tuple[int, int], *, face: np.ndarray | None = Non
         _put(obs, "pose", pose, w)
         arms = obs.weights[cor.POSE_SLICE][list(POSE_ARM_IDS)]
         obs.seen["pose"] = obs.seen["pose"] and int((arms > 0).sum()) >= 2
+        if pose_world is not None:
+            world = np.asarray(pose_world, dtype=np.float64)
+            if world.shape != (cor.NUM_POSE, 3):
+                raise ValueError(f"pose world landmarks must be [33, 3], got "
+                                 f"{list(world.shape)}")
+            used = (obs.weights[cor.POSE_SLICE] > 0) | (mapped & (vis >= MIN_VISIBILITY))
+            obs.world = np.where(used[:, None] & np.isfinite(world), world, np.nan)
     return obs
 
 
@@ -127,7 +139,8 @@ def from_track_result(result: TrackResult) -> Observations:
         result.image_size, face=None if result.face is None else result.face.points,
         left_hand=hands.get("left"), right_hand=hands.get("right"),
         pose=None if pose is None else pose.points,
-        pose_visibility=None if pose is None else pose.visibility)
+        pose_visibility=None if pose is None else pose.visibility,
+        pose_world=None if pose is None else pose.world)
     obs.weights[MISMATCHED_ROWS] = 0.0
     if result.face is not None and result.face.iris is not None and obs.seen.get("face"):
         obs.iris = np.asarray(result.face.iris[:, 0, :2], dtype=np.float64)
