@@ -166,6 +166,32 @@ def _clapping() -> Clip:
     return Clip("clapping", tuple(keys))
 
 
+def _wave() -> Clip:
+    # Right hand raised beside the head, palm to the camera, waving from the wrist at 2.5 Hz.
+    up = {"right_shoulder": (0.0, 0.0, -0.35), "right_elbow": (0.0, 0.3, -1.6)}
+    sway = [Pose({**up, "right_wrist": (0.0, 0.0, s)}, {"smile": 0.6}, right_hand="spread")
+            for s in (-0.35, 0.35)]
+    keys = [(0.0, Pose()), (0.7, sway[0])]
+    for i in range(4):
+        keys += [(0.9 + 0.4 * i, sway[1]), (1.1 + 0.4 * i, sway[0])]
+    keys.append((keys[-1][0] + 0.7, Pose()))
+    return Clip("wave", tuple(keys))
+
+
+def _hands_to_face() -> Clip:
+    # Both flat hands beside the chin (the `sign` arm, mirrored): hands at the face.
+    return _hold("hands_to_face", Pose(both_arms("sign"), {"lips_part": 0.2},
+                                       left_hand="flat", right_hand="flat"), 0.7, 1.2, 0.7)
+
+
+def _reach_out() -> Clip:
+    # The right arm stretched out sideways a little above the shoulder: in a head-and-
+    # shoulders or waist-up webcam frame the hand leaves the image and comes back.
+    out = {"right_shoulder": (0.0, -0.3, -0.2), "right_elbow": (0.0, 0.15, 0.0)}
+    look = {"head": (0.0, -0.25, 0.0)}  # toward the hand
+    return _hold("reach_out", Pose({**out, **look}, right_hand="spread"), 0.8, 1.0, 0.8)
+
+
 def _pointing() -> Clip:
     # Look where the finger points (forward and a little to the subject's right).
     look = {"head": (0.0, -0.12, 0.0)}
@@ -279,7 +305,9 @@ def _registry() -> dict[str, MotionSpec]:
                                _right_hand(n, a, h, x))
     out.update(heart=MotionSpec(g, _heart), clapping=MotionSpec(g, _clapping),
                pointing=MotionSpec(g, _pointing),
-               fingertips_pushing=MotionSpec(g, _fingertips_pushing))
+               fingertips_pushing=MotionSpec(g, _fingertips_pushing),
+               wave=MotionSpec(g, _wave), hands_to_face=MotionSpec(g, _hands_to_face),
+               reach_out=MotionSpec(g, _reach_out))
 
     out.update(talk_calm=MotionSpec(c, lambda: _talk("talk_calm", 11, 4.0, 0.16, 1.0)),
                talk_animated=MotionSpec(c, lambda: _talk("talk_animated", 23, 4.0, 0.24, 2.0)),
