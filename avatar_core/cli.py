@@ -98,8 +98,11 @@ def _motion_strip(args: argparse.Namespace) -> int:
 
 
 def _webcam_eval(args: argparse.Namespace) -> int:
-    from .synth.tracking_eval.protocol_report import protocol_markdown, run_protocol, \
-        write_protocol
+    from .synth.tracking_eval.protocol_report import (
+        protocol_markdown,
+        run_protocol,
+        write_protocol,
+    )
 
     try:
         identities = [int(x) for x in args.identities.split(",") if x.strip()]
@@ -110,12 +113,18 @@ def _webcam_eval(args: argparse.Namespace) -> int:
         raise SystemExit("--max-frames must be at least 2")
     if args.score_size < 16:
         raise SystemExit("--score-size must be at least 16")
+    runs: list = []
     with tqdm(desc="webcam protocol", unit="frame") as bar:
         summary = run_protocol(identities, framings, args.fps, max_frames=args.max_frames,
                                score_size=(args.score_size, args.score_size * 3 // 4),
-                               model_dir=args.models,
+                               model_dir=args.models, runs_out=runs,
                                progress=lambda name, i, n: bar.update(1))
     js, md = write_protocol(summary, args.out)
+    if args.keep_frames:
+        import pickle
+
+        with open(args.out / "runs.pkl", "wb") as f:  # our own output, read back by us
+            pickle.dump(runs, f)
     print(protocol_markdown(summary))
     print(f"wrote {js}, {md}")
     return 0
@@ -417,6 +426,9 @@ def build_parser() -> argparse.ArgumentParser:
                           "the whole take, >= 10 s)")
     web.add_argument("--score-size", type=int, default=320, help="score camera width (4:3)")
     web.add_argument("--models", type=Path, default=None, help="synthetic model folder")
+    web.add_argument("--keep-frames", action="store_true",
+                     help="also write runs.pkl: every frame's true, fitted and smoothed "
+                          "parameters (to recompute metrics or smoothing curves)")
     web.set_defaults(func=_webcam_eval)
 
     from .dataset.cli import register as register_dataset

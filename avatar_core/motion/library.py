@@ -168,8 +168,10 @@ def _clapping() -> Clip:
 
 def _wave() -> Clip:
     # Right hand raised beside the head, palm to the camera, waving from the wrist at 2.5 Hz.
-    up = {"right_shoulder": (0.0, 0.0, -0.35), "right_elbow": (0.0, 0.3, -1.6)}
-    sway = [Pose({**up, "right_wrist": (0.0, 0.0, s)}, {"smile": 0.6}, right_hand="spread")
+    # The shoulder turns the arm outward 90 deg (then lifts it 20 deg above the horizontal)
+    # so that the elbow's own flexion raises the forearm: Rz(-0.35) Rx(-pi/2).
+    up = {"right_shoulder": (-1.553, 0.275, -0.275), "right_elbow": (0.0, 1.6, 0.0)}
+    sway = [Pose({**up, "right_wrist": (0.0, s, 0.0)}, {"smile": 0.6}, right_hand="spread")
             for s in (-0.35, 0.35)]
     keys = [(0.0, Pose()), (0.7, sway[0])]
     for i in range(4):

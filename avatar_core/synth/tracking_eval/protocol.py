@@ -126,7 +126,9 @@ def score_camera(transl: np.ndarray, actor, width: int, height: int,
 
 
 def take_params(actor, rig, transl: np.ndarray, fps: float, max_frames: int | None = None,
-                names: Sequence[str] = TAKE) -> list[dict[str, np.ndarray]]:
+                names: Sequence[str] = TAKE, start_frame: int = 0
+                ) -> list[dict[str, np.ndarray]]:
+    """The true parameters of frames [start_frame, max_frames) of the take at `fps`."""
     from avatar_core.motion.library import motion_sequence
 
     track = motion_sequence(list(names))
@@ -134,7 +136,7 @@ def take_params(actor, rig, transl: np.ndarray, fps: float, max_frames: int | No
     n = n if max_frames is None else min(n, max_frames)
     betas = np.asarray(actor.betas, dtype=np.float64)
     return [{**track.sample(i / fps, rig), "transl": transl.copy(), "betas": betas}
-            for i in range(n)]
+            for i in range(start_frame, n)]
 
 
 def _true_observations(fitter, params: dict[str, np.ndarray], wcam):
@@ -188,7 +190,8 @@ def _psnr(pred, truth) -> float:
 def run_condition(condition: Condition, fps: float, *, max_frames: int | None = None,
                   score_size: tuple[int, int] = (320, 240), drives: Sequence[str] = tuple(DRIVES),
                   model_dir=None, take: Sequence[str] = TAKE, fit_config=None,
-                  curve: bool = True, progress: Progress | None = None) -> RunResult:
+                  curve: bool = True, start_frame: int = 0,
+                  progress: Progress | None = None) -> RunResult:
     """Film, track, fit (every drive) and score one identity in one framing; `curve`: also
     the One Euro jitter-vs-lag curve of the live drive (`temporal_curve`)."""
     from avatar_core.gaussians.animate import synthetic_package
@@ -208,7 +211,10 @@ def run_condition(condition: Condition, fps: float, *, max_frames: int | None = 
     actor = Actor.load(files, condition.identity)
     cam = webcam_camera()
     transl = framed_transl(actor, cam, condition.framing)
-    truth = take_params(actor, model_rig(files, actor.model), transl, fps, max_frames, take)
+    truth = take_params(actor, model_rig(files, actor.model), transl, fps, max_frames, take,
+                        start_frame)
+    if len(truth) < 2:
+        raise ValueError(f"the protocol needs at least 2 frames, got {len(truth)}")
     score_cam = score_camera(transl, actor, *score_size)
     bg = background(cam.width, cam.height)
     wcam = WebcamCamera(cam.width, cam.height, FOV_X_DEG)
@@ -243,7 +249,7 @@ def run_condition(condition: Condition, fps: float, *, max_frames: int | None = 
                         true_obs = _true_observations(fits[d].fitter, params, wcam)[0]
                     obs = mix_observations(live, true_obs, DRIVES[d])
                 t1 = time.perf_counter()
-                out = fits[d].step(obs, i / fps)
+                out = fits[d].step(obs, (start_frame + i) / fps)
                 res.fit_ms[d].append((time.perf_counter() - t1) * 1e3)
                 res.raw[d].append({k: np.array(v) for k, v in fits[d].current.items()})
                 driven = {**out.params, "transl": transl, "betas": betas}
@@ -260,7 +266,7 @@ def run_condition(condition: Condition, fps: float, *, max_frames: int | None = 
     res.in_view = {g: truth_web.visible[g].all(-1) for g in ("left_hand", "right_hand")}
     res.metrics = run_metrics(actor, res, score_cam)
     if curve and "live" in drives:
-        res.curve = temporal_curve(actor, res, score_cam)
+        res.curve = temporal_curve(actor, res, score_cam, start_frame)
     return res
 
 
@@ -282,6 +288,30 @@ def joint_errors(pred: list[dict], truth: list[dict]) -> dict[str, float]:
                                     for n in names]))
     neck_head = [rows(ps, "neck") @ rows(ps, "head") for ps in (pred, truth)]
     out["neck_head"] = float(geodesic_deg(*neck_head).mean())
+    return out
+
+
+BONES = {"upper_arms": (("left_shoulder", "left_elbow"), ("right_shoulder", "right_elbow")),
+         "forearms": (("left_elbow", "left_wrist"), ("right_elbow", "right_wrist"))}
+
+
+def bone_direction_errors(actor, pred: Posed, truth: Posed) -> dict[str, float]:
+    """Mean angle (deg) between fitted and true world directions of the upper arms and
+    forearms: where the arm points, free of the twist that landmarks cannot see (a turn of
+    the upper arm about itself traded for the elbow's own axis leaves the bones in place but
+    moves the local angles of both joints)."""
+    with torch.no_grad():
+        rest = actor.model({"betas": actor.betas}).joints[0].double().numpy()
+    out = {}
+    for label, bones in BONES.items():
+        errs = []
+        for a, b in bones:
+            bone = rest[JOINT[b]] - rest[JOINT[a]]
+            d = [r[:, JOINT[a]] @ bone for r in (pred.rotations, truth.rotations)]
+            cos = np.einsum("ti,ti->t", *d) / (np.linalg.norm(d[0], axis=-1)
+                                               * np.linalg.norm(d[1], axis=-1))
+            errs.append(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+        out[label] = float(np.mean(errs))
     return out
 
 
@@ -332,14 +362,15 @@ def run_metrics(actor, res: RunResult, score_cam: Camera) -> dict[str, dict[str,
         row = {"psnr": float(psnr[np.isfinite(psnr)].mean()) if np.isfinite(psnr).any()
                else float("nan"),
                **joint_errors(res.smooth[d], res.truth),
+               **bone_direction_errors(actor, pred, truth),
                "jitter_px": jitter_px(pred, truth),
                "fit_ms": float(np.median(res.fit_ms[d][1:] or res.fit_ms[d]))}
         out[d] = row
     return out
 
 
-def temporal_curve(actor, res: RunResult, score_cam: Camera, drive: str = "live",
-                   settings=CURVE_SETTINGS) -> list[dict[str, float]]:
+def temporal_curve(actor, res: RunResult, score_cam: Camera, start_frame: int = 0,
+                   drive: str = "live", settings=CURVE_SETTINGS) -> list[dict[str, float]]:
     """Jitter (px), lag (ms) and joint errors of each One Euro setting applied to the drive's
     unsmoothed fits (transl and betas the truth's, as the avatar is driven)."""
     from avatar_core.track.fit.one_euro import ParamSmoother
@@ -354,7 +385,8 @@ def temporal_curve(actor, res: RunResult, score_cam: Camera, drive: str = "live"
             seq = raw
         else:
             smoother = ParamSmoother(*setting)
-            seq = [{**smoother({k: v for k, v in p.items() if k not in fixed}, i / res.fps),
+            seq = [{**smoother({k: v for k, v in p.items() if k not in fixed},
+                               (start_frame + i) / res.fps),
                     **fixed} for i, p in enumerate(raw)]
         posed = raw_posed if setting is None else evaluate_params(actor, seq, score_cam)
         uv_p, _ = _tracks(posed)

@@ -24,7 +24,8 @@ from .protocol import (
     run_condition,
 )
 
-METRIC_KEYS = ("psnr", "root", "shoulders", "elbows", "neck_head", "jitter_px", "fit_ms")
+METRIC_KEYS = ("psnr", "root", "shoulders", "elbows", "neck_head", "upper_arms", "forearms",
+               "jitter_px", "fit_ms")
 
 
 def _weighted(rows: list[tuple[float, int]]) -> float:
@@ -73,17 +74,22 @@ def summarise(runs: list[RunResult]) -> dict[str, Any]:
 def run_protocol(identities: Sequence[int] = (0, 1), framings: Sequence[str] = tuple(FRAMINGS),
                  fps: float = 15.0, *, max_frames: int | None = None,
                  score_size: tuple[int, int] = (320, 240), drives: Sequence[str] = tuple(DRIVES),
-                 model_dir=None, curve: bool = True, progress: Progress | None = None
-                 ) -> dict[str, Any]:
-    """Every identity in every framing (`run_condition`), summarised (`summarise`)."""
+                 model_dir=None, curve: bool = True, start_frame: int = 0,
+                 runs_out: list[RunResult] | None = None,
+                 progress: Progress | None = None) -> dict[str, Any]:
+    """Every identity in every framing (`run_condition`), summarised (`summarise`);
+    `runs_out` receives the per-frame results."""
     if fps <= 0 or not identities or not framings:
         raise ValueError("fps must be > 0, with at least one identity and one framing")
     unknown = [f for f in framings if f not in FRAMINGS]
     if unknown:
         raise ValueError(f"unknown framing(s) {unknown}; known: {', '.join(FRAMINGS)}")
     runs = [run_condition(Condition(i, f), fps, max_frames=max_frames, score_size=score_size,
-                          drives=drives, model_dir=model_dir, curve=curve, progress=progress)
+                          drives=drives, model_dir=model_dir, curve=curve,
+                          start_frame=start_frame, progress=progress)
             for i in identities for f in framings]
+    if runs_out is not None:
+        runs_out.extend(runs)
     return summarise(runs)
 
 
@@ -99,12 +105,16 @@ def protocol_markdown(summary: dict[str, Any]) -> str:
              f"{short}; {conds}. PSNR (dB) at the score camera against the studio actor "
              "posed by the truth (the ideal avatar: true parameters are exact); angles in "
              "degrees; jitter = keypoint TJE px at the score camera; fit ms = median per frame.",
-             "", "| drive | PSNR | root° | shoulders° | elbows° | neck/head° | jitter px | "
-             "fit ms/frame |", "|---|---:|---:|---:|---:|---:|---:|---:|",
-             "| true parameters | exact | 0 | 0 | 0 | 0 | 0 | - |"]
+             "Upper arm / forearm: the bones' world directions (what the landmarks show), "
+             "beside the local joint angles (which also carry the arm's twist).",
+             "", "| drive | PSNR | root° | shoulders° | elbows° | neck/head° | upper arm / "
+             "forearm dir° | jitter px | fit ms/frame |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+             "| true parameters | exact | 0 | 0 | 0 | 0 | 0 / 0 | 0 | - |"]
     for d, m in summary["overall"].items():
         lines.append(f"| {DRIVE_LABELS.get(d, d)} | {_f(m['psnr'], 2)} | {_f(m['root'])} | "
                      f"{_f(m['shoulders'])} | {_f(m['elbows'])} | {_f(m['neck_head'])} | "
+                     f"{_f(m['upper_arms'])} / {_f(m['forearms'])} | "
                      f"{_f(m['jitter_px'], 2)} | {_f(m['fit_ms'])} |")
     drives = list(summary["overall"])
     lines += ["", "PSNR per condition (dB):", "",
