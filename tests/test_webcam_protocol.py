@@ -148,3 +148,16 @@ def test_a_few_frames_of_the_protocol_through_the_real_tracker():
     assert [r["min_cutoff"] for r in summary["curve"]][0] is None  # unsmoothed first
     md = protocol_markdown(summary)
     assert "| webcam, live fit |" in md and "| all 2D true |" in md
+
+
+def test_each_frame_is_labelled_with_the_motion_playing():
+    take = motion_sequence(list(wp.TAKE))
+    fps = 10.0
+    labels = wp.motion_of_frames(wp.TAKE, fps, int(take.duration * fps) + 1)
+    assert labels[0] == wp.TAKE[0] and labels[-1] == wp.TAKE[-1]
+    assert [n for i, n in enumerate(labels) if i == 0 or labels[i - 1] != n] == list(wp.TAKE)
+    first = take.tracks[0].duration
+    assert labels[int(first * fps)] == wp.TAKE[0]  # its last frame
+    assert labels[int(first * fps) + 2] == wp.TAKE[1]  # in the crossfade into the next
+    assert wp.motion_of_frames(wp.TAKE, fps, 2, start_frame=int(first * fps) + 2) == \
+        [wp.TAKE[1]] * 2

@@ -92,6 +92,7 @@ class RunResult:
     in_view: dict[str, np.ndarray]                   # hand -> [T] all true keypoints inside
     metrics: dict[str, dict[str, float]] = field(default_factory=dict)
     curve: list[dict[str, float]] = field(default_factory=list)  # `temporal_curve`
+    start_frame: int = 0
 
 
 def framed_transl(actor, camera: Camera, framing: str) -> np.ndarray:
@@ -137,6 +138,25 @@ def take_params(actor, rig, transl: np.ndarray, fps: float, max_frames: int | No
     betas = np.asarray(actor.betas, dtype=np.float64)
     return [{**track.sample(i / fps, rig), "transl": transl.copy(), "betas": betas}
             for i in range(start_frame, n)]
+
+
+def motion_of_frames(names: Sequence[str], fps: float, frames: int, start_frame: int = 0
+                     ) -> list[str]:
+    """The take's motion playing at each frame (a crossfade counts to the motion it leads
+    into)."""
+    from avatar_core.motion.library import motion_sequence
+
+    take = motion_sequence(list(names))
+    ends, t = [], 0.0
+    for track in take.tracks:
+        t += track.duration
+        ends.append(t)
+        t += take.crossfade
+    out = []
+    for i in range(start_frame, start_frame + frames):
+        k = next((j for j, end in enumerate(ends) if i / fps <= end), len(ends) - 1)
+        out.append(names[k])
+    return out
 
 
 def _true_observations(fitter, params: dict[str, np.ndarray], wcam):
@@ -264,6 +284,7 @@ def run_condition(condition: Condition, fps: float, *, max_frames: int | None = 
         tracker.close()
     truth_web = evaluate_params(actor, truth, cam)
     res.in_view = {g: truth_web.visible[g].all(-1) for g in ("left_hand", "right_hand")}
+    res.start_frame = start_frame
     res.metrics = run_metrics(actor, res, score_cam)
     if curve and "live" in drives:
         res.curve = temporal_curve(actor, res, score_cam, start_frame)

@@ -21,6 +21,7 @@ from .protocol import (
     Condition,
     Progress,
     RunResult,
+    motion_of_frames,
     run_condition,
 )
 
@@ -58,8 +59,17 @@ def summarise(runs: list[RunResult]) -> dict[str, Any]:
             if k not in row:
                 row[k] = _weighted([(r.curve[j][k], len(r.truth)) for r in runs if r.curve])
         curve.append(row)
+    per_motion: dict[str, dict[str, float]] = {}
+    for name in TAKE:
+        per_motion[name] = {}
+        for d in drives:
+            vals = np.concatenate([np.asarray(r.psnr[d])[np.asarray(
+                motion_of_frames(TAKE, r.fps, len(r.truth), r.start_frame)) == name]
+                for r in runs])
+            vals = vals[np.isfinite(vals)]
+            per_motion[name][d] = float(vals.mean()) if len(vals) else float("nan")
     return {
-        "take": list(TAKE), "fps": runs[0].fps,
+        "take": list(TAKE), "fps": runs[0].fps, "per_motion_psnr": per_motion,
         "seconds": [len(r.truth) / r.fps for r in runs],
         "conditions": [{"identity": r.condition.identity, "framing": r.condition.framing,
                         "frames": len(r.truth), "metrics": r.metrics,
@@ -124,6 +134,12 @@ def protocol_markdown(summary: dict[str, Any]) -> str:
     for c in summary["conditions"]:
         lines.append(f"| {c['identity']} | {c['framing']} | {c['frames']} | "
                      + " | ".join(_f(c["metrics"][d]["psnr"], 2) for d in drives) + " |")
+    if summary.get("per_motion_psnr"):
+        lines += ["", "PSNR per motion of the take (dB, all conditions):", "",
+                  "| motion | " + " | ".join(DRIVE_LABELS.get(d, d) for d in drives) + " |",
+                  "|---|" + "---:|" * len(drives)]
+        for name, row in summary["per_motion_psnr"].items():
+            lines.append(f"| {name} | " + " | ".join(_f(row.get(d), 2) for d in drives) + " |")
     lines += ["", "Presence (live tracker; a hand over the frames where all its true keypoints "
                   "are inside the image, the share of such frames in brackets):", "",
               "| identity | framing | face | pose | left hand | right hand | track ms |",
