@@ -109,6 +109,7 @@ def _webcam_eval(args: argparse.Namespace) -> int:
     except ValueError:
         raise SystemExit(f"--identities takes integers, got {args.identities!r}") from None
     framings = [x.strip() for x in args.framings.split(",") if x.strip()]
+    drives = [x.strip() for x in args.drives.split(",") if x.strip()]
     if args.max_frames is not None and args.max_frames < 2:
         raise SystemExit("--max-frames must be at least 2")
     if args.score_size < 16:
@@ -117,7 +118,7 @@ def _webcam_eval(args: argparse.Namespace) -> int:
     with tqdm(desc="webcam protocol", unit="frame") as bar:
         summary = run_protocol(identities, framings, args.fps, max_frames=args.max_frames,
                                score_size=(args.score_size, args.score_size * 3 // 4),
-                               model_dir=args.models, runs_out=runs,
+                               drives=drives, model_dir=args.models, runs_out=runs,
                                progress=lambda name, i, n: bar.update(1))
     js, md = write_protocol(summary, args.out)
     if args.keep_frames:
@@ -425,6 +426,9 @@ def build_parser() -> argparse.ArgumentParser:
                      help="the first N frames of the take (a smoke run; the protocol is "
                           "the whole take, >= 10 s)")
     web.add_argument("--score-size", type=int, default=320, help="score camera width (4:3)")
+    web.add_argument("--drives", default="live,true_body,true_body_face,true_all",
+                     help="comma-separated: live (the tracked landmarks), true_body, "
+                          "true_body_face, true_all (those parts' 2D landmarks from the truth)")
     web.add_argument("--models", type=Path, default=None, help="synthetic model folder")
     web.add_argument("--keep-frames", action="store_true",
                      help="also write runs.pkl: every frame's true, fitted and smoothed "

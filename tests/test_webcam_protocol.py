@@ -123,6 +123,10 @@ def test_bad_arguments_are_refused():
                           "--out", "unused", "--identities", "a,b"], capture_output=True,
                          text=True, timeout=120)
     assert bad.returncode != 0 and "--identities takes integers" in bad.stderr
+    bad = subprocess.run([sys.executable, "-m", "avatar_core.cli", "synth", "webcam-eval",
+                          "--out", "unused", "--drives", "live,magic"], capture_output=True,
+                         text=True, timeout=120)
+    assert bad.returncode != 0 and "drives must be among" in bad.stderr
 
 
 def test_a_few_frames_of_the_protocol_through_the_real_tracker():

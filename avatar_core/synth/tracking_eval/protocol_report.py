@@ -94,6 +94,9 @@ def run_protocol(identities: Sequence[int] = (0, 1), framings: Sequence[str] = t
     unknown = [f for f in framings if f not in FRAMINGS]
     if unknown:
         raise ValueError(f"unknown framing(s) {unknown}; known: {', '.join(FRAMINGS)}")
+    unknown = [d for d in drives if d not in DRIVES]
+    if unknown or not drives:
+        raise ValueError(f"drives must be among {', '.join(DRIVES)}, got {list(drives)}")
     runs = [run_condition(Condition(i, f), fps, max_frames=max_frames, score_size=score_size,
                           drives=drives, model_dir=model_dir, curve=curve,
                           start_frame=start_frame, progress=progress)
