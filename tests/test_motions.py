@@ -39,9 +39,9 @@ from avatar_core.synth.model_writer import (
 EXPRESSIONS = {"neutral", "smile", "grin", "mouth_open", "jaw_left", "jaw_right", "pucker",
                "cheeks_puffed", "eyes_closed", "brows_raised", "sad", "angry"}
 GESTURES = {"thumbs_up", "peace", "number_1", "number_2", "number_3", "number_4", "number_5",
-            "letter_L", "heart", "clapping", "pointing", "fingertips_pushing", "wave",
-            "hands_to_face", "reach_out"}
-CONVERSATION = {"talk_calm", "talk_animated", "nod", "shake_head", "shrug", "look_around"}
+            "letter_L", "heart", "clapping", "pointing", "fingertips_pushing"}
+CONVERSATION = {"talk_calm", "talk_animated", "nod", "shake_head", "shrug", "look_around",
+                "wave", "hands_to_face", "reach_out"}
 NEW_GESTURES = ("three", "four", "L", "heart_half", "cupped")
 OLD_GESTURES = ("flat", "relaxed", "fist", "point", "thumbs_up", "peace", "ok", "spread",
                 "claw", "pinch")

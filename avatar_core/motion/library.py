@@ -307,14 +307,16 @@ def _registry() -> dict[str, MotionSpec]:
                                _right_hand(n, a, h, x))
     out.update(heart=MotionSpec(g, _heart), clapping=MotionSpec(g, _clapping),
                pointing=MotionSpec(g, _pointing),
-               fingertips_pushing=MotionSpec(g, _fingertips_pushing),
-               wave=MotionSpec(g, _wave), hands_to_face=MotionSpec(g, _hands_to_face),
-               reach_out=MotionSpec(g, _reach_out))
+               fingertips_pushing=MotionSpec(g, _fingertips_pushing))
 
     out.update(talk_calm=MotionSpec(c, lambda: _talk("talk_calm", 11, 4.0, 0.16, 1.0)),
                talk_animated=MotionSpec(c, lambda: _talk("talk_animated", 23, 4.0, 0.24, 2.0)),
                nod=MotionSpec(c, _nod), shake_head=MotionSpec(c, _shake_head),
-               shrug=MotionSpec(c, _shrug), look_around=MotionSpec(c, _look_around))
+               shrug=MotionSpec(c, _shrug), look_around=MotionSpec(c, _look_around),
+               # The arms away from the chest (beside the head, the face, out sideways): the
+               # webcam protocol's hands entering and leaving the frame.
+               wave=MotionSpec(c, _wave), hands_to_face=MotionSpec(c, _hands_to_face),
+               reach_out=MotionSpec(c, _reach_out))
     return out
 
 
