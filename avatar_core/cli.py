@@ -97,6 +97,40 @@ def _motion_strip(args: argparse.Namespace) -> int:
     return 0
 
 
+def _webcam_eval(args: argparse.Namespace) -> int:
+    from .synth.tracking_eval.protocol_report import (
+        protocol_markdown,
+        run_protocol,
+        write_protocol,
+    )
+
+    try:
+        identities = [int(x) for x in args.identities.split(",") if x.strip()]
+    except ValueError:
+        raise SystemExit(f"--identities takes integers, got {args.identities!r}") from None
+    framings = [x.strip() for x in args.framings.split(",") if x.strip()]
+    drives = [x.strip() for x in args.drives.split(",") if x.strip()]
+    if args.max_frames is not None and args.max_frames < 2:
+        raise SystemExit("--max-frames must be at least 2")
+    if args.score_size < 16:
+        raise SystemExit("--score-size must be at least 16")
+    runs: list = []
+    with tqdm(desc="webcam protocol", unit="frame") as bar:
+        summary = run_protocol(identities, framings, args.fps, max_frames=args.max_frames,
+                               score_size=(args.score_size, args.score_size * 3 // 4),
+                               drives=drives, model_dir=args.models, runs_out=runs,
+                               progress=lambda name, i, n: bar.update(1))
+    js, md = write_protocol(summary, args.out)
+    if args.keep_frames:
+        import pickle
+
+        with open(args.out / "runs.pkl", "wb") as f:  # our own output, read back by us
+            pickle.dump(runs, f)
+    print(protocol_markdown(summary))
+    print(f"wrote {js}, {md}")
+    return 0
+
+
 def _eval(args: argparse.Namespace) -> int:
     from .metrics.evaluate import evaluate
     from .metrics.report import result_markdown
@@ -449,6 +483,28 @@ def build_parser() -> argparse.ArgumentParser:
     strip.add_argument("--focus", choices=["body", "face"], default="body")
     strip.add_argument("--models", type=Path, default=None, help="synthetic model folder")
     strip.set_defaults(func=_motion_strip)
+
+    web = synth_cmds.add_parser(
+        "webcam-eval", help="the webcam protocol on the studio: track + fit + score a take "
+        "with the arms moving, per identity and framing, with the part attribution")
+    web.add_argument("--out", type=Path, required=True,
+                     help="folder for webcam_protocol.json and webcam_protocol.md")
+    web.add_argument("--identities", default="0,1", help="comma-separated identities")
+    web.add_argument("--framings", default="head_shoulders,waist_up",
+                     help="comma-separated: head_shoulders, waist_up")
+    web.add_argument("--fps", type=float, default=15.0, help="webcam frame rate")
+    web.add_argument("--max-frames", type=int, default=None,
+                     help="the first N frames of the take (a smoke run; the protocol is "
+                          "the whole take, >= 10 s)")
+    web.add_argument("--score-size", type=int, default=320, help="score camera width (4:3)")
+    web.add_argument("--drives", default="live,true_body,true_body_face,true_all",
+                     help="comma-separated: live (the tracked landmarks), true_body, "
+                          "true_body_face, true_all (those parts' 2D landmarks from the truth)")
+    web.add_argument("--models", type=Path, default=None, help="synthetic model folder")
+    web.add_argument("--keep-frames", action="store_true",
+                     help="also write runs.pkl: every frame's true, fitted and smoothed "
+                          "parameters (to recompute metrics or smoothing curves)")
+    web.set_defaults(func=_webcam_eval)
 
     from .dataset.cli import register as register_dataset
 

@@ -40,7 +40,8 @@ EXPRESSIONS = {"neutral", "smile", "grin", "mouth_open", "jaw_left", "jaw_right"
                "cheeks_puffed", "eyes_closed", "brows_raised", "sad", "angry"}
 GESTURES = {"thumbs_up", "peace", "number_1", "number_2", "number_3", "number_4", "number_5",
             "letter_L", "heart", "clapping", "pointing", "fingertips_pushing"}
-CONVERSATION = {"talk_calm", "talk_animated", "nod", "shake_head", "shrug", "look_around"}
+CONVERSATION = {"talk_calm", "talk_animated", "nod", "shake_head", "shrug", "look_around",
+                "wave", "hands_to_face", "reach_out"}
 NEW_GESTURES = ("three", "four", "L", "heart_half", "cupped")
 OLD_GESTURES = ("flat", "relaxed", "fist", "point", "thumbs_up", "peace", "ok", "spread",
                 "claw", "pinch")
@@ -97,11 +98,11 @@ def test_names_and_categories():
 
 
 def test_unknown_motion_names_list_the_known_ones():
-    with pytest.raises(ValueError, match="unknown motion 'wave'; known: ") as err:
-        motion("wave")
+    with pytest.raises(ValueError, match="unknown motion 'waving_flag'; known: ") as err:
+        motion("waving_flag")
     assert all(n in str(err.value) for n in ("smile", "heart", "talk_calm"))
-    with pytest.raises(ValueError, match="unknown motion 'wave'"):
-        motion_sequence("smile,wave")
+    with pytest.raises(ValueError, match="unknown motion 'waving_flag'"):
+        motion_sequence("smile,waving_flag")
     with pytest.raises(ValueError, match="no motion names"):
         motion_sequence(" , ")
 

@@ -166,6 +166,34 @@ def _clapping() -> Clip:
     return Clip("clapping", tuple(keys))
 
 
+def _wave() -> Clip:
+    # Right hand raised beside the head, palm to the camera, waving from the wrist at 2.5 Hz.
+    # The shoulder turns the arm outward 90 deg (then lifts it 20 deg above the horizontal)
+    # so that the elbow's own flexion raises the forearm: Rz(-0.35) Rx(-pi/2).
+    up = {"right_shoulder": (-1.553, 0.275, -0.275), "right_elbow": (0.0, 1.6, 0.0)}
+    sway = [Pose({**up, "right_wrist": (0.0, s, 0.0)}, {"smile": 0.6}, right_hand="spread")
+            for s in (-0.35, 0.35)]
+    keys = [(0.0, Pose()), (0.7, sway[0])]
+    for i in range(4):
+        keys += [(0.9 + 0.4 * i, sway[1]), (1.1 + 0.4 * i, sway[0])]
+    keys.append((keys[-1][0] + 0.7, Pose()))
+    return Clip("wave", tuple(keys))
+
+
+def _hands_to_face() -> Clip:
+    # Both flat hands beside the chin (the `sign` arm, mirrored): hands at the face.
+    return _hold("hands_to_face", Pose(both_arms("sign"), {"lips_part": 0.2},
+                                       left_hand="flat", right_hand="flat"), 0.7, 1.2, 0.7)
+
+
+def _reach_out() -> Clip:
+    # The right arm stretched out sideways a little above the shoulder: in a head-and-
+    # shoulders or waist-up webcam frame the hand leaves the image and comes back.
+    out = {"right_shoulder": (0.0, -0.3, -0.2), "right_elbow": (0.0, 0.15, 0.0)}
+    look = {"head": (0.0, -0.25, 0.0)}  # toward the hand
+    return _hold("reach_out", Pose({**out, **look}, right_hand="spread"), 0.8, 1.0, 0.8)
+
+
 def _pointing() -> Clip:
     # Look where the finger points (forward and a little to the subject's right).
     look = {"head": (0.0, -0.12, 0.0)}
@@ -284,7 +312,11 @@ def _registry() -> dict[str, MotionSpec]:
     out.update(talk_calm=MotionSpec(c, lambda: _talk("talk_calm", 11, 4.0, 0.16, 1.0)),
                talk_animated=MotionSpec(c, lambda: _talk("talk_animated", 23, 4.0, 0.24, 2.0)),
                nod=MotionSpec(c, _nod), shake_head=MotionSpec(c, _shake_head),
-               shrug=MotionSpec(c, _shrug), look_around=MotionSpec(c, _look_around))
+               shrug=MotionSpec(c, _shrug), look_around=MotionSpec(c, _look_around),
+               # The arms away from the chest (beside the head, the face, out sideways): the
+               # webcam protocol's hands entering and leaving the frame.
+               wave=MotionSpec(c, _wave), hands_to_face=MotionSpec(c, _hands_to_face),
+               reach_out=MotionSpec(c, _reach_out))
     return out
 
 

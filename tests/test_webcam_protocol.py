@@ -1,0 +1,167 @@
+"""The studio webcam protocol (`synth/tracking_eval/protocol.py`), small: its pieces on known
+inputs, and a few frames of one identity in one framing through the real tracker and fit
+(the full run is `telesplat synth webcam-eval`, docs/results.md)."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from avatar_core.motion.library import motion_sequence
+from avatar_core.synth.tracking_eval import protocol as wp
+from avatar_core.synth.tracking_eval.metrics import Posed
+from avatar_core.synth.tracking_eval.protocol_report import protocol_markdown, run_protocol
+
+
+def test_the_take_is_long_enough_and_moves_the_arms():
+    take = motion_sequence(list(wp.TAKE))
+    assert take.duration >= wp.MIN_TAKE_S
+    assert {"wave", "clapping", "pointing", "hands_to_face", "reach_out"} <= set(wp.TAKE)
+
+
+@pytest.fixture(scope="module")
+def actor():
+    from avatar_core.synth.actor import Actor
+    from avatar_core.synth.model_writer import ensure_models
+
+    return Actor.load(ensure_models(), 0)
+
+
+def test_framings_fill_the_webcam_from_the_head_down(actor):
+    from avatar_core.synth.tracking_eval.metrics import evaluate_params
+
+    cam = wp.webcam_camera()
+    near = wp.framed_transl(actor, cam, "head_shoulders")
+    far = wp.framed_transl(actor, cam, "waist_up")
+    assert -near[2] < -far[2]  # head-and-shoulders is closer
+    rest = {"betas": np.asarray(actor.betas)}
+    for transl in (near, far):
+        posed = evaluate_params(actor, [{**rest, "transl": transl}], cam)
+        assert posed.visible["face"].all()  # the whole face in the image
+    with pytest.raises(ValueError, match="unknown framing"):
+        wp.framed_transl(actor, cam, "full_body")
+
+
+def test_the_score_camera_looks_at_the_chest_from_the_side(actor):
+    cam = wp.webcam_camera()
+    transl = wp.framed_transl(actor, cam, "waist_up")
+    score = wp.score_camera(transl, actor, 160, 120)
+    axis = score.R[2]  # optical axis in the world
+    angle = math.degrees(math.acos(float(np.clip(axis @ np.array([0, 0, -1.0]), -1, 1))))
+    assert abs(angle - wp.SCORE_ANGLE_DEG) < 1.0
+
+
+def _obs(value: float):
+    from avatar_core.track.fit import correspondence as cor
+    from avatar_core.track.fit.observations import Observations
+
+    k = cor.NUM_KEYPOINTS
+    return Observations(np.full((k, 2), value), np.full(k, 1.0), (640, 480),
+                        {g: True for g in cor.GROUP_SLICES}, np.full(k, value))
+
+
+def test_mixing_takes_only_the_named_parts_from_the_truth():
+    from avatar_core.track.fit import correspondence as cor
+
+    live, truth = _obs(1.0), _obs(2.0)
+    truth.weights[cor.GROUP_SLICES["left_hand"]] = 0.0  # the true hand is out of the image
+    mixed = wp.mix_observations(live, truth, ("pose", "left_hand"))
+    assert (mixed.pixels[cor.POSE_SLICE] == 2.0).all()
+    assert (mixed.pixels[cor.FACE_SLICE] == 1.0).all()
+    assert (mixed.pixels[cor.RIGHT_HAND_SLICE] == 1.0).all()
+    assert not mixed.seen["left_hand"] and (mixed.weights[cor.LEFT_HAND_SLICE] == 0).all()
+    assert mixed.seen["pose"] and mixed.seen["face"]
+    assert (live.pixels == 1.0).all() and live.seen["left_hand"]  # untouched
+
+
+def _posed(uv: np.ndarray) -> Posed:
+    t = len(uv)
+    groups = {"face": uv, "left_hand": uv[:, :0], "right_hand": uv[:, :0], "torso": uv[:, :0]}
+    return Posed(groups, {g: np.ones(v.shape[:2], bool) for g, v in groups.items()},
+                 np.zeros((t, 55, 3, 3)), np.zeros((t, 55, 3)), np.zeros((t, 51, 3)))
+
+
+def test_lag_finds_a_known_delay_and_jitter_ignores_true_motion():
+    fps, delay = 30.0, 3
+    t = np.arange(90) / fps
+    uv = np.stack([100 + 40 * np.sin(2 * np.pi * 0.7 * t), 50 + 20 * np.cos(2 * np.pi * 1.3 * t)],
+                  -1)[:, None, :].repeat(4, 1)
+    delayed = np.concatenate([uv[:1].repeat(delay, 0), uv[:-delay]])
+    assert wp.lag_ms(_posed(delayed), _posed(uv), fps) == pytest.approx(1e3 * delay / fps,
+                                                                         abs=6)
+    assert wp.jitter_px(_posed(uv), _posed(uv)) == pytest.approx(0.0, abs=1e-9)
+    noisy = uv + np.random.default_rng(0).normal(0, 2.0, uv.shape)
+    assert wp.jitter_px(_posed(noisy), _posed(uv)) > 1.5
+
+
+def test_joint_errors_are_geodesic_degrees():
+    truth = [{"global_orient": np.zeros(3), "body_pose": np.zeros((21, 3))}]
+    turned = {"global_orient": np.array([0.0, math.radians(10), 0.0]),
+              "body_pose": np.zeros((21, 3))}
+    turned["body_pose"][wp.JOINT["left_elbow"] - 1] = [0.0, 0.0, math.radians(20)]
+    turned["body_pose"][wp.JOINT["neck"] - 1] = [math.radians(5), 0.0, 0.0]
+    turned["body_pose"][wp.JOINT["head"] - 1] = [math.radians(-5), 0.0, 0.0]
+    err = wp.joint_errors([turned], truth)
+    assert err["root"] == pytest.approx(10.0, abs=1e-6)
+    assert err["elbows"] == pytest.approx(10.0, abs=1e-6)  # mean of 20 and 0
+    assert err["shoulders"] == pytest.approx(0.0, abs=1e-6)
+    assert err["neck_head"] == pytest.approx(0.0, abs=1e-6)  # they cancel: the head is right
+
+
+def test_bad_arguments_are_refused():
+    with pytest.raises(ValueError, match="unknown framing"):
+        run_protocol((0,), ("full_body",), 10.0, max_frames=2)
+    with pytest.raises(ValueError, match="fps"):
+        run_protocol((0,), ("waist_up",), 0.0, max_frames=2)
+    with pytest.raises(ValueError, match="drives"):
+        wp.run_condition(wp.Condition(0, "waist_up"), 10.0, max_frames=2, drives=("magic",))
+    bad = subprocess.run([sys.executable, "-m", "avatar_core.cli", "synth", "webcam-eval",
+                          "--out", "unused", "--identities", "a,b"], capture_output=True,
+                         text=True, timeout=120)
+    assert bad.returncode != 0 and "--identities takes integers" in bad.stderr
+    bad = subprocess.run([sys.executable, "-m", "avatar_core.cli", "synth", "webcam-eval",
+                          "--out", "unused", "--drives", "live,magic"], capture_output=True,
+                         text=True, timeout=120)
+    assert bad.returncode != 0 and "drives must be among" in bad.stderr
+
+
+def test_a_few_frames_of_the_protocol_through_the_real_tracker():
+    pytest.importorskip("onnxruntime")
+    from avatar_core.track.models import ModelFetchError, fetch_models
+
+    try:
+        fetch_models()
+    except ModelFetchError as exc:
+        pytest.skip(f"cannot fetch the MediaPipe landmark models: {exc}")
+    # The first 0.6 s at 5 fps: the right arm rising into the wave.
+    summary = run_protocol((0,), ("waist_up",), 5.0, max_frames=4,
+                           score_size=(160, 120), drives=("live", "true_all"))
+    live, true = summary["overall"]["live"], summary["overall"]["true_all"]
+    assert summary["conditions"][0]["frames"] == 4
+    assert summary["presence"]["face"] == 1.0 and summary["presence"]["pose"] == 1.0
+    # The truth's 2D landmarks refitted put the avatar nearly where the truth does, and
+    # better than the tracked ones (the fitter is sound; what the landmarks mean is not).
+    assert true["psnr"] > live["psnr"] + 3.0
+    assert true["root"] < 5.0 and true["neck_head"] < 8.0
+    assert true["root"] < live["root"] and true["forearms"] < live["forearms"]
+    assert live["fit_ms"] > 0 and np.isfinite(live["jitter_px"])
+    assert [r["min_cutoff"] for r in summary["curve"]][0] is None  # unsmoothed first
+    md = protocol_markdown(summary)
+    assert "| webcam, live fit |" in md and "| all 2D true |" in md
+
+
+def test_each_frame_is_labelled_with_the_motion_playing():
+    take = motion_sequence(list(wp.TAKE))
+    fps = 10.0
+    labels = wp.motion_of_frames(wp.TAKE, fps, int(take.duration * fps) + 1)
+    assert labels[0] == wp.TAKE[0] and labels[-1] == wp.TAKE[-1]
+    assert [n for i, n in enumerate(labels) if i == 0 or labels[i - 1] != n] == list(wp.TAKE)
+    first = take.tracks[0].duration
+    assert labels[int(first * fps)] == wp.TAKE[0]  # its last frame
+    assert labels[int(first * fps) + 2] == wp.TAKE[1]  # in the crossfade into the next
+    assert wp.motion_of_frames(wp.TAKE, fps, 2, start_frame=int(first * fps) + 2) == \
+        [wp.TAKE[1]] * 2
