@@ -23,6 +23,7 @@ from .registry import Room, SeatSpec
 
 if TYPE_CHECKING:
     from ..stream.session import Session
+    from .voice import SeatVoice
 
 log = logging.getLogger(__name__)
 
@@ -38,6 +39,7 @@ class Seat:
     performer: Session | None = None
     holding: bool = False
     release: asyncio.Task | None = None  # hold, then ease to rest
+    voice: SeatVoice | None = None  # its performer's voice (server/rooms/voice.py), on first use
 
     @property
     def index(self) -> int:
