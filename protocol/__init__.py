@@ -32,6 +32,7 @@ from .messages import (
     Stats,
     Timings,
     View,
+    Voice,
     Welcome,
 )
 from .params import FAMILIES
@@ -41,6 +42,6 @@ __all__ = [
     "PROTOCOL_MINOR", "PROTOCOL_VERSION", "SERVER_TYPES", "AvatarInfo", "CameraSpec", "Drive",
     "Error", "Frame", "Hello", "Image", "Limits", "Orbit", "Ping", "Pong", "Presence",
     "ProtocolError", "Request", "RoomWelcome", "SeatPresence", "Stats", "Timings",
-    "View", "Welcome", "decode_client", "decode_server", "encode", "pack_array",
+    "View", "Voice", "Welcome", "decode_client", "decode_server", "encode", "pack_array",
     "unpack_array",
 ]

@@ -31,6 +31,7 @@ from protocol import (
     Stats,
     Timings,
     View,
+    Voice,
     Welcome,
     decode_client,
     decode_server,
@@ -59,6 +60,8 @@ CLIENT_EXAMPLES = [
     Image(seq=3, format="png", data=b"\x89PNG fake but non-empty"),
     Ping(t=12.5),
     Hello(token="tsr_x", client="viewer", role="watch", seat=1),
+    Voice(seq=4, data=b"\xf8\xff\xfe", t_capture=12.52),
+    Drive(seq=8, flame={"jaw_pose": [0.2, 0, 0]}, t_capture=12.5),
 ]
 SERVER_EXAMPLES = [
     Welcome(session="abc", avatar=AvatarInfo(id="demo", name="ada", num_gaussians=5,
@@ -66,6 +69,7 @@ SERVER_EXAMPLES = [
             limits=Limits(), codecs=["jpeg", "png", "h264"], request=Request(width=512)),
     Frame(seq=7, frame=1, codec="jpeg", width=4, height=2, data=b"\xff\xd8",
           depth=b"png", keyframe=False, timings=Timings(track=1, pose=2, render=3, encode=4)),
+    Frame(seq=8, frame=2, codec="jpeg", width=4, height=2, data=b"\xff\xd8", t_capture=12.5),
     Error(code="invalid", message="nope", answers=Answers(type="drive", seq=3)),
     Stats(fps=30, frames=10, dropped=1, coalesced=2, bytes_per_s=1e5, render_ms=12,
           sessions=1),
@@ -77,6 +81,7 @@ SERVER_EXAMPLES = [
     Presence(room="r1", seats=[SeatPresence(index=0, avatar="demo", performer="cam",
                                             holding=False)],
              viewers=3, event="join", who="viewer", role="watch"),
+    Voice(seq=4, data=b"\xf8\xff\xfe", t_capture=12.52, seat=0),
 ]
 
 

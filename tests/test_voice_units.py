@@ -101,20 +101,24 @@ def test_the_timeline_is_continuous_across_publishers_and_wraps():
     assert nxt - ts[2] == CLOCK_RATE
 
 
-def test_a_listener_releases_each_packet_only_after_the_seats_delay():
+def test_a_listener_waits_the_median_picture_lag_bounded():
     seat = voice(voice_max_delay_s=0.2)
-    seat.follow_picture(5.0)
-    assert seat.delay_s == 0.2  # bounded by voice_max_delay_s
+    listener = seat.subscribe()
+    for version, lag in enumerate([0.05, 0.06, 0.3, 0.07, 0.08]):
+        listener.follow_picture(version, 100.0, 100.0 + lag)
+        listener.follow_picture(version, 100.0, 105.0)  # later frames of a version: no lag
+    assert listener.delay_s == pytest.approx(0.07)  # one slow render moves nothing
+    for version in range(5, 20):
+        listener.follow_picture(version, 100.0, 101.0)
+    assert listener.delay_s == 0.2  # bounded by voice_max_delay_s
 
     async def run():
-        listener = seat.subscribe()
         sent = time.monotonic()
         seat.publish("p", b"\xf8\x00", 0)
         await listener.next()
         return time.monotonic() - sent
 
-    waited = asyncio.run(run())
-    assert waited >= 0.2
+    assert asyncio.run(run()) >= 0.2
 
 
 def test_a_full_listener_drops_its_oldest_and_counts():

@@ -8,7 +8,7 @@ import { decode as unpackMsgpack, encode as packMsgpack } from "./vendor/msgpack
 
 export const PROTOCOL_VERSION = Object.freeze(1);
 
-export const PROTOCOL_MINOR = Object.freeze(1);
+export const PROTOCOL_MINOR = Object.freeze(2);
 
 export const MAX_SEQ = Object.freeze(9007199254740991);
 
@@ -268,7 +268,8 @@ export const CLIENT_TYPES = Object.freeze([
   "image",
   "ping",
   "request",
-  "view"
+  "view",
+  "voice"
 ]);
 
 export const SERVER_TYPES = Object.freeze([
@@ -277,6 +278,7 @@ export const SERVER_TYPES = Object.freeze([
   "pong",
   "presence",
   "stats",
+  "voice",
   "welcome"
 ]);
 
@@ -579,6 +581,20 @@ export const SCHEMA_DEFS = Object.freeze({
         "default": null,
         "title": "Smplx"
       },
+      "t_capture": {
+        "anyOf": [
+          {
+            "maximum": 1000000000.0,
+            "minimum": 0,
+            "type": "number"
+          },
+          {
+            "type": "null"
+          }
+        ],
+        "default": null,
+        "title": "T Capture"
+      },
       "type": {
         "const": "drive",
         "default": "drive",
@@ -703,6 +719,18 @@ export const SCHEMA_DEFS = Object.freeze({
         "title": "Seq",
         "type": "integer"
       },
+      "t_capture": {
+        "anyOf": [
+          {
+            "type": "number"
+          },
+          {
+            "type": "null"
+          }
+        ],
+        "default": null,
+        "title": "T Capture"
+      },
       "timings": {
         "$ref": "#/$defs/Timings"
       },
@@ -798,6 +826,18 @@ export const SCHEMA_DEFS = Object.freeze({
         "default": 1,
         "title": "Version",
         "type": "integer"
+      },
+      "voice": {
+        "anyOf": [
+          {
+            "type": "boolean"
+          },
+          {
+            "type": "null"
+          }
+        ],
+        "default": null,
+        "title": "Voice"
       }
     },
     "title": "Hello",
@@ -1490,6 +1530,65 @@ export const SCHEMA_DEFS = Object.freeze({
     "title": "View",
     "type": "object"
   },
+  "Voice": {
+    "additionalProperties": false,
+    "description": "One Opus packet (RFC 6716, 48 kHz) of a seat's voice. A performer sends its own (for its\nseat); the server sends each seat's to the room's other participants, ``seat`` set, delayed\nto match the picture. Packets the server cannot parse as Opus are dropped and counted.",
+    "properties": {
+      "data": {
+        "format": "binary",
+        "maxLength": 1276,
+        "minLength": 1,
+        "title": "Data",
+        "type": "string"
+      },
+      "seat": {
+        "anyOf": [
+          {
+            "exclusiveMaximum": 16,
+            "minimum": 0,
+            "type": "integer"
+          },
+          {
+            "type": "null"
+          }
+        ],
+        "default": null,
+        "title": "Seat"
+      },
+      "seq": {
+        "maximum": 9007199254740991,
+        "minimum": 0,
+        "title": "Seq",
+        "type": "integer"
+      },
+      "t_capture": {
+        "anyOf": [
+          {
+            "maximum": 1000000000.0,
+            "minimum": 0,
+            "type": "number"
+          },
+          {
+            "type": "null"
+          }
+        ],
+        "default": null,
+        "title": "T Capture"
+      },
+      "type": {
+        "const": "voice",
+        "default": "voice",
+        "title": "Type",
+        "type": "string"
+      }
+    },
+    "required": [
+      "seq",
+      "data"
+    ],
+    "title": "Voice",
+    "type": "object"
+  },
   "Welcome": {
     "additionalProperties": false,
     "properties": {
@@ -1589,6 +1688,9 @@ export const CLIENT_SCHEMAS = Object.freeze({
   },
   "view": {
     "$ref": "#/$defs/View"
+  },
+  "voice": {
+    "$ref": "#/$defs/Voice"
   }
 });
 
@@ -1607,6 +1709,9 @@ export const SERVER_SCHEMAS = Object.freeze({
   },
   "stats": {
     "$ref": "#/$defs/Stats"
+  },
+  "voice": {
+    "$ref": "#/$defs/Voice"
   },
   "welcome": {
     "$ref": "#/$defs/Welcome"

@@ -15,11 +15,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from protocol import Presence, SeatPresence
+from protocol import Presence, SeatPresence, Voice
 
 from ..stream.drive import DriveState
 from ..stream.scene import Scene
 from .registry import Room, SeatSpec
+from .voice import publish_message
 
 if TYPE_CHECKING:
     from ..stream.session import Session
@@ -69,6 +70,11 @@ class LiveRoom:
 
     def snapshot(self) -> tuple[DriveState, ...]:
         return tuple(s.drive.copy() for s in self.seats)
+
+    def voice(self, performer: Session, message: Voice) -> str:
+        """A performer's ``voice`` message to its seat's listeners; the outcome."""
+        return publish_message(self.seat(performer.seat_index), performer, message,
+                               self.settings, performer.metrics)
 
     def seat_changed(self) -> None:
         """A seat's drive changed: every participant renders the new state."""

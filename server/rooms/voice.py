@@ -4,8 +4,10 @@ One :class:`SeatVoice` per seat, made when someone first publishes or listens. E
 checked (protocol/opus.py: RFC 6716's rules, no decoding), bounded (``voice_max_packet_bytes``,
 ``voice_max_bitrate``) and counted; a valid one goes to every :class:`Listener`, each a bounded
 queue (``voice_buffer_packets``, the oldest dropped past it). A listener releases a packet only
-``delay_s`` after it arrived: the voice waits for the picture, never the other way round
-(``delay_s`` follows the seat's picture lag, at most ``voice_max_delay_s``).
+``delay_s`` after it arrived: the voice waits for the picture, never the other way round.
+``delay_s`` follows that listener's own picture lag (:meth:`Listener.follow_picture`: from a
+drive's arrival to the frame that first shows it leaving for the encoder), smoothed, at most
+``voice_max_delay_s``.
 
 Packets carry a media time in 48 kHz ticks: the publisher's RTP timestamps, unwrapped and made
 continuous across publishers (a new performer goes on where the last one stopped), so a
@@ -17,15 +19,18 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import statistics
 import time
 from dataclasses import dataclass
 from typing import Any
 
+from protocol import Voice
 from protocol.opus import OpusPacketError, packet_duration_ms
 
 CLOCK_RATE = 48_000                 # Opus' RTP clock
 DISCONTINUITY_TICKS = 5 * CLOCK_RATE  # a timestamp jump past this is a new stream, not a gap
 SPEAKING_S = 0.3                    # a seat speaks while its last packet is this recent
+LAG_SAMPLES = 15                    # picture lags the voice delay is the median of
 
 
 @dataclass(frozen=True)
@@ -33,14 +38,18 @@ class VoicePacket:
     payload: bytes
     media_ts: int     # 48 kHz ticks on the seat's continuous timeline
     arrived: float    # time.monotonic() when the server got it
-    release_at: float  # when listeners may send it (arrived + the seat's delay then)
+    t_capture: float | None = None  # its capture time on the performer's clock, when sent
 
 
 class Listener:
     """One participant's queue of a seat's packets (latest kept, oldest dropped)."""
 
-    def __init__(self, voice: SeatVoice, capacity: int) -> None:
+    def __init__(self, voice: SeatVoice, capacity: int, max_delay_s: float) -> None:
         self.voice = voice
+        self.max_delay_s = max_delay_s
+        self.delay_s = 0.0
+        self.lags: collections.deque[float] = collections.deque(maxlen=LAG_SAMPLES)
+        self._shown_version: int | None = None
         self._queue: collections.deque[VoicePacket] = collections.deque()
         self._capacity = capacity
         self._ready = asyncio.Event()
@@ -64,12 +73,22 @@ class Listener:
                 self._ready.clear()
                 await self._ready.wait()
                 continue
-            wait = self._queue[0].release_at - time.monotonic()
+            wait = self._queue[0].arrived + self.delay_s - time.monotonic()
             if wait > 0:
                 await asyncio.sleep(wait)
                 continue
             return self._queue.popleft()
         return None
+
+    def follow_picture(self, version: int, arrived: float | None, now: float) -> None:
+        """A frame showing the seat's drive ``version`` (applied at ``arrived``) leaves now:
+        the first frame of each version measures the picture's lag; the voice waits the
+        median of the recent ones (jitter in one render moves nothing)."""
+        if arrived is None or version == self._shown_version:
+            return
+        self._shown_version = version
+        self.lags.append(now - arrived)
+        self.delay_s = min(max(0.0, statistics.median(self.lags)), self.max_delay_s)
 
     def close(self) -> None:
         self.closed = True
@@ -86,20 +105,12 @@ class SeatVoice:
         self._metrics = metrics
         self.listeners: set[Listener] = set()
         self.counts: collections.Counter[str] = collections.Counter()
-        self.delay_s = 0.0
         self.last_packet_at: float | None = None
         self._tokens = self.max_bytes_per_s  # burst: one second
         self._tokens_at = time.monotonic()
         self._last_in: int | None = None    # the publisher's last RTP timestamp
         self._last_out = 0                   # its place on the seat's timeline
         self._publisher: object | None = None
-
-    # -- the picture's lag --------------------------------------------------------------------
-
-    def follow_picture(self, lag_s: float) -> None:
-        """The picture shows a drive ``lag_s`` after the voice of the same instant arrived:
-        the voice waits as long (bounded by voice_max_delay_s)."""
-        self.delay_s = min(max(0.0, lag_s), self.max_delay_s)
 
     @property
     def speaking(self) -> bool:
@@ -109,13 +120,13 @@ class SeatVoice:
     # -- publishing ---------------------------------------------------------------------------
 
     def publish(self, publisher: object, payload: bytes, rtp_ts: int,
-                now: float | None = None) -> str:
+                now: float | None = None, t_capture: float | None = None) -> str:
         """Check ``payload`` and fan it out; the outcome (a voice_packets label)."""
         now = time.monotonic() if now is None else now
         outcome = self._check(payload, now)
         if outcome == "forwarded":
             packet = VoicePacket(payload, self._timeline(publisher, rtp_ts, now), now,
-                                 now + self.delay_s)
+                                 t_capture)
             self.last_packet_at = now
             for listener in list(self.listeners):
                 if not listener.put(packet):
@@ -158,7 +169,7 @@ class SeatVoice:
     # -- listening ----------------------------------------------------------------------------
 
     def subscribe(self) -> Listener:
-        listener = Listener(self, self.buffer_packets)
+        listener = Listener(self, self.buffer_packets, self.max_delay_s)
         self.listeners.add(listener)
         return listener
 
@@ -171,3 +182,36 @@ def seat_voice(seat: Any, settings: Any, metrics: Any = None) -> SeatVoice:
     if seat.voice is None:
         seat.voice = SeatVoice(settings, metrics)
     return seat.voice
+
+
+def publish_message(seat: Any, performer: Any, message: Voice, settings: Any,
+                    metrics: Any = None) -> str:
+    """A performer's ``voice`` message (WebSocket, data channel) into its seat's voice; its
+    media time comes from its capture time (the performer's clock), else from arrival."""
+    now = time.monotonic()
+    at = message.t_capture if message.t_capture is not None else now
+    return seat_voice(seat, settings, metrics).publish(
+        performer, message.data, round(at * CLOCK_RATE) % 2**32, now, message.t_capture)
+
+
+async def relay_voices(session: Any, live: Any, settings: Any, metrics: Any = None) -> None:
+    """Until cancelled: every other seat's voice to ``session`` as ``voice`` messages (its
+    control queue: dropped, never queued without bound, when the client is behind). The client
+    syncs them to the frames by their capture times, so no delay is added here."""
+    seats = [s for s in live.seats
+             if not (session.role == "perform" and s.index == session.seat_index)]
+    listeners = [seat_voice(s, settings, metrics).subscribe() for s in seats]
+
+    async def pump(index: int, listener: Listener) -> None:
+        seq = 0
+        while (packet := await listener.next()) is not None:
+            session.send_control(Voice(seq=seq, data=packet.payload,
+                                       t_capture=packet.t_capture, seat=index))
+            seq += 1
+
+    try:
+        await asyncio.gather(*(pump(s.index, lis) for s, lis in zip(seats, listeners,
+                                                                     strict=True)))
+    finally:
+        for listener in listeners:
+            listener.close()

@@ -35,9 +35,10 @@ RTP_HANDLER = "_handle_rtp_packet"  # RTCRtpReceiver's entry for each routed RTP
 class VoiceTrack(MediaStreamTrack):
     kind = "audio"
 
-    def __init__(self, listener: Listener) -> None:
+    def __init__(self, listener: Listener, position: int) -> None:
         super().__init__()
         self.listener = listener
+        self.position = position  # the seat's place in the room (and in each frame's seats)
         self.sent = 0
 
     async def recv(self) -> av.Packet:

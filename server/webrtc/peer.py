@@ -85,6 +85,7 @@ class WebRTCPeer:
             self.channel.welcome = encode(welcome)
             self._run = self._spawn(self._serve(), "serve")
             self.voices = self._voices(offer, role, seat)
+            transport.voices = [(t.position, t.listener) for t in self.voices.values()]
             speaks = role == "perform" and offer.microphone_mid is not None
             sdp, self.codec = await answer(self.pc, offer, self.track, self.guard,
                                            self.voices, speaks)
@@ -105,7 +106,7 @@ class WebRTCPeer:
         does not get its own seat's voice back."""
         seats = self.room.live.seats
         return {mid: VoiceTrack(seat_voice(seats[i], self.ctx.settings,
-                                           self.ctx.metrics).subscribe())
+                                           self.ctx.metrics).subscribe(), i)
                 for i, mid in enumerate(offer.voice_mids[:len(seats)])
                 if not (role == "perform" and seats[i].index == seat)}
 
