@@ -5,6 +5,7 @@ and counted; a viewer may not speak; frames carry the capture time of the drive 
 from __future__ import annotations
 
 import asyncio
+import json
 
 import numpy as np
 import pytest
@@ -71,3 +72,47 @@ def test_a_voice_message_larger_than_an_opus_packet_is_refused_by_the_protocol(s
 
     error = asyncio.run(run())
     assert error.code == "invalid" and "data" in error.message
+
+
+def test_cli_watch_voice_records_a_wav_and_capture_times(srv, tmp_path):
+    from client.cli import main as cli_main
+    from client.stream import StreamClient
+
+    room = create_room(srv)
+    watch = invite(srv, room["id"], "watch")
+    opus = libopus_packets(20, 32000, 50)  # one second
+    out = tmp_path / "heard"
+    argv = ["watch", "--room", room["id"], "--out", str(out), "--seconds", "120", "--frames",
+            "3", "--size", "64", "--voice", "--server", srv.url, "--token", watch["token"]]
+
+    async def run():
+        async with await StreamClient.connect(srv.url, token=srv.token, room=room["id"],
+                                              role="perform", seat=0) as performer:
+            recorder = asyncio.create_task(asyncio.to_thread(cli_main, argv))
+            await performer.wait_presence(lambda p: p.viewers >= 1, timeout=60)
+            await asyncio.sleep(0.5)  # its voice relay subscribed
+            for i, packet in enumerate(opus):
+                await performer.voice(packet, t_capture=10.0 + i / 50)
+                if i == 20:
+                    await performer.voice(b"\xfb\x00")  # garbage: never heard
+            for i in range(400):  # bounded; ends once the recorder has its frames
+                if recorder.done():
+                    break
+                seq = await performer.drive(jaw_pose=[0.1 * (i % 5), 0.0, 0.0],
+                                            t_capture=11.0 + i / 10)
+                await performer.wait_frame(seq, timeout=30)
+            return await recorder
+
+    assert asyncio.run(run()) == 0
+    import wave
+
+    lines = [json.loads(x) for x in (out / "voice.jsonl").read_text().splitlines()]
+    assert [x["seq"] for x in lines] == list(range(len(opus)))
+    assert [x["t_capture"] for x in lines] == pytest.approx([10.0 + i / 50 for i in range(50)])
+    with wave.open(str(out / "voice-seat0.wav")) as wav:
+        assert wav.getframerate() == 48000 and wav.getnchannels() == 2
+        samples = np.frombuffer(wav.readframes(wav.getnframes()), np.int16)
+    assert len(samples) // 2 == 50 * 960  # every packet decoded: one second
+    assert np.abs(samples).max() > 1000   # the noise, not silence
+    frames = [json.loads(x) for x in (out / "frames.jsonl").read_text().splitlines()]
+    assert any(f["t_capture"] is not None and f["t_capture"] >= 11.0 for f in frames)
