@@ -20,6 +20,7 @@ import { canShare, inviteAll, presenceText, showLinks } from "./share.js";
 import { demoBanner, watchDemoBuild } from "./demo_build.js";
 import { StreamStats, renderStats } from "./stats.js";
 import { Webcam } from "./webcam.js";
+import { RoomVoices, openMicrophone } from "./voice.js";
 import {
   WhepSession, chooseTransport, deleteRoom, onVideoFrame, serverHealth, worthFallingBack,
 } from "./webrtc.js";
@@ -107,6 +108,8 @@ const player = new MotionPlayer(api, (families, reset) => drive(families, reset)
 // On the stage, so that dragging the canvas or the video orbits alike.
 const orbit = new OrbitControl($("stage"), (view, moving) => state.session?.view(view, moving));
 const webcam = new Webcam((bytes) => state.session?.image(bytes));
+const voices = new RoomVoices($("voices"));
+state.voices = [];  // the seats heard: [{seat, level, packets, speaking, volume, muted}]
 state.orbit = orbit;
 state.player = player;
 
@@ -148,6 +151,22 @@ function showPresence(presence) {
   $("presence").textContent = presenceText(presence);
 }
 
+/** Over WebRTC a performer speaks with the microphone when #mic is ticked (?mic=1). */
+async function voiceMedia(target) {
+  const performs = typeof target === "string" || target.role !== "watch";
+  let mic = null;
+  if (performs && $("mic").checked) {
+    try {
+      mic = await openMicrophone();
+      $("mic-status").textContent = "speaking";
+    } catch (err) {
+      $("mic").checked = false;
+      $("mic-status").textContent = `microphone unavailable: ${err.message}`;
+    }
+  }
+  return (pc) => voices.attach(pc, mic);
+}
+
 // ---- WebRTC: the private room of a solo page, the video's frames -------------------------
 
 function forgetPrivateRoom({ keepalive = false } = {}) {
@@ -167,7 +186,9 @@ async function whepSession(target) {
     query = { seat: 0 };
   }
   const size = Number($("size").value);
-  return new WhepSession(roomId, token, { video, query: { width: size, height: size, ...query } });
+  const media = await voiceMedia(target);
+  return new WhepSession(roomId, token,
+    { video, query: { width: size, height: size, ...query }, media });
 }
 
 /** WebRTC refused or failed where the WebSocket may work (its limits, codecs, ICE): say so,
@@ -184,6 +205,8 @@ function fallBack(err, target) {
 async function pollRtcStats() {
   const session = state.session;
   if (!session?.poll || session.closed) return;
+  state.voices = await voices.poll();
+  $("speaking").textContent = voices.speakingText();
   try {
     state.stats.rtc = await session.poll();
   } catch { /* closed meanwhile */ }
@@ -417,6 +440,15 @@ function wire() {
       e.target.checked = false;
       $("webcam-status").textContent = `camera unavailable: ${err.message}`;
     }
+  });
+  $("mic").checked = params.get("mic") === "1";
+  $("mic").addEventListener("change", () => {  // WHEP cannot renegotiate: join again
+    if (!$("mic").checked) $("mic-status").textContent = "off";
+    if (state.room) connect({ room: state.room.id, role: state.room.role, seat: state.room.seat });
+  });
+  $("mic-mute").addEventListener("click", () => {
+    voices.setMicMuted(!voices.micMuted);
+    $("mic-mute").textContent = voices.micMuted ? "Unmute" : "Mute";
   });
   setInterval(() => renderStats($("stats"), state.stats.summary()), 250);
   setInterval(() => state.session?.ping(), 1000);

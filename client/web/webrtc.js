@@ -100,8 +100,9 @@ async function httpError(response) {
 }
 
 export class WhepSession extends MessageSession {
-  /** `video`: the <video> the track plays in; `query`: WHEP query (width, height, fps, seat). */
-  constructor(roomId, token, { video, query = {}, iceServers = [] } = {}) {
+  /** `video`: the <video> the track plays in; `query`: WHEP query (width, height, fps, seat);
+   *  `media(pc)`: adds more m-lines before the offer (voice.js: microphone, seats' voices). */
+  constructor(roomId, token, { video, query = {}, iceServers = [], media = null } = {}) {
     super();
     this.transport = "webrtc";
     this.url = whepUrl(roomId, query);
@@ -112,6 +113,7 @@ export class WhepSession extends MessageSession {
     this._sample = null;
     this.pc = new RTCPeerConnection({ iceServers });
     this.pc.addTransceiver("video", { direction: "recvonly" });
+    media?.(this.pc);
     this.channel = this.pc.createDataChannel(CHANNEL_LABEL, { ordered: true });
     this.channel.binaryType = "arraybuffer";
     this.channel.addEventListener("message", (event) => this._receive(event.data));
