@@ -104,12 +104,12 @@ def test_the_timeline_is_continuous_across_publishers_and_wraps():
 def test_a_listener_waits_the_median_picture_lag_bounded():
     seat = voice(voice_max_delay_s=0.2)
     listener = seat.subscribe()
-    for version, lag in enumerate([0.05, 0.06, 0.3, 0.07, 0.08]):
-        listener.follow_picture(version, 100.0, 100.0 + lag)
-        listener.follow_picture(version, 100.0, 105.0)  # later frames of a version: no lag
+    for drive, lag in enumerate([0.05, 0.06, 0.3, 0.07, 0.08]):
+        listener.follow_picture(100.0 + drive, 100.0 + drive + lag)
+        listener.follow_picture(100.0 + drive, 200.0)  # later frames of a drive: no lag
     assert listener.delay_s == pytest.approx(0.07)  # one slow render moves nothing
-    for version in range(5, 20):
-        listener.follow_picture(version, 100.0, 101.0)
+    for drive in range(5, 20):
+        listener.follow_picture(100.0 + drive, 101.0 + drive)
     assert listener.delay_s == 0.2  # bounded by voice_max_delay_s
 
     async def run():

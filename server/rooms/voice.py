@@ -49,7 +49,7 @@ class Listener:
         self.max_delay_s = max_delay_s
         self.delay_s = 0.0
         self.lags: collections.deque[float] = collections.deque(maxlen=LAG_SAMPLES)
-        self._shown_version: int | None = None
+        self._shown_arrival: float | None = None
         self._queue: collections.deque[VoicePacket] = collections.deque()
         self._capacity = capacity
         self._ready = asyncio.Event()
@@ -80,13 +80,14 @@ class Listener:
             return self._queue.popleft()
         return None
 
-    def follow_picture(self, version: int, arrived: float | None, now: float) -> None:
-        """A frame showing the seat's drive ``version`` (applied at ``arrived``) leaves now:
-        the first frame of each version measures the picture's lag; the voice waits the
-        median of the recent ones (jitter in one render moves nothing)."""
-        if arrived is None or version == self._shown_version:
+    def follow_picture(self, arrived: float | None, now: float) -> None:
+        """A frame showing the seat's drive that arrived at ``arrived`` leaves now: the first
+        frame of each drive measures the picture's lag (versions made here, as a seat eases
+        to rest, arrived at no time and measure nothing); the voice waits the median of the
+        recent ones (jitter in one render moves nothing)."""
+        if arrived is None or arrived == self._shown_arrival:
             return
-        self._shown_version = version
+        self._shown_arrival = arrived
         self.lags.append(now - arrived)
         self.delay_s = min(max(0.0, statistics.median(self.lags)), self.max_delay_s)
 

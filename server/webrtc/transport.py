@@ -41,8 +41,7 @@ class WebRTCTransport:
         now = time.monotonic()  # the encoder took it: the voice waits as long as it did
         for position, listener in self.voices:
             if position < len(frame.seat_drives):
-                listener.follow_picture(frame.versions[position],
-                                        frame.seat_drives[position][1], now)
+                listener.follow_picture(frame.seat_drives[position][1], now)
         return 0  # the encoded size is aiortc's to know (the client's getStats has it)
 
     async def close(self, code: int, reason: str) -> None:
