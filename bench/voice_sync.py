@@ -40,7 +40,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
 from stream import start_server, stop_server  # noqa: E402
-from webrtc import release_at_marker  # noqa: E402
+from webrtc import cpu_seconds, release_at_marker  # noqa: E402
 
 from client.webrtc import WhepViewer  # noqa: E402
 from protocol import Drive  # noqa: E402
@@ -144,7 +144,8 @@ class Ear:
             loud = peak > CLICK_LEVEL
 
 
-def pair(events: list[float], later: list[float], window: float = 0.5) -> list[float | None]:
+def pair(events: list[float], later: list[float], window: float = EVENT_EVERY_S
+         ) -> list[float | None]:
     """For each event, the first time in ``later`` within ``window`` s after it."""
     out = []
     for t in events:
@@ -154,7 +155,7 @@ def pair(events: list[float], later: list[float], window: float = 0.5) -> list[f
 
 
 async def run(url: str, token: str, viewers: int, events: int, size: int,
-              open_pixels: int) -> dict:
+              open_pixels: int, pid: int, voice: bool = True) -> dict:
     async with httpx.AsyncClient(base_url=url, timeout=30) as http:
         room = (await http.post("/v1/rooms", headers={"Authorization": f"Bearer {token}"},
                                 json={"seats": [{"avatar": "demo"}]})).json()["id"]
@@ -172,7 +173,7 @@ async def run(url: str, token: str, viewers: int, events: int, size: int,
 
     mic = click_microphone(clicked)
     performer = WhepViewer(url, room, token, width=size, height=size, role="perform", seat=0,
-                           microphone=mic, timeout_s=60)
+                           microphone=mic if voice else None, timeout_s=60)
     ears = [Ear(WhepViewer(url, room, token, width=size, height=size, role="watch",
                            voices=1, timeout_s=60), open_pixels) for _ in range(viewers)]
     async with performer:
@@ -185,13 +186,18 @@ async def run(url: str, token: str, viewers: int, events: int, size: int,
         await asyncio.sleep(2.0)  # the closed-mouth reference settles
         end = time.monotonic() + 3.0 + events * EVENT_EVERY_S
         tasks = [asyncio.create_task(t) for e in ears
-                 for t in (e.watch_video(end), e.listen(end))]
+                 for t in (e.watch_video(end), e.listen(end) if voice else asyncio.sleep(0))]
+        cpu0, t0 = cpu_seconds(pid), time.monotonic()
         for _ in range(events):
-            mic.fire()
+            if voice:
+                mic.fire()
+            else:
+                clicked()
             await asyncio.sleep(OPEN_S)
             jaw(0.0)
             await asyncio.sleep(EVENT_EVERY_S - OPEN_S)
         await asyncio.gather(*tasks)
+        cpu = (cpu_seconds(pid) - cpu0) / (time.monotonic() - t0)
         for ear in ears:
             await ear.viewer.close()
     offsets, missed, gaps = [], 0, []
@@ -206,7 +212,10 @@ async def run(url: str, token: str, viewers: int, events: int, size: int,
     arr = np.asarray(offsets)
     print(f"# {viewers} viewers: fired {len(fired)}, mouth edges {[len(e.mouth) for e in ears]},"
           f" clicks {[len(e.clicks) for e in ears]}, audio packets "
-          f"{[len(e.packet_times) for e in ears]}", file=sys.stderr, flush=True)
+          f"{[len(e.packet_times) for e in ears]}; first ear, ms after each event: mouth "
+          f"{[round((m - f) * 1e3) for f, m in zip(fired, ears[0].mouth, strict=False)]}, "
+          f"click {[round((c - f) * 1e3) for f, c in zip(fired, ears[0].clicks, strict=False)]}",
+          file=sys.stderr, flush=True)
     return {"viewers": viewers, "events": len(fired), "paired": len(offsets), "missed": missed,
             "median_ms": float(np.median(arr)) if len(arr) else float("nan"),
             "p5_ms": float(np.percentile(arr, 5)) if len(arr) else float("nan"),
@@ -214,7 +223,7 @@ async def run(url: str, token: str, viewers: int, events: int, size: int,
             "min_ms": float(arr.min()) if len(arr) else float("nan"),
             "max_ms": float(arr.max()) if len(arr) else float("nan"),
             "within": float(((arr >= -45) & (arr <= 125)).mean()) if len(arr) else 0.0,
-            "max_gap_ms": max(gaps)}
+            "max_gap_ms": max(gaps), "cpu": cpu}
 
 
 def main() -> int:
@@ -227,10 +236,13 @@ def main() -> int:
     parser.add_argument("--size", type=int, default=128)
     parser.add_argument("--open-pixels", type=int, default=8)
     parser.add_argument("--avatar", default="synthetic")
+    parser.add_argument("--voice", default="on", help="on, off or on,off: runs with and "
+                                                      "without the performer's microphone "
+                                                      "(the server CPU it costs)")
     args = parser.parse_args()
     print("| viewers | cap bit/s | events | paired | missed | median ms | p5 / p95 ms | "
-          "min / max ms | within -45/+125 | longest audio gap ms |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+          "min / max ms | within -45/+125 | longest audio gap ms | voice | server CPU s/s |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for cap in (int(c) for c in args.caps.split(",")):
         if cap:
             os.environ["TELESPLAT_WEBRTC_MAX_BITRATE"] = str(cap)
@@ -239,12 +251,14 @@ def main() -> int:
             proc, url, token = start_server(Path(tmp), 1, 64, args.avatar)
             try:
                 for n in (int(v) for v in args.viewers.split(",")):
-                    r = asyncio.run(run(url, token, n, args.events, args.size,
-                                        args.open_pixels))
-                    print(f"| {n} | {cap or 'default'} | {r['events']} | {r['paired']} | "
-                          f"{r['missed']} | {r['median_ms']:.0f} | {r['p5_ms']:.0f} / "
-                          f"{r['p95_ms']:.0f} | {r['min_ms']:.0f} / {r['max_ms']:.0f} | "
-                          f"{r['within']:.0%} | {r['max_gap_ms']:.0f} |", flush=True)
+                    for voice in args.voice.split(","):
+                        r = asyncio.run(run(url, token, n, args.events, args.size,
+                                            args.open_pixels, proc.pid, voice == "on"))
+                        print(f"| {n} | {cap or 'default'} | {r['events']} | {r['paired']} | "
+                              f"{r['missed']} | {r['median_ms']:.0f} | {r['p5_ms']:.0f} / "
+                              f"{r['p95_ms']:.0f} | {r['min_ms']:.0f} / {r['max_ms']:.0f} | "
+                              f"{r['within']:.0%} | {r['max_gap_ms']:.0f} | {voice} | "
+                              f"{r['cpu']:.2f} |", flush=True)
             finally:
                 stop_server(proc)
     return 0
