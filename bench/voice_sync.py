@@ -243,6 +243,8 @@ def main() -> int:
     print("| viewers | cap bit/s | events | paired | missed | median ms | p5 / p95 ms | "
           "min / max ms | within -45/+125 | longest audio gap ms | voice | server CPU s/s |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    most = max(int(v) for v in args.viewers.split(","))
+    os.environ["TELESPLAT_WEBRTC_MAX_PEERS"] = str(most + 2)  # the viewers and the performer
     for cap in (int(c) for c in args.caps.split(",")):
         if cap:
             os.environ["TELESPLAT_WEBRTC_MAX_BITRATE"] = str(cap)
