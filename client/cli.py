@@ -182,6 +182,11 @@ def cmd_watch(args: argparse.Namespace) -> int:
     from .watch import parse_view, watch_room
 
     view = parse_view(args.view) if args.view and args.view != "orbit" else None
+    if args.webrtc and args.voice:
+        print("telesplat-client: error: --voice records the WebSocket's voice messages; it "
+              "does not combine with --webrtc (a WHEP viewer gets the voices as audio tracks)",
+              file=sys.stderr)
+        return 2
     if args.webrtc:
         from .watch import watch_room_webrtc
 
@@ -195,10 +200,12 @@ def cmd_watch(args: argparse.Namespace) -> int:
     result = asyncio.run(watch_room(args.server, args.token, args.room, args.out,
                                     seconds=args.seconds, max_frames=args.frames, view=view,
                                     size=args.size, timeout=args.timeout,
-                                    reconnect=_backoff(args)))
+                                    reconnect=_backoff(args), voice=args.voice))
     down = ", ".join(f"{r['downtime_s']:.1f}" for r in result["reconnections"])
     again = f" (reconnected after {down} s)" if down else ""
-    print(f"wrote {result['frames']} frames of room {args.room} to {args.out}{again}")
+    heard = (f" and {result['voice_packets']} voice packets ({', '.join(result['voice_files'])})"
+             if args.voice else "")
+    print(f"wrote {result['frames']} frames{heard} of room {args.room} to {args.out}{again}")
     return 0
 
 
@@ -443,6 +450,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="--webrtc: the codec to prefer in the offer (default: aiortc's, VP8)")
     p.add_argument("--stamp", action="store_true",
                    help="--webrtc: ask for frame stamps and record each frame's drive seq")
+    p.add_argument("--voice", action="store_true",
+                   help="also record the seats' voices: voice-seat{N}.wav and voice.jsonl "
+                        "(capture times, to match frames.jsonl)")
     _reconnect_argument(p)
     p.set_defaults(func=cmd_watch)
 

@@ -53,6 +53,7 @@ from protocol import (
     RoomWelcome,
     Stats,
     View,
+    Voice,
     Welcome,
     decode_server,
     encode,
@@ -139,17 +140,19 @@ ROLES = ("perform", "watch")
 
 
 def room_hello(client_name: str, *, room: str | None = None, role: str | None = None,
-               seat: int | None = None, name: str | None = None) -> Hello:
-    """The hello: role, seat and the display name ``name`` (what others see in presence;
-    ValueError if the protocol refuses it) only in a room (a plain session's hello stays as it
-    was)."""
+               seat: int | None = None, name: str | None = None,
+               voice: bool = False) -> Hello:
+    """The hello: role, seat, the display name ``name`` (what others see in presence;
+    ValueError if the protocol refuses it) and voice only in a room (a plain session's hello
+    stays as it was)."""
     if room is None:
-        if role is not None or seat is not None or name is not None:
-            raise ValueError("role, seat and name are for rooms only")
+        if role is not None or seat is not None or name is not None or voice:
+            raise ValueError("role, seat, name and voice are for rooms only")
         return Hello(client=client_name)
     if role is not None and role not in ROLES:
         raise ValueError(f"role must be one of {ROLES}, not {role!r}")
-    fields = {k: v for k, v in (("role", role), ("seat", seat), ("name", name)) if v is not None}
+    fields = {k: v for k, v in (("role", role), ("seat", seat), ("name", name),
+                                ("voice", voice or None)) if v is not None}
     return Hello.model_validate({"client": client_name, **fields})
 
 
@@ -202,6 +205,9 @@ class StreamClient:
         self.room: RoomWelcome | None = welcome.room  # None outside rooms
         self.presence: Presence | None = None  # the latest presence message (rooms only)
         self._presence_event = asyncio.Event()
+        # Called with each voice message (join with voice=True) and time.monotonic() at arrival.
+        self.on_voice: Callable[[Voice, float], None] | None = None
+        self._voice_seq = 0
         self._keep_seat(welcome)
         self._reader = asyncio.create_task(self._read())
 
@@ -212,26 +218,29 @@ class StreamClient:
                       *, room: str | None = None, role: str | None = None,
                       seat: int | None = None, client_name: str = "telesplat-python",
                       timeout: float = 30.0, queue_size: int = 64,
-                      reconnect: Backoff | None = None, name: str | None = None
-                      ) -> StreamClient:
+                      reconnect: Backoff | None = None, name: str | None = None,
+                      voice: bool = False) -> StreamClient:
         """Open a session on ``avatar``, or join ``room`` (``role`` "perform" or "watch" and
         ``seat``; both default to what the token allows; ``name``: the display name others
         see, default "performer" / "viewer N"); returns once ``welcome`` arrived
         (StreamError if the server refuses). ``server`` is the base URL (http://host:port) or
         a full ws:// URL. ``reconnect``: reconnect by itself after a restart or a dropped
-        connection (see the module); None: the session ends with its connection."""
+        connection (see the module); None: the session ends with its connection. ``voice``:
+        hear the room's other seats (``on_voice``)."""
         join = {"server": server, "avatar": avatar, "token": token, "room": room,
                 "role": role, "seat": seat, "client_name": client_name, "timeout": timeout,
-                "name": name}
+                "name": name, "voice": voice}
         ws, welcome = await cls._open(**join)
         return cls(ws, welcome, queue_size, join=join, reconnect=reconnect)
 
     @classmethod
     async def _open(cls, server: str, avatar: str | None, token: str | None, room: str | None,
                     role: str | None, seat: int | None, client_name: str,
-                    timeout: float, name: str | None = None) -> tuple[Any, Welcome]:
+                    timeout: float, name: str | None = None,
+                    voice: bool = False) -> tuple[Any, Welcome]:
         """A connection and its welcome."""
-        hello = room_hello(client_name, room=room, role=role, seat=seat, name=name)
+        hello = room_hello(client_name, room=room, role=role, seat=seat, name=name,
+                           voice=voice)
         from websockets.asyncio.client import connect
         from websockets.exceptions import ConnectionClosed
 
@@ -327,11 +336,14 @@ class StreamClient:
                     flame: Mapping[str, Any] | None = None,
                     mano_left: Mapping[str, Any] | None = None,
                     mano_right: Mapping[str, Any] | None = None, reset: bool = False,
-                    seq: int | None = None, **smplx_fields: Any) -> int:
+                    seq: int | None = None, t_capture: float | None = None,
+                    **smplx_fields: Any) -> int:
         """Send (partial) parameters; returns the seq the matching frame will carry.
 
         SMPL-X fields may also come as keywords: ``drive(jaw_pose=[0.2, 0, 0])``.
         Parameters are validated here first, so a bad shape fails before it is sent.
+        ``t_capture``: when their source was captured (this performer's monotonic clock, in
+        seconds); the frames that show them carry it back, and voices sync to it.
         """
         if smplx_fields:
             smplx = {**(smplx or {}), **smplx_fields}
@@ -339,7 +351,7 @@ class StreamClient:
         try:
             message = Drive.model_validate(
                 {"seq": seq, "smplx": smplx, "flame": flame, "mano_left": mano_left,
-                 "mano_right": mano_right, "reset": reset},
+                 "mano_right": mano_right, "reset": reset, "t_capture": t_capture},
                 context={"limits": self.limits})
         except ValidationError as exc:
             raise ProtocolError("invalid", str(exc)) from exc
@@ -373,6 +385,12 @@ class StreamClient:
         await self._send(Image.model_validate({"seq": seq, "format": format, "data": data},
                                               context={"limits": self.limits}))
         return seq
+
+    async def voice(self, data: bytes, t_capture: float | None = None) -> None:
+        """One Opus packet of this performer's voice (``t_capture``: its first sample's
+        capture time on the clock the drives' t_capture use)."""
+        await self._send(Voice(seq=self._voice_seq, data=data, t_capture=t_capture))
+        self._voice_seq += 1
 
     async def ping(self, timeout: float = 5.0) -> float:
         """Round-trip time in seconds."""
@@ -485,6 +503,9 @@ class StreamClient:
         elif isinstance(message, Presence):
             self.presence = message
             self._presence_event.set()
+        elif isinstance(message, Voice):
+            if self.on_voice is not None:
+                self.on_voice(message, time.monotonic())
         elif isinstance(message, Error):
             self.errors.append(message)
             if message.code == RESTARTING:

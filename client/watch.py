@@ -1,5 +1,6 @@
 """Record what a room's viewer gets: each frame's encoded image as a file, and one JSON line per
-frame in ``frames.jsonl`` (seq, frame counter, size, codec, stage timings, arrival time)."""
+frame in ``frames.jsonl`` (seq, frame counter, size, codec, stage timings, arrival time, the
+capture time of the drive it shows); with ``voice`` the seats' voices too (client/voice.py)."""
 
 from __future__ import annotations
 
@@ -59,14 +60,14 @@ def frame_record(frame: Frame, index: int, file: str, received_s: float) -> dict
     return {"index": index, "file": file, "seq": frame.seq, "frame": frame.frame,
             "codec": frame.codec, "width": frame.width, "height": frame.height,
             "bytes": len(frame.data), "received_s": round(received_s, 4),
-            "timings": frame.timings.model_dump()}
+            "t_capture": frame.t_capture, "timings": frame.timings.model_dump()}
 
 
 async def watch_room(server: str, token: str | None, room: str, out: Path, *,
                      seconds: float | None = 10.0, max_frames: int | None = None,
                      view: dict[str, float] | None = None, size: int = 512,
                      timeout: float = 30.0, max_stale: int = 8,
-                     reconnect: Backoff | None = None) -> dict[str, Any]:
+                     reconnect: Backoff | None = None, voice: bool = False) -> dict[str, Any]:
     """Join ``room`` as a viewer and save its frames in ``out`` until ``seconds`` have passed or
     ``max_frames`` arrived (whichever first; at least one of them must be given).
 
@@ -74,7 +75,8 @@ async def watch_room(server: str, token: str | None, room: str, out: Path, *,
     skipped; after the first frame of the asked size, or that many, every frame is kept but
     one that repeats the last saved (same drive seq, same bytes): one file per picture.
     ``reconnect``: rejoin the room by itself after a server restart (client/stream.py); the
-    recording goes on, and the result lists each reconnection's downtime."""
+    recording goes on, and the result lists each reconnection's downtime. ``voice``: also
+    record the seats' voices (voice-seat{N}.wav and voice.jsonl)."""
     from .images import save_frame
     from .stream import StreamClient
 
@@ -85,11 +87,17 @@ async def watch_room(server: str, token: str | None, room: str, out: Path, *,
     last: tuple[int, int, bytes] | None = None
     async with await StreamClient.connect(server, token=token, room=room, role="watch",
                                           timeout=timeout, reconnect=reconnect,
-                                          client_name="telesplat-client watch") as client:
+                                          client_name="telesplat-client watch",
+                                          voice=voice) as client:
+        start = time.monotonic()
+        recorder = None
+        if voice:
+            from .voice import VoiceRecorder
+
+            recorder = client.on_voice = VoiceRecorder(out, start)
         await client.request(width=size, height=size, codec="jpeg")
         if view is not None:
             await client.view(view)
-        start = time.monotonic()
         frames = arrivals(client.next_frame, seconds, timeout)
         with (out / "frames.jsonl").open("w") as log:
             async with contextlib.aclosing(frames):
@@ -113,11 +121,12 @@ async def watch_room(server: str, token: str | None, room: str, out: Path, *,
                     if max_frames is not None and saved >= max_frames:
                         break
         presence = client.presence
+        heard = recorder.close() if recorder is not None else {}
         reconnections = [{"reason": r.reason, "downtime_s": round(r.downtime_s, 3),
                           "attempts": r.attempts} for r in client.reconnections]
     return {"frames": saved, "stale_skipped": stale, "repeats_skipped": repeats, "room": room,
             "presence": presence.model_dump() if presence is not None else None,
-            "reconnections": reconnections}
+            "reconnections": reconnections, **heard}
 
 
 async def watch_room_webrtc(server: str, token: str | None, room: str, out: Path, *,

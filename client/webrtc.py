@@ -7,8 +7,11 @@
             ...  # [H, W, 3] uint8, time.monotonic() at decode
 
 It offers a recvonly video (VP8 and H.264, ``codec`` first when given) and the data channel
-``telesplat``; the answer's ``Location`` is DELETEd by :meth:`close`. HTTP refusals raise
-:class:`WhepError` with the status and the server's ``detail``.
+``telesplat``; ``voices=n`` adds n recvonly Opus audio m-lines (the room's seats 0..n-1, in
+the same MediaStream as the video: :meth:`next_audio`), ``microphone=track`` a sendonly one
+the server forwards to the viewers when this peer performs; the answer's ``Location`` is
+DELETEd by :meth:`close`. HTTP refusals raise :class:`WhepError` with the status and the
+server's ``detail``.
 """
 
 from __future__ import annotations
@@ -41,7 +44,7 @@ class WhepViewer:
                  fps: float | None = None, seat: int | None = None,
                  role: Literal["perform", "watch"] | None = None, stamp: bool = False,
                  codec: Literal["vp8", "h264"] | None = None, data_channel: bool = True,
-                 timeout_s: float = 20.0) -> None:
+                 voices: int = 0, microphone: Any = None, timeout_s: float = 20.0) -> None:
         query = {k: v for k, v in {"width": width, "height": height, "fps": fps, "seat": seat,
                                    "role": role, "stamp": int(stamp) if stamp else None
                                    }.items() if v is not None}
@@ -51,6 +54,9 @@ class WhepViewer:
         self.token = token
         self.codec_preference = codec
         self.data_channel = data_channel
+        self.voices = voices
+        self.microphone = microphone
+        self._audio: list[asyncio.Future] = []  # the received voices' tracks, seat order
         self.timeout_s = timeout_s
         self.location: str | None = None
         self.codec: str | None = None  # negotiated, e.g. "video/VP8"
@@ -76,6 +82,10 @@ class WhepViewer:
         self._track = loop.create_future()
         self._channel_open = asyncio.Event()
         transceiver = pc.addTransceiver("video", direction="recvonly")
+        voices = [pc.addTransceiver("audio", direction="recvonly") for _ in range(self.voices)]
+        self._audio = [loop.create_future() for _ in voices]
+        if self.microphone is not None:
+            pc.addTransceiver(self.microphone, direction="sendonly")
         if self.codec_preference is not None:
             want = f"video/{self.codec_preference}".lower()
             caps = RTCRtpSender.getCapabilities("video").codecs
@@ -86,6 +96,9 @@ class WhepViewer:
         def _on_track(track: Any) -> None:
             if track.kind == "video" and not self._track.done():
                 self._track.set_result(track)
+            for transceiver, future in zip(voices, self._audio, strict=True):
+                if transceiver.receiver.track is track and not future.done():
+                    future.set_result(track)
 
         if self.data_channel:
             self.channel = pc.createDataChannel(CHANNEL_LABEL, ordered=True)
@@ -145,6 +158,15 @@ class WhepViewer:
         track = await asyncio.wait_for(asyncio.shield(self._track), timeout)
         frame = await asyncio.wait_for(track.recv(), timeout)
         return frame.to_ndarray(format="rgb24"), time.monotonic()
+
+    async def next_audio(self, seat: int = 0, timeout: float | None = None
+                         ) -> tuple[Any, float]:
+        """The next decoded audio frame of seat ``seat``'s voice: (av.AudioFrame,
+        time.monotonic() at decode)."""
+        timeout = timeout or self.timeout_s
+        track = await asyncio.wait_for(asyncio.shield(self._audio[seat]), timeout)
+        frame = await asyncio.wait_for(track.recv(), timeout)
+        return frame, time.monotonic()
 
     async def frames(self, timeout: float | None = None
                      ) -> AsyncIterator[tuple[np.ndarray, float]]:

@@ -34,6 +34,7 @@ from .messages import (
     Timings,
     Tracked,
     View,
+    Voice,
     Welcome,
 )
 from .params import FAMILIES
@@ -43,6 +44,6 @@ __all__ = [
     "PROTOCOL_MINOR", "PROTOCOL_VERSION", "SERVER_TYPES", "AvatarInfo", "CameraSpec", "Drive",
     "Error", "Frame", "Framing", "Hello", "Image", "Limits", "Orbit", "Ping", "Pong", "Presence",
     "ProtocolError", "Request", "RoomWelcome", "SeatPresence", "Stats", "Timings", "Tracked",
-    "View", "Welcome", "decode_client", "decode_server", "encode", "pack_array",
+    "View", "Voice", "Welcome", "decode_client", "decode_server", "encode", "pack_array",
     "unpack_array",
 ]

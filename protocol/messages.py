@@ -2,12 +2,14 @@
 JavaScript module) the browser page all use these.
 
 Every message is a msgpack map with a ``type``. Client -> server: ``hello``, ``drive``,
-``view``, ``request``, ``image``, ``ping``. Server -> client: ``welcome``, ``frame``, ``error``,
-``stats``, ``pong``, ``presence`` (rooms), ``tracked`` (answers ``image``). Unknown fields are
-errors, so a typo never passes silently. Minor version 1 (rooms) adds only optional fields,
-left out of plain sessions' messages, so a client of minor version 0 keeps working there.
-Minor version 2 adds ``hello.name``, ``avatar.expression_names`` (left out when the avatar
-names none) and ``tracked``, which only a client that sends images gets.
+``view``, ``request``, ``image``, ``ping``, ``voice``. Server -> client: ``welcome``, ``frame``,
+``error``, ``stats``, ``pong``, ``presence`` (rooms), ``tracked`` (answers ``image``),
+``voice``. Unknown fields are errors, so a typo never passes silently. Minor version 1 (rooms)
+adds only optional fields, left out of plain sessions' messages, so a client of minor version 0
+keeps working there. Minor version 2 adds ``hello.name``, ``avatar.expression_names`` (left out
+when the avatar names none), ``tracked``, which only a client that sends images gets, the
+``voice`` message and the optional ``t_capture`` of drives and frames (one clock: the
+performer's).
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ from .params import validate_family
 
 PROTOCOL_VERSION = 1
 PROTOCOL_MINOR = 2  # 1: rooms (hello.role/seat, welcome.room/minor, presence)
-#                     2: hello.name, avatar.expression_names, tracked
+#                     2: hello.name, avatar.expression_names, tracked, voice, t_capture
 MAX_SEATS = 16      # seat indices on the wire; server settings bound a room's seats further
 MAX_SEQ = 2**53 - 1  # exact in a JavaScript number
 MAX_EXPRESSION_NAMES = 100  # as many as an expression vector may hold (params.FAMILIES)
@@ -43,6 +45,11 @@ IMAGE_FORMATS = ("jpeg", "png")
 
 Seq = Annotated[int, Field(ge=0, le=MAX_SEQ)]
 SeatIndex = Annotated[int, Field(ge=0, lt=MAX_SEATS)]
+# Seconds on the performer's own monotonic clock (performance.now() / 1000, time.monotonic()):
+# when what a drive or a voice packet carries was captured. The server never compares it with
+# its own clock; it hands it back on what shows or plays it.
+CaptureTime = Annotated[float, Field(ge=0, le=1e9, allow_inf_nan=False)]
+MAX_VOICE_BYTES = 1276  # one Opus frame of the largest (1275 B) and its TOC byte
 Role = Literal["perform", "watch"]
 Vec3 = tuple[float, float, float]
 
@@ -80,6 +87,7 @@ class Hello(_Message):
     role: Role | None = None       # rooms: perform a seat or watch (default: the token's)
     seat: SeatIndex | None = None  # rooms: the seat to perform (or to follow, watching)
     name: str | None = None        # the display name others see (protocol/names.py)
+    voice: bool | None = None      # rooms (minor 2): hear the other seats as `voice` messages
 
     @field_validator("name")
     @classmethod
@@ -100,6 +108,7 @@ class Drive(_Message):
     mano_left: dict[str, Any] | None = None
     mano_right: dict[str, Any] | None = None
     reset: bool = False
+    t_capture: CaptureTime | None = None  # when its source (camera frame, take) was captured
 
     @field_validator("smplx", "flame", "mano_left", "mano_right", mode="after")
     @classmethod
@@ -380,6 +389,7 @@ class Frame(_Message):
     keyframe: bool = True       # h264: the stream can start here
     timings: Timings = Field(default_factory=Timings)
     preview: bool = False       # a moving view's cheaper frame; a full one follows when still
+    t_capture: float | None = None  # the t_capture of the drive it shows (seq), when it had one
 
 
 class Answers(_Message):
@@ -410,11 +420,23 @@ class Pong(_Message):
     t: float
 
 
-ClientMessage = Annotated[Hello | Drive | View | Request | Image | Ping,
+class Voice(_Message):
+    """One Opus packet (RFC 6716, 48 kHz) of a seat's voice. A performer sends its own (for its
+    seat); the server sends each seat's to the room's other participants, ``seat`` set, delayed
+    to match the picture. Packets the server cannot parse as Opus are dropped and counted."""
+
+    type: Literal["voice"] = "voice"
+    seq: Seq                               # the sender's packet counter: gaps are losses
+    data: Annotated[bytes, Field(min_length=1, max_length=MAX_VOICE_BYTES)]
+    t_capture: CaptureTime | None = None   # its first sample's capture time
+    seat: SeatIndex | None = None          # server -> client: whose voice
+
+
+ClientMessage = Annotated[Hello | Drive | View | Request | Image | Ping | Voice,
                           Field(discriminator="type")]
-ServerMessage = Annotated[Welcome | Frame | Error | Stats | Pong | Presence | Tracked,
+ServerMessage = Annotated[Welcome | Frame | Error | Stats | Pong | Presence | Tracked | Voice,
                           Field(discriminator="type")]
 CLIENT_TYPES = {m.model_fields["type"].default: m for m in (Hello, Drive, View, Request, Image,
-                                                             Ping)}
+                                                             Ping, Voice)}
 SERVER_TYPES = {m.model_fields["type"].default: m for m in (Welcome, Frame, Error, Stats, Pong,
-                                                             Presence, Tracked)}
+                                                             Presence, Tracked, Voice)}

@@ -393,6 +393,20 @@ class Settings(BaseModel):
     webrtc_max_sctp_streams: int = Field(
         16, ge=1, description="SCTP stream ids (data channels) one WebRTC peer may use; "
                               "chunks on more are dropped.")
+    voice_max_packet_bytes: int = Field(
+        1276, ge=2, le=8192, description="Largest Opus packet a performer's voice may carry "
+                                         "(bytes; 1276 is one largest Opus frame and its "
+                                         "TOC byte); larger ones are dropped and counted.")
+    voice_max_bitrate: int = Field(
+        128_000, ge=6_000, description="Bits per second of Opus payload one seat's voice "
+                                       "may send (token bucket, burst one second); packets "
+                                       "past it are dropped and counted.")
+    voice_max_delay_s: float = Field(
+        0.5, ge=0.0, le=5.0, description="The longest the voice waits for the picture (its "
+                                         "delay buffer) so that lips and voice match.")
+    voice_buffer_packets: int = Field(
+        64, ge=4, le=4096, description="Opus packets one listener may have waiting; past it "
+                                       "the oldest is dropped and counted.")
     gaussian_ranges: GaussianRanges = Field(
         default_factory=GaussianRanges,
         description="Allowed values of an avatar's Gaussians (count, log-scales, local means, "

@@ -52,6 +52,12 @@ class ServerMetrics:
         self.webrtc_dc_inbox_dropped = Counter(
             "telesplat_webrtc_dc_inbox_dropped", "Reassembled data-channel messages dropped "
             "because the session had 64 unread", registry=r)
+        self.voice_packets = Counter(
+            "telesplat_voice_packets", "Opus packets of performers' voices, by outcome "
+            "(forwarded: to the seat's listeners; garbage: not a valid Opus packet; too_large: "
+            "past voice_max_packet_bytes; rate: past voice_max_bitrate; refused: sent by a "
+            "peer that may not publish a voice; overflow: a listener's buffer was full)",
+            ["outcome"], registry=r)
 
     def render_text(self) -> bytes:
         return generate_latest(self.registry)

@@ -32,6 +32,7 @@ from protocol import (
     Timings,
     Tracked,
     View,
+    Voice,
     Welcome,
     decode_client,
     decode_server,
@@ -61,6 +62,8 @@ CLIENT_EXAMPLES = [
     Ping(t=12.5),
     Hello(token="tsr_x", client="viewer", role="watch", seat=1),
     Hello(token="t", client="telesplat-web", name="Zoë O'Brien-2"),
+    Voice(seq=4, data=b"\xf8\xff\xfe", t_capture=12.52),
+    Drive(seq=8, flame={"jaw_pose": [0.2, 0, 0]}, t_capture=12.5),
 ]
 SERVER_EXAMPLES = [
     Welcome(session="abc", avatar=AvatarInfo(id="demo", name="ada", num_gaussians=5,
@@ -68,6 +71,7 @@ SERVER_EXAMPLES = [
             limits=Limits(), codecs=["jpeg", "png", "h264"], request=Request(width=512)),
     Frame(seq=7, frame=1, codec="jpeg", width=4, height=2, data=b"\xff\xd8",
           depth=b"png", keyframe=False, timings=Timings(track=1, pose=2, render=3, encode=4)),
+    Frame(seq=8, frame=2, codec="jpeg", width=4, height=2, data=b"\xff\xd8", t_capture=12.5),
     Error(code="invalid", message="nope", answers=Answers(type="drive", seq=3)),
     Stats(fps=30, frames=10, dropped=1, coalesced=2, bytes_per_s=1e5, render_ms=12,
           sessions=1),
@@ -84,6 +88,7 @@ SERVER_EXAMPLES = [
             limits=Limits(), codecs=["jpeg"], request=Request(width=512)),
     Tracked(seq=4, found=True, seen={"face": True, "left_hand": False}),
     Tracked(seq=5, found=False),
+    Voice(seq=4, data=b"\xf8\xff\xfe", t_capture=12.52, seat=0),
 ]
 
 

@@ -25,6 +25,7 @@ import { askForToken, unauthorized } from "./token.js";
 import { ViewControl, fitToViewport } from "./view.js";
 import { chosenBackground, showBackground, wireViewBar } from "./viewbar.js";
 import { Webcam, trackedText } from "./webcam.js";
+import { RoomVoices, openMicrophone } from "./voice.js";
 import {
   WhepSession, chooseTransport, deleteRoom, onVideoFrame, serverHealth, worthFallingBack,
 } from "./webrtc.js";
@@ -128,6 +129,8 @@ state.capture = capture;
 state.saved = [];  // what snapshots and recordings saved: {kind, blob, url, name, size, ...}
 capture.onSaved = (saved) => state.saved.push(saved);
 const webcam = new Webcam((bytes) => { state.stats.input(); state.session?.image(bytes); });
+const voices = new RoomVoices($("voices"));
+state.voices = [];  // the seats heard: [{seat, level, packets, speaking, volume, muted}]
 state.orbit = orbit;
 state.player = player;
 
@@ -174,6 +177,22 @@ function showPresence(presence) {
   if (note) notify(note);
 }
 
+/** Over WebRTC a performer speaks with the microphone when #mic is ticked (?mic=1). */
+async function voiceMedia(target) {
+  const performs = typeof target === "string" || target.role !== "watch";
+  let mic = null;
+  if (performs && $("mic").checked) {
+    try {
+      mic = await openMicrophone();
+      $("mic-status").textContent = "speaking";
+    } catch (err) {
+      $("mic").checked = false;
+      $("mic-status").textContent = `microphone unavailable: ${err.message}`;
+    }
+  }
+  return (pc) => voices.attach(pc, mic);
+}
+
 // ---- WebRTC: the private room of a solo page, the video's frames -------------------------
 
 function forgetPrivateRoom({ keepalive = false } = {}) {
@@ -193,8 +212,9 @@ async function whepSession(target) {
     query = { seat: 0 };
   }
   const size = Number($("size").value);
+  const media = await voiceMedia(target);
   return new WhepSession(roomId, token, {
-    video, stamps: true, query: { width: size, height: size, name: myName, ...query },
+    video, stamps: true, query: { width: size, height: size, name: myName, ...query }, media,
   });
 }
 
@@ -212,6 +232,8 @@ function fallBack(err, target) {
 async function pollRtcStats() {
   const session = state.session;
   if (!session?.poll || session.closed) return;
+  state.voices = await voices.poll();
+  $("speaking").textContent = voices.speakingText();
   try {
     state.stats.rtc = await session.poll();
   } catch { /* closed meanwhile */ }
@@ -469,6 +491,15 @@ function wire() {
     }
   });
   overlayToggle($("stats-toggle"), $("stats"));
+  $("mic").checked = params.get("mic") === "1";
+  $("mic").addEventListener("change", () => {  // WHEP cannot renegotiate: join again
+    if (!$("mic").checked) $("mic-status").textContent = "off";
+    if (state.room) connect({ room: state.room.id, role: state.room.role, seat: state.room.seat });
+  });
+  $("mic-mute").addEventListener("click", () => {
+    voices.setMicMuted(!voices.micMuted);
+    $("mic-mute").textContent = voices.micMuted ? "Unmute" : "Mute";
+  });
   setInterval(() => renderStats($("stats"), state.stats.summary()), 250);
   $("my-name").value = myName ?? "";
   $("my-name").addEventListener("change", (e) => {  // joins again under the new name

@@ -269,7 +269,8 @@ export const CLIENT_TYPES = Object.freeze([
   "image",
   "ping",
   "request",
-  "view"
+  "view",
+  "voice"
 ]);
 
 export const SERVER_TYPES = Object.freeze([
@@ -279,6 +280,7 @@ export const SERVER_TYPES = Object.freeze([
   "presence",
   "stats",
   "tracked",
+  "voice",
   "welcome"
 ]);
 
@@ -598,6 +600,20 @@ export const SCHEMA_DEFS = Object.freeze({
         "default": null,
         "title": "Smplx"
       },
+      "t_capture": {
+        "anyOf": [
+          {
+            "maximum": 1000000000.0,
+            "minimum": 0,
+            "type": "number"
+          },
+          {
+            "type": "null"
+          }
+        ],
+        "default": null,
+        "title": "T Capture"
+      },
       "type": {
         "const": "drive",
         "default": "drive",
@@ -726,6 +742,18 @@ export const SCHEMA_DEFS = Object.freeze({
       "seq": {
         "title": "Seq",
         "type": "integer"
+      },
+      "t_capture": {
+        "anyOf": [
+          {
+            "type": "number"
+          },
+          {
+            "type": "null"
+          }
+        ],
+        "default": null,
+        "title": "T Capture"
       },
       "timings": {
         "$ref": "#/$defs/Timings"
@@ -899,6 +927,18 @@ export const SCHEMA_DEFS = Object.freeze({
         "default": 1,
         "title": "Version",
         "type": "integer"
+      },
+      "voice": {
+        "anyOf": [
+          {
+            "type": "boolean"
+          },
+          {
+            "type": "null"
+          }
+        ],
+        "default": null,
+        "title": "Voice"
       }
     },
     "title": "Hello",
@@ -1633,6 +1673,65 @@ export const SCHEMA_DEFS = Object.freeze({
     "title": "View",
     "type": "object"
   },
+  "Voice": {
+    "additionalProperties": false,
+    "description": "One Opus packet (RFC 6716, 48 kHz) of a seat's voice. A performer sends its own (for its\nseat); the server sends each seat's to the room's other participants, ``seat`` set, delayed\nto match the picture. Packets the server cannot parse as Opus are dropped and counted.",
+    "properties": {
+      "data": {
+        "format": "binary",
+        "maxLength": 1276,
+        "minLength": 1,
+        "title": "Data",
+        "type": "string"
+      },
+      "seat": {
+        "anyOf": [
+          {
+            "exclusiveMaximum": 16,
+            "minimum": 0,
+            "type": "integer"
+          },
+          {
+            "type": "null"
+          }
+        ],
+        "default": null,
+        "title": "Seat"
+      },
+      "seq": {
+        "maximum": 9007199254740991,
+        "minimum": 0,
+        "title": "Seq",
+        "type": "integer"
+      },
+      "t_capture": {
+        "anyOf": [
+          {
+            "maximum": 1000000000.0,
+            "minimum": 0,
+            "type": "number"
+          },
+          {
+            "type": "null"
+          }
+        ],
+        "default": null,
+        "title": "T Capture"
+      },
+      "type": {
+        "const": "voice",
+        "default": "voice",
+        "title": "Type",
+        "type": "string"
+      }
+    },
+    "required": [
+      "seq",
+      "data"
+    ],
+    "title": "Voice",
+    "type": "object"
+  },
   "Welcome": {
     "additionalProperties": false,
     "properties": {
@@ -1743,6 +1842,9 @@ export const CLIENT_SCHEMAS = Object.freeze({
   },
   "view": {
     "$ref": "#/$defs/View"
+  },
+  "voice": {
+    "$ref": "#/$defs/Voice"
   }
 });
 
@@ -1764,6 +1866,9 @@ export const SERVER_SCHEMAS = Object.freeze({
   },
   "tracked": {
     "$ref": "#/$defs/Tracked"
+  },
+  "voice": {
+    "$ref": "#/$defs/Voice"
   },
   "welcome": {
     "$ref": "#/$defs/Welcome"

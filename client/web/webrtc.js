@@ -101,8 +101,10 @@ async function httpError(response) {
 
 export class WhepSession extends MessageSession {
   /** `video`: the <video> the track plays in; `query`: WHEP query (width, height, fps, seat,
-   *  name); `stamps`: frames carry their drive seq (stamp=1), read back for the latency. */
-  constructor(roomId, token, { video, query = {}, iceServers = [], stamps = false } = {}) {
+   *  name); `stamps`: frames carry their drive seq (stamp=1), read back for the latency;
+   *  `media(pc)`: adds more m-lines before the offer (voice.js: microphone, seats' voices). */
+  constructor(roomId, token, { video, query = {}, iceServers = [], stamps = false,
+    media = null } = {}) {
     super();
     this.transport = "webrtc";
     this.url = whepUrl(roomId, stamps ? { ...query, stamp: 1 } : query);
@@ -114,6 +116,7 @@ export class WhepSession extends MessageSession {
     this._sample = null;
     this.pc = new RTCPeerConnection({ iceServers });
     this.pc.addTransceiver("video", { direction: "recvonly" });
+    media?.(this.pc);
     this.channel = this.pc.createDataChannel(CHANNEL_LABEL, { ordered: true });
     this.channel.binaryType = "arraybuffer";
     this.channel.addEventListener("message", (event) => this._receive(event.data));

@@ -58,6 +58,7 @@ from ..stream.transport import Transport, WebSocketTransport
 from ..stream.view_motion import MovingViewCost
 from .live import CLOSE_GONE, JoinRefused, LiveRoom
 from .registry import Invitation, Room, RoomError, SeatSpec
+from .voice import relay_voices
 
 log = logging.getLogger(__name__)
 
@@ -152,7 +153,8 @@ async def join_stream(ws: WebSocket, ctx: ServerContext, avatar_id: str,
         name = None if who.hello is None else who.hello.name
         session, welcome = await seat_participant(ctx, room, role, seat, name,
                                                   WebSocketTransport(ws))
-        await serve(ctx, session, encode(welcome))
+        hear = who.hello is not None and bool(who.hello.voice)
+        await serve(ctx, session, encode(welcome), hear_voices=hear)
     except Refusal as refusal:
         await refuse(ws, refusal, ctx)
     except WebSocketDisconnect:
@@ -231,17 +233,24 @@ def _welcome(session: Session, record: AvatarRecord, expression_names: tuple[str
                                     seat=seat if role == "perform" else None))
 
 
-async def serve(ctx: ServerContext, session: Session, welcome: bytes | None = None) -> None:
+async def serve(ctx: ServerContext, session: Session, welcome: bytes | None = None,
+                hear_voices: bool = False) -> None:
     """Send the welcome (where the transport has not) and run the session until it ends;
-    then out of its room."""
+    then out of its room. ``hear_voices``: the other seats' voices as ``voice`` messages."""
     live = session.live
+    relay = None
     try:
         if welcome is not None:
             await session.transport.send(welcome)
         live.broadcast(live.presence("join", session))
         ctx.sessions[session.id] = session
+        if hear_voices:
+            relay = asyncio.get_running_loop().create_task(
+                relay_voices(session, live, ctx.settings, ctx.metrics))
         await session.run()
     finally:
+        if relay is not None:
+            relay.cancel()
         ctx.sessions.pop(session.id, None)
         live.leave(session)
         session.release()

@@ -15,14 +15,16 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from protocol import Presence, SeatPresence
+from protocol import Presence, SeatPresence, Voice
 
 from ..stream.drive import DriveState, rest_value
 from ..stream.scene import Scene
 from .registry import Room, SeatSpec
+from .voice import publish_message
 
 if TYPE_CHECKING:
     from ..stream.session import Session
+    from .voice import SeatVoice
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +46,7 @@ class Seat:
     performer: Session | None = None
     holding: bool = False
     release: asyncio.Task | None = None  # hold, then ease to rest
+    voice: SeatVoice | None = None  # its performer's voice (server/rooms/voice.py), on first use
 
     @property
     def index(self) -> int:
@@ -73,6 +76,11 @@ class LiveRoom:
 
     def snapshot(self) -> tuple[DriveState, ...]:
         return tuple(s.drive.copy() for s in self.seats)
+
+    def voice(self, performer: Session, message: Voice) -> str:
+        """A performer's ``voice`` message to its seat's listeners; the outcome."""
+        return publish_message(self.seat(performer.seat_index), performer, message,
+                               self.settings, performer.metrics)
 
     def seat_changed(self) -> None:
         """A seat's drive changed: every participant renders the new state."""

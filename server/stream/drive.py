@@ -8,6 +8,7 @@ files next to the body model (the synthetic family has them).
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -85,6 +86,8 @@ class DriveState:
         default_factory=lambda: {name: {} for name in FAMILY_NAMES})
     seq: int = -1
     version: int = 0  # +1 per applied drive: equal versions pose the same mesh
+    captured: float | None = None  # the last drive's t_capture (the performer's clock)
+    arrived: float | None = None   # time.monotonic() when it was applied here
 
     def apply(self, drive: Drive, fitted: dict[str, dict[str, np.ndarray]]) -> None:
         """Merge a drive (its families as :func:`fit_drive` returned them)."""
@@ -94,6 +97,7 @@ class DriveState:
             self.families[name] = {**self.families[name], **values}
         self.seq = drive.seq
         self.version += 1
+        self.captured, self.arrived = drive.t_capture, time.monotonic()
 
     def restore(self, failed: DriveState, good: DriveState) -> bool:
         """A frame of ``failed`` did not render: every value it held that is still current
@@ -119,7 +123,7 @@ class DriveState:
     def copy(self) -> DriveState:
         # Arrays are never mutated in place (updates replace them), so a shallow copy is enough.
         return DriveState({k: dict(v) for k, v in self.families.items()}, self.seq,
-                          self.version)
+                          self.version, self.captured, self.arrived)
 
     def smplx_params(self, model: SMPLXModel, manos: dict[str, MANOModel]) -> dict[str, Any]:
         """SMPL-X parameters (no batch axis, or batch 1) with the face and hands fused in.

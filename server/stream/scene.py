@@ -95,9 +95,12 @@ class Frame:
     keyframe: bool
     timings: Timings
     seat_seqs: tuple[int, ...] = ()   # each seat's newest drive seq
+    captured: float | None = None     # t_capture of the drive ``seq`` names
     versions: tuple[int, ...] = ()    # each seat's drive version this frame shows
     rgb: np.ndarray | None = None     # [H, W, 3] uint8, raw frames only
     preview: bool = False             # rendered cheaper while its view moves
+    # each seat's (t_capture, server arrival) of the drive shown: the one clock (voice sync)
+    seat_drives: tuple[tuple[float | None, float | None], ...] = ()
 
 
 @dataclass
@@ -270,7 +273,9 @@ class SceneFrames:
             seqs = tuple(d.seq for d in job.seats)
             frames.append(Frame(seqs[0], codec, req.width, req.height, data, depth_png,
                                 keyframe, timings, seat_seqs=seqs, versions=job.versions,
-                                rgb=rgb if job.raw else None, preview=job.preview))
+                                rgb=rgb if job.raw else None, preview=job.preview,
+                                captured=job.seats[0].captured,
+                                seat_drives=tuple((d.captured, d.arrived) for d in job.seats)))
         return frames
 
     def _count_cost(self, stats: list[dict]) -> None:

@@ -52,6 +52,7 @@ from protocol import (
     Stats,
     Tracked,
     View,
+    Voice,
     encode,
 )
 from protocol.messages import Answers
@@ -237,7 +238,7 @@ class Session:
 
     def handle(self, msg: Any) -> None:
         """Apply one decoded client message to the session state (never blocks)."""
-        if isinstance(msg, (Drive, Image)) and self.role != "perform":
+        if isinstance(msg, (Drive, Image, Voice)) and self.role != "perform":
             raise ProtocolError("forbidden", f"a viewer cannot send '{msg.type}': join with "
                                              "a perform invitation to drive a seat",
                                 {"type": msg.type, "seq": msg.seq})
@@ -255,6 +256,8 @@ class Session:
             self._changed()
         elif isinstance(msg, Ping):
             self.send_control(Pong(t=msg.t))
+        elif isinstance(msg, Voice):
+            self.live.voice(self, msg)  # checked, counted, forwarded (server/rooms/voice.py)
         elif isinstance(msg, Image):
             if self.tracking.unavailable:
                 raise ProtocolError("unsupported", self.tracking.unavailable,
@@ -409,6 +412,7 @@ class Session:
                 drive = Drive.model_validate({"seq": tracked.seq, "smplx": tracked.params},
                                              context={"limits": self.limits})
                 self.drive.apply(drive, fit_drive(drive, self.shapes))
+                self.drive.arrived = received_at  # the picture's lag counts tracking too
             except TrackingUnavailable as exc:
                 self.send_error("unsupported", str(exc), answers)
                 continue
@@ -443,7 +447,9 @@ class Session:
 
     async def _send_frame(self, f: Frame) -> None:
         if f.seat_seqs:
-            f = dataclasses.replace(f, seq=f.seat_seqs[self.position])
+            f = dataclasses.replace(f, seq=f.seat_seqs[self.position],
+                                    captured=f.seat_drives[self.position][0]
+                                    if f.seat_drives else None)
         if f.versions != self._asked:
             self._dirty.set()  # it joined an older render: its own state comes next
         self._last_codec = f.codec

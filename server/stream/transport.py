@@ -56,7 +56,8 @@ class WebSocketTransport:
         data = encode(FrameMessage(seq=frame.seq, frame=number, codec=frame.codec,
                                    width=frame.width, height=frame.height, data=frame.data,
                                    depth=frame.depth, keyframe=frame.keyframe,
-                                   timings=frame.timings, preview=frame.preview))
+                                   timings=frame.timings, preview=frame.preview,
+                                   t_capture=frame.captured))
         await self.ws.send_bytes(data)
         return len(data)
 

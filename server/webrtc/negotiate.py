@@ -6,8 +6,11 @@ sends (sendonly or sendrecv) and may carry one it receives too. Either needs VP8
 those m-lines. The answer carries every ICE candidate (aiortc gathers them all before
 ``setLocalDescription`` returns: no trickle). Codecs: aiortc answers with the common codecs
 in the offer's order (its ``find_common_codecs`` walks the offer's list), so the offer's
-preference between VP8 and H.264 wins. m-lines the peer does not use (audio, extra video)
-are answered inactive, so nothing arrives that no one reads. The SCTP transport aiortc makes
+preference between VP8 and H.264 wins. Audio m-lines with Opus are voices
+(server/webrtc/audio.py): those the client receives carry the room's seats in order, the
+first it sends is its microphone (used only when it performs). m-lines the peer does not use
+(extra video, audio without Opus) are answered inactive, so nothing arrives that no one
+reads. The SCTP transport aiortc makes
 for an offered data channel gets its guard (server/webrtc/sctp.py) before the answer is made,
 so the answer advertises its max-message-size and receive window.
 """
@@ -21,6 +24,7 @@ from aiortc import RTCConfiguration, RTCIceServer, RTCPeerConnection, RTCSession
 from aiortc import sdp as aiortc_sdp
 
 VIDEO_CODECS = ("video/vp8", "video/h264")
+AUDIO_CODEC = "audio/opus"
 RECEIVING = ("recvonly", "sendrecv")  # the client receives (watches) on this m-line
 SENDING = ("sendonly", "sendrecv")    # the client sends (publishes) on it
 
@@ -37,6 +41,8 @@ class Offer:
     watch_mid: str | None     # the video m-line our track goes out on
     publish_mid: str | None   # the video m-line the client's webcam comes in on (WHIP)
     data_channel: bool
+    voice_mids: tuple[str, ...] = ()  # audio m-lines the client receives: seat 0, 1, ... in order
+    microphone_mid: str | None = None  # the first audio m-line the client sends on
 
 
 def _usable(media: Any) -> bool:
@@ -75,9 +81,14 @@ def check_offer(text: str, kind: Kind) -> Offer:
         if media is not None and not _usable(media):
             raise OfferRefused(f"no common video codec on m-line {media.rtp.muxId!r}: this "
                                f"server sends and receives {', '.join(VIDEO_CODECS)}")
+    audios = [m for m in description.media if m.kind == "audio" and m.rtp.muxId
+              and any(c.mimeType.lower() == AUDIO_CODEC for c in m.rtp.codecs)]
+    microphone = next((m for m in audios if (m.direction or "sendrecv") in SENDING), None)
     return Offer(text, None if watch is None else watch.rtp.muxId,
                  None if publish is None else publish.rtp.muxId,
-                 any(m.kind == "application" for m in description.media))
+                 any(m.kind == "application" for m in description.media),
+                 tuple(m.rtp.muxId for m in audios if (m.direction or "sendrecv") in RECEIVING),
+                 None if microphone is None else microphone.rtp.muxId)
 
 
 def configuration(settings) -> RTCConfiguration:
@@ -90,11 +101,14 @@ def configuration(settings) -> RTCConfiguration:
     return RTCConfiguration(iceServers=servers)
 
 
-async def answer(pc: RTCPeerConnection, offer: Offer, track: Any,
-                 guard: Any = None) -> tuple[str, str | None]:
-    """Apply ``offer``, attach ``track`` to its watched m-line, install ``guard`` (a
-    :class:`~.sctp.SctpGuard`) on the data channel's SCTP transport, answer; (answer SDP, the
-    negotiated video codec's MIME type on the watched m-line or None)."""
+async def answer(pc: RTCPeerConnection, offer: Offer, track: Any, guard: Any = None,
+                 voices: dict[str, Any] | None = None,
+                 microphone: bool = False) -> tuple[str, str | None]:
+    """Apply ``offer``, attach ``track`` to its watched m-line and ``voices`` (mid -> audio
+    track) to its audio m-lines, receive on its microphone m-line when ``microphone``, install
+    ``guard`` (a :class:`~.sctp.SctpGuard`) on the data channel's SCTP transport, answer;
+    (answer SDP, the negotiated video codec's MIME type on the watched m-line or None)."""
+    voices = voices or {}
     try:
         await pc.setRemoteDescription(RTCSessionDescription(offer.sdp, "offer"))
     except Exception as exc:  # noqa: BLE001 - aiortc refuses the client's SDP
@@ -102,10 +116,16 @@ async def answer(pc: RTCPeerConnection, offer: Offer, track: Any,
     if guard is not None and pc.sctp is not None:
         guard.install(pc.sctp)  # before the answer (its a=max-message-size) and the INIT
     for transceiver in pc.getTransceivers():
-        watched = transceiver.kind == "video" and transceiver.mid == offer.watch_mid
-        published = transceiver.kind == "video" and transceiver.mid == offer.publish_mid
-        if watched:
-            transceiver.sender.replaceTrack(track)
+        if transceiver.kind == "audio":
+            watched = voices.get(transceiver.mid) is not None
+            published = microphone and transceiver.mid == offer.microphone_mid
+            if watched:
+                transceiver.sender.replaceTrack(voices[transceiver.mid])
+        else:
+            watched = transceiver.kind == "video" and transceiver.mid == offer.watch_mid
+            published = transceiver.kind == "video" and transceiver.mid == offer.publish_mid
+            if watched:
+                transceiver.sender.replaceTrack(track)
         transceiver.direction = {(True, True): "sendrecv", (True, False): "sendonly",
                                  (False, True): "recvonly"}.get((watched, published),
                                                                 "inactive")

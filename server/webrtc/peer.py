@@ -24,8 +24,10 @@ from protocol import Request, encode
 from ..context import ServerContext
 from ..rooms.join import seat_participant, serve
 from ..rooms.registry import Room
+from ..rooms.voice import seat_voice
 from ..stream.admission import Admitted
 from ..stream.session import Session, error_message
+from .audio import VoiceTrack, opus_payload_type, publish_voice, refuse_voice
 from .channel import DataChannel
 from .encoders import install_encoder
 from .ingest import ingest
@@ -54,6 +56,8 @@ class WebRTCPeer:
         self.participant: Session | None = None
         self.codec: str | None = None      # negotiated video codec (MIME type), watching
         self.encoder: Any = None           # our clamped encoder, once installed
+        self.voices: dict[str, VoiceTrack] = {}  # audio mid -> the seat voice sent on it
+        self.voice_counts: dict[str, int] = {}   # audio this peer may not publish, dropped
         self._connected = asyncio.Event()
         self._tasks: set[asyncio.Task] = set()
         self._run: asyncio.Task | None = None
@@ -79,7 +83,12 @@ class WebRTCPeer:
                 self.ctx, self.room, role, seat, name, transport, request=request)
             self.channel.welcome = encode(welcome)
             self._run = self._spawn(self._serve(), "serve")
-            sdp, self.codec = await answer(self.pc, offer, self.track, self.guard)
+            self.voices = self._voices(offer, role, seat)
+            transport.voices = [(t.position, t.listener) for t in self.voices.values()]
+            speaks = role == "perform" and offer.microphone_mid is not None
+            sdp, self.codec = await answer(self.pc, offer, self.track, self.guard,
+                                           self.voices, speaks)
+            self._hear(offer, sdp, speaks, seat)
         except BaseException:
             await self.close("the offer was refused")
             raise
@@ -90,6 +99,29 @@ class WebRTCPeer:
                                            s.webrtc_max_bitrate)
         self._spawn(self._connect_deadline(s.webrtc_connect_timeout_s), "deadline")
         return sdp
+
+    def _voices(self, offer: Offer, role: str, seat: int) -> dict[str, VoiceTrack]:
+        """The offer's received audio m-lines carry the room's seats in order; a performer
+        does not get its own seat's voice back."""
+        seats = self.room.live.seats
+        return {mid: VoiceTrack(seat_voice(seats[i], self.ctx.settings,
+                                           self.ctx.metrics).subscribe(), i)
+                for i, mid in enumerate(offer.voice_mids[:len(seats)])
+                if not (role == "perform" and seats[i].index == seat)}
+
+    def _hear(self, offer: Offer, sdp: str, speaks: bool, seat: int) -> None:
+        """The performer's microphone feeds its seat's voice; any other audio a client
+        sends is dropped and counted (a viewer never publishes)."""
+        for transceiver in self.pc.getTransceivers():
+            if transceiver.kind != "audio":
+                continue
+            pt = opus_payload_type(sdp, transceiver.mid)
+            if speaks and transceiver.mid == offer.microphone_mid and pt is not None:
+                voice = seat_voice(self.room.live.seat(seat), self.ctx.settings,
+                                   self.ctx.metrics)
+                publish_voice(transceiver.receiver, voice, self, pt)
+            else:
+                refuse_voice(transceiver.receiver, self.ctx.metrics, self.voice_counts)
 
     def _spawn(self, coro, what: str) -> asyncio.Task:
         task = asyncio.get_running_loop().create_task(coro, name=f"peer {self.resource} {what}")
@@ -154,6 +186,8 @@ class WebRTCPeer:
             self.channel.disconnect()  # the participant's receiver returns: run() ends
             if self.track is not None:
                 self.track.stop()
+            for voice in self.voices.values():
+                voice.stop()
             with contextlib.suppress(Exception):
                 await self.pc.close()
             pending = [t for t in self._tasks if t is not asyncio.current_task()]

@@ -3,8 +3,11 @@ video track (raw RGB arrays, which aiortc encodes in its own threads)."""
 
 from __future__ import annotations
 
+import time
+
 from protocol.stamp import stamp as stamp_frame
 
+from ..rooms.voice import Listener
 from ..stream.scene import Frame
 from .channel import DataChannel
 from .track import LatestFrameTrack
@@ -18,6 +21,7 @@ class WebRTCTransport:
         self.channel = channel
         self.track = track  # None: a WHIP peer that only publishes, and so renders nothing
         self.stamp = stamp  # each frame's drive seq in its top-left corner (latency tests)
+        self.voices: list[tuple[int, Listener]] = []  # (seat position, its listener) heard
 
     @property
     def renders(self) -> bool:
@@ -34,6 +38,10 @@ class WebRTCTransport:
         if self.stamp:
             rgb = stamp_frame(rgb.copy(), frame.seq)
         await self.track.deliver(rgb)
+        now = time.monotonic()  # the encoder took it: the voice waits as long as it did
+        for position, listener in self.voices:
+            if position < len(frame.seat_drives):
+                listener.follow_picture(frame.seat_drives[position][1], now)
         return 0  # the encoded size is aiortc's to know (the client's getStats has it)
 
     async def close(self, code: int, reason: str) -> None:

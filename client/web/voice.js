@@ -1,0 +1,114 @@
+// Voices in a room over WebRTC (issue 30): a performer's microphone goes up on a sendonly Opus
+// line of its WHEP offer; each seat's voice comes down on a recvonly line (the first line seat
+// 0, the next seat 1, ...; the server answers lines past the room's seats inactive, and sends a
+// performer no voice of its own seat). The voices are in the video's MediaStream on the
+// server's side, so the browser lip-syncs them; each plays in its own <audio> with the
+// viewer's own volume and mute. Who speaks: the inbound audio level (getStats), polled.
+// WHEP has no renegotiation: turning the microphone on or off reconnects.
+
+export const VOICE_LINES = 4;     // seats this page can hear (recvonly lines offered)
+export const SPEAKING_LEVEL = 0.02;  // inbound-rtp audioLevel (0..1) above which a seat speaks
+
+export function openMicrophone() {
+  return navigator.mediaDevices.getUserMedia({ audio: true, video: false });
+}
+
+export class RoomVoices {
+  /** `panel`: the element that lists the seats heard. */
+  constructor(panel) {
+    this.panel = panel;
+    this.mic = null;        // MediaStream of the microphone, while performing with it
+    this.micMuted = false;
+    this.lines = [];        // recvonly transceivers, seat order
+    this.seats = new Map(); // seat index -> {audio, receiver, speaking, level}
+  }
+
+  /** Before the offer: the microphone (if any) and one recvonly line per seat. */
+  attach(pc, mic = null) {
+    this.stop();
+    this.mic = mic;
+    if (mic) {
+      const [track] = mic.getAudioTracks();
+      track.enabled = !this.micMuted;
+      pc.addTransceiver(track, { direction: "sendonly", streams: [mic] });
+    }
+    this.lines = Array.from({ length: VOICE_LINES },
+      () => pc.addTransceiver("audio", { direction: "recvonly" }));
+    pc.addEventListener("track", (event) => {
+      if (event.track.kind === "audio") this._heard(event);
+    });
+  }
+
+  _heard(event) {
+    const index = this.lines.findIndex((t) => t.receiver === event.receiver);
+    if (index < 0) return;
+    const row = document.createElement("div");
+    row.className = "voice";
+    const audio = document.createElement("audio");
+    audio.autoplay = true;
+    audio.srcObject = new MediaStream([event.track]);
+    const volume = Object.assign(document.createElement("input"), {
+      type: "range", min: "0", max: "1", step: "0.05", value: "1", title: `seat ${index} volume`,
+    });
+    volume.addEventListener("input", () => { audio.volume = Number(volume.value); });
+    const mute = Object.assign(document.createElement("input"), { type: "checkbox" });
+    mute.addEventListener("change", () => { audio.muted = mute.checked; });
+    const label = document.createElement("span");
+    label.textContent = `seat ${index}`;
+    const muteLabel = document.createElement("label");
+    muteLabel.append(mute, " mute");
+    row.append(label, volume, muteLabel, audio);
+    this.panel.append(row);
+    this.seats.set(index, { audio, receiver: event.receiver, label, speaking: false, level: 0 });
+    audio.play().catch(() => { /* autoplay refused until a click: the page says so */ });
+  }
+
+  setMicMuted(muted) {
+    this.micMuted = muted;
+    for (const track of this.mic?.getAudioTracks() ?? []) track.enabled = !muted;
+  }
+
+  setSeatVolume(index, volume, muted = false) {
+    const seat = this.seats.get(index);
+    if (!seat) return false;
+    seat.audio.volume = volume;
+    seat.audio.muted = muted;
+    return true;
+  }
+
+  /** Each seat's audio level and whether it speaks now; [{seat, level, speaking, ...}]. */
+  async poll() {
+    const out = [];
+    for (const [index, seat] of this.seats) {
+      let level = 0, packets = 0;
+      try {
+        (await seat.receiver.getStats()).forEach((s) => {
+          if (s.type === "inbound-rtp" && s.kind === "audio") {
+            level = s.audioLevel ?? 0;
+            packets = s.packetsReceived ?? 0;
+          }
+        });
+      } catch { /* closed meanwhile */ }
+      seat.level = level;
+      seat.speaking = level > SPEAKING_LEVEL;
+      seat.label.textContent = `seat ${index}${seat.speaking ? " (speaking)" : ""}`;
+      out.push({ seat: index, level, packets, speaking: seat.speaking,
+                 volume: seat.audio.volume, muted: seat.audio.muted });
+    }
+    return out;
+  }
+
+  /** Who speaks, for the presence line: "seat 0 speaks" or "". */
+  speakingText() {
+    const seats = [...this.seats].filter(([, s]) => s.speaking).map(([i]) => i);
+    return seats.length ? `speaking: seat ${seats.join(", seat ")}` : "";
+  }
+
+  stop() {
+    for (const track of this.mic?.getTracks() ?? []) track.stop();
+    this.mic = null;
+    for (const seat of this.seats.values()) seat.audio.srcObject = null;
+    this.seats.clear();
+    this.panel.replaceChildren();
+  }
+}

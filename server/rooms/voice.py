@@ -1,0 +1,218 @@
+"""A seat's voice: the performer's Opus packets fanned out, undecoded, to the seat's listeners.
+
+One :class:`SeatVoice` per seat, made when someone first publishes or listens. Each packet is
+checked (protocol/opus.py: RFC 6716's rules, no decoding), bounded (``voice_max_packet_bytes``,
+``voice_max_bitrate``) and counted; a valid one goes to every :class:`Listener`, each a bounded
+queue (``voice_buffer_packets``, the oldest dropped past it). A listener releases a packet only
+``delay_s`` after it arrived: the voice waits for the picture, never the other way round.
+``delay_s`` follows that listener's own picture lag (:meth:`Listener.follow_picture`: from a
+drive's arrival to the frame that first shows it leaving for the encoder), smoothed, at most
+``voice_max_delay_s``.
+
+Packets carry a media time in 48 kHz ticks: the publisher's RTP timestamps, unwrapped and made
+continuous across publishers (a new performer goes on where the last one stopped), so a
+listener's outgoing timestamps never jump back. A seat nobody publishes to sends nothing and
+wakes nobody.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import statistics
+import time
+from dataclasses import dataclass
+from typing import Any
+
+from protocol import Voice
+from protocol.opus import OpusPacketError, packet_duration_ms
+
+CLOCK_RATE = 48_000                 # Opus' RTP clock
+DISCONTINUITY_TICKS = 5 * CLOCK_RATE  # a timestamp jump past this is a new stream, not a gap
+SPEAKING_S = 0.3                    # a seat speaks while its last packet is this recent
+LAG_SAMPLES = 15                    # picture lags the voice delay is the median of
+
+
+@dataclass(frozen=True)
+class VoicePacket:
+    payload: bytes
+    media_ts: int     # 48 kHz ticks on the seat's continuous timeline
+    arrived: float    # time.monotonic() when the server got it
+    t_capture: float | None = None  # its capture time on the performer's clock, when sent
+
+
+class Listener:
+    """One participant's queue of a seat's packets (latest kept, oldest dropped)."""
+
+    def __init__(self, voice: SeatVoice, capacity: int, max_delay_s: float) -> None:
+        self.voice = voice
+        self.max_delay_s = max_delay_s
+        self.delay_s = 0.0
+        self.lags: collections.deque[float] = collections.deque(maxlen=LAG_SAMPLES)
+        self._shown_arrival: float | None = None
+        self._queue: collections.deque[VoicePacket] = collections.deque()
+        self._capacity = capacity
+        self._ready = asyncio.Event()
+        self.closed = False
+        self.overflowed = 0
+
+    def put(self, packet: VoicePacket) -> bool:
+        """Queue ``packet``; False when the oldest had to go to make room."""
+        kept = len(self._queue) < self._capacity
+        if not kept:
+            self._queue.popleft()
+            self.overflowed += 1
+        self._queue.append(packet)
+        self._ready.set()
+        return kept
+
+    async def next(self) -> VoicePacket | None:
+        """The next packet once its release time has come; None once closed."""
+        while not self.closed:
+            if not self._queue:
+                self._ready.clear()
+                await self._ready.wait()
+                continue
+            wait = self._queue[0].arrived + self.delay_s - time.monotonic()
+            if wait > 0:
+                await asyncio.sleep(wait)
+                continue
+            return self._queue.popleft()
+        return None
+
+    def follow_picture(self, arrived: float | None, now: float) -> None:
+        """A frame showing the seat's drive that arrived at ``arrived`` leaves now: the first
+        frame of each drive measures the picture's lag (versions made here, as a seat eases
+        to rest, arrived at no time and measure nothing); the voice waits the median of the
+        recent ones (jitter in one render moves nothing)."""
+        if arrived is None or arrived == self._shown_arrival:
+            return
+        self._shown_arrival = arrived
+        self.lags.append(now - arrived)
+        self.delay_s = min(max(0.0, statistics.median(self.lags)), self.max_delay_s)
+
+    def close(self) -> None:
+        self.closed = True
+        self._ready.set()
+        self.voice.unsubscribe(self)
+
+
+class SeatVoice:
+    def __init__(self, settings: Any, metrics: Any = None) -> None:
+        self.max_packet_bytes = settings.voice_max_packet_bytes
+        self.max_bytes_per_s = settings.voice_max_bitrate / 8
+        self.max_delay_s = settings.voice_max_delay_s
+        self.buffer_packets = settings.voice_buffer_packets
+        self._metrics = metrics
+        self.listeners: set[Listener] = set()
+        self.counts: collections.Counter[str] = collections.Counter()
+        self.last_packet_at: float | None = None
+        self._tokens = self.max_bytes_per_s  # burst: one second
+        self._tokens_at = time.monotonic()
+        self._last_in: int | None = None    # the publisher's last RTP timestamp
+        self._last_out = 0                   # its place on the seat's timeline
+        self._publisher: object | None = None
+
+    @property
+    def speaking(self) -> bool:
+        return (self.last_packet_at is not None
+                and time.monotonic() - self.last_packet_at < SPEAKING_S)
+
+    # -- publishing ---------------------------------------------------------------------------
+
+    def publish(self, publisher: object, payload: bytes, rtp_ts: int,
+                now: float | None = None, t_capture: float | None = None) -> str:
+        """Check ``payload`` and fan it out; the outcome (a voice_packets label)."""
+        now = time.monotonic() if now is None else now
+        outcome = self._check(payload, now)
+        if outcome == "forwarded":
+            packet = VoicePacket(payload, self._timeline(publisher, rtp_ts, now), now,
+                                 t_capture)
+            self.last_packet_at = now
+            for listener in list(self.listeners):
+                if not listener.put(packet):
+                    self._count("overflow")
+        self._count(outcome)
+        return outcome
+
+    def _check(self, payload: bytes, now: float) -> str:
+        if len(payload) > self.max_packet_bytes:
+            return "too_large"
+        try:
+            packet_duration_ms(payload)
+        except OpusPacketError:
+            return "garbage"
+        self._tokens = min(self.max_bytes_per_s,
+                           self._tokens + (now - self._tokens_at) * self.max_bytes_per_s)
+        self._tokens_at = now
+        if len(payload) > self._tokens:
+            return "rate"
+        self._tokens -= len(payload)
+        return "forwarded"
+
+    def _timeline(self, publisher: object, rtp_ts: int, now: float) -> int:
+        if publisher is self._publisher and self._last_in is not None:
+            step = (rtp_ts - self._last_in + 2**31) % 2**32 - 2**31  # signed, wrap-safe
+        else:
+            step = DISCONTINUITY_TICKS + 1
+        if abs(step) > DISCONTINUITY_TICKS:  # a new publisher or stream: go on from the wall
+            elapsed = 0.0 if self.last_packet_at is None else now - self.last_packet_at
+            step = max(1, round(min(elapsed, 5.0) * CLOCK_RATE))
+        self._publisher, self._last_in = publisher, rtp_ts
+        self._last_out += step
+        return self._last_out
+
+    def _count(self, outcome: str) -> None:
+        self.counts[outcome] += 1
+        if self._metrics is not None:
+            self._metrics.voice_packets.labels(outcome).inc()
+
+    # -- listening ----------------------------------------------------------------------------
+
+    def subscribe(self) -> Listener:
+        listener = Listener(self, self.buffer_packets, self.max_delay_s)
+        self.listeners.add(listener)
+        return listener
+
+    def unsubscribe(self, listener: Listener) -> None:
+        self.listeners.discard(listener)
+
+
+def seat_voice(seat: Any, settings: Any, metrics: Any = None) -> SeatVoice:
+    """The seat's voice, made on first use."""
+    if seat.voice is None:
+        seat.voice = SeatVoice(settings, metrics)
+    return seat.voice
+
+
+def publish_message(seat: Any, performer: Any, message: Voice, settings: Any,
+                    metrics: Any = None) -> str:
+    """A performer's ``voice`` message (WebSocket, data channel) into its seat's voice; its
+    media time comes from its capture time (the performer's clock), else from arrival."""
+    now = time.monotonic()
+    at = message.t_capture if message.t_capture is not None else now
+    return seat_voice(seat, settings, metrics).publish(
+        performer, message.data, round(at * CLOCK_RATE) % 2**32, now, message.t_capture)
+
+
+async def relay_voices(session: Any, live: Any, settings: Any, metrics: Any = None) -> None:
+    """Until cancelled: every other seat's voice to ``session`` as ``voice`` messages (its
+    control queue: dropped, never queued without bound, when the client is behind). The client
+    syncs them to the frames by their capture times, so no delay is added here."""
+    seats = [s for s in live.seats
+             if not (session.role == "perform" and s.index == session.seat_index)]
+    listeners = [seat_voice(s, settings, metrics).subscribe() for s in seats]
+
+    async def pump(index: int, listener: Listener) -> None:
+        seq = 0
+        while (packet := await listener.next()) is not None:
+            session.send_control(Voice(seq=seq, data=packet.payload,
+                                       t_capture=packet.t_capture, seat=index))
+            seq += 1
+
+    try:
+        await asyncio.gather(*(pump(s.index, lis) for s, lis in zip(seats, listeners,
+                                                                     strict=True)))
+    finally:
+        for listener in listeners:
+            listener.close()

@@ -1,0 +1,132 @@
+"""The voice's parts without peers: the Opus packet check against libopus' own packets
+(PyAV's encoder) and hand-made malformed ones; a seat's voice: bounds, counting, the delay,
+the continuous timeline, listeners' buffers."""
+
+from __future__ import annotations
+
+import asyncio
+import fractions
+import time
+
+import av
+import numpy as np
+import pytest
+
+from protocol.opus import OpusPacketError, packet_duration_ms
+from server.config import Settings
+from server.rooms.voice import CLOCK_RATE, SeatVoice
+
+
+def libopus_packets(frame_ms: float, bit_rate: int, count: int = 20) -> list[bytes]:
+    """Real Opus packets of noise from libopus (PyAV), ``frame_ms`` each."""
+    codec = av.CodecContext.create("libopus", "w")
+    codec.sample_rate, codec.layout, codec.format = 48000, "mono", "s16"
+    codec.bit_rate = bit_rate
+    codec.options = {"frame_duration": str(frame_ms)}
+    samples = int(48000 * frame_ms / 1000)
+    rng = np.random.default_rng(0)
+    packets = []
+    for i in range(count):
+        frame = av.AudioFrame.from_ndarray(
+            rng.integers(-8000, 8000, (1, samples), dtype=np.int16), format="s16",
+            layout="mono")
+        frame.sample_rate, frame.pts = 48000, i * samples
+        frame.time_base = fractions.Fraction(1, 48000)
+        packets += [bytes(p) for p in codec.encode(frame)]
+    return packets
+
+
+@pytest.mark.parametrize("frame_ms, bit_rate", [(2.5, 64000), (10, 24000), (20, 64000),
+                                                (60, 32000), (120, 96000)])
+def test_libopus_packets_pass_with_their_duration(frame_ms, bit_rate):
+    packets = libopus_packets(frame_ms, bit_rate)
+    assert packets
+    for packet in packets:
+        assert packet_duration_ms(packet) == pytest.approx(frame_ms)
+
+
+@pytest.mark.parametrize("packet, rule", [
+    (b"", "R1"),
+    (b"\xf8" + bytes(1276), "R2"),
+    (b"\xf9" + bytes(3), "R3"),
+    (b"\xfa", "ends inside"),
+    (b"\xfa\x09" + bytes(4), "R4"),
+    (b"\xfb", "R6"),
+    (b"\xfb\x00", "R5"),
+    (b"\x1b\x03", "R5"),          # three 60 ms frames: 180 ms
+    (b"\xfb\x41\xff\xff", "padding"),
+    (b"\xfb\x02" + bytes(5), "R6"),  # CBR, two frames in 5 bytes: unequal
+    (b"\xfb\x82\xfc\xff" + bytes(8), "R7"),
+])
+def test_malformed_packets_are_refused_by_rule(packet, rule):
+    with pytest.raises(OpusPacketError, match=rule):
+        packet_duration_ms(packet)
+
+
+def voice(**overrides) -> SeatVoice:
+    return SeatVoice(Settings(**overrides))
+
+
+def test_bounds_drop_and_count_and_only_valid_packets_reach_listeners():
+    seat = voice(voice_max_packet_bytes=200, voice_max_bitrate=16_000, voice_buffer_packets=128)
+    async def run():
+        listener = seat.subscribe()
+        now = time.monotonic()
+        # 80 B every 20 ms is twice 16 kbit/s: after one second's burst (2000 B) half go.
+        outcomes = [seat.publish("p", b"\xf8" + bytes(79), i * 960, now + i * 0.02)
+                    for i in range(100)]
+        outcomes += [seat.publish("p", b"\xf8" + bytes(300), 0, now + 2.0),
+                     seat.publish("p", b"\xfb\x00", 0, now + 2.0)]
+        got = []
+        while listener._queue:
+            got.append(await listener.next())
+        return outcomes, got
+
+    outcomes, got = asyncio.run(run())
+    assert outcomes[-2:] == ["too_large", "garbage"]
+    rate = outcomes[:100].count("rate")
+    assert 24 <= rate <= 28, rate  # 2000 + 1.98 s * 2000 B/s allowed: 74 of 100 packets
+    assert len(got) == outcomes.count("forwarded") == 100 - rate
+    assert seat.counts["rate"] == rate and seat.counts["garbage"] == 1
+
+
+def test_the_timeline_is_continuous_across_publishers_and_wraps():
+    seat = voice()
+    now = 100.0
+    ts = [seat._timeline("a", 2**32 - 960, now), seat._timeline("a", 0, now + 0.02),
+          seat._timeline("a", 960, now + 0.04)]
+    assert ts[1] - ts[0] == 960 and ts[2] - ts[1] == 960  # the 32-bit wrap unwrapped
+    seat.last_packet_at = now + 0.04
+    nxt = seat._timeline("b", 123456, now + 1.04)  # a new performer a second later
+    assert nxt - ts[2] == CLOCK_RATE
+
+
+def test_a_listener_waits_the_median_picture_lag_bounded():
+    seat = voice(voice_max_delay_s=0.2)
+    listener = seat.subscribe()
+    for drive, lag in enumerate([0.05, 0.06, 0.3, 0.07, 0.08]):
+        listener.follow_picture(100.0 + drive, 100.0 + drive + lag)
+        listener.follow_picture(100.0 + drive, 200.0)  # later frames of a drive: no lag
+    assert listener.delay_s == pytest.approx(0.07)  # one slow render moves nothing
+    for drive in range(5, 20):
+        listener.follow_picture(100.0 + drive, 101.0 + drive)
+    assert listener.delay_s == 0.2  # bounded by voice_max_delay_s
+
+    async def run():
+        sent = time.monotonic()
+        seat.publish("p", b"\xf8\x00", 0)
+        await listener.next()
+        return time.monotonic() - sent
+
+    assert asyncio.run(run()) >= 0.2
+
+
+def test_a_full_listener_drops_its_oldest_and_counts():
+    seat = voice(voice_buffer_packets=4)
+    listener = seat.subscribe()
+    for i in range(10):
+        seat.publish("p", b"\xf8\x00", i * 960)
+    assert [p.media_ts for p in listener._queue][-1] - listener._queue[0].media_ts == 3 * 960
+    assert seat.counts["overflow"] == 6 and listener.overflowed == 6
+    listener.close()
+    assert not seat.listeners

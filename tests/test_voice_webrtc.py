@@ -1,0 +1,167 @@
+"""Voice in rooms over WebRTC (issue 30) with real aiortc peers against a real server: a
+performer's Opus microphone reaches every viewer undecoded, in the video's MediaStream; a
+viewer can never publish; garbage and oversized packets are dropped and counted; a seat
+without a voice sends nothing."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+import pytest
+
+from client.webrtc import WhepViewer
+from tests.server_fixtures import run_server, wait_until
+from tests.test_server_rooms import create_room, invite
+from tests.voice_fixtures import CLICK_LEVEL, click_track, peak, send_raw_rtp
+
+pytest.importorskip("aiortc")
+
+SIZE = 64
+TIMEOUT_S = 30.0
+LISTEN_FRAMES = 150  # 3 s of 20 ms frames: clicks every 200 ms
+
+
+@pytest.fixture(scope="module")
+def srv(tmp_path_factory):
+    with run_server(tmp_path_factory.mktemp("voice"), default_width=SIZE, default_height=SIZE,
+                    default_max_fps=10) as running:
+        yield running
+
+
+def viewer(srv, room_id: str, token: str, **kwargs) -> WhepViewer:
+    return WhepViewer(srv.url, room_id, token, width=SIZE, height=SIZE, timeout_s=TIMEOUT_S,
+                      **kwargs)
+
+
+def media(sdp: str, kind: str):
+    from aiortc import sdp as aiortc_sdp
+
+    return [m for m in aiortc_sdp.SessionDescription.parse(sdp).media if m.kind == kind]
+
+
+def seat_voice(srv, room_id: str, index: int = 0):
+    return srv.ctx.rooms.get(room_id).live.seats[index].voice
+
+
+async def loud_frames(v: WhepViewer, count: int) -> tuple[int, int]:
+    """(frames, frames holding a click) among the next ``count`` decoded audio frames."""
+    loud = 0
+    for _ in range(count):
+        frame, _ = await v.next_audio()
+        loud += peak(frame) > CLICK_LEVEL
+    return count, loud
+
+
+def test_every_viewer_hears_the_performer_in_the_videos_stream(srv):
+    room = create_room(srv)
+    perform = invite(srv, room["id"], "perform")
+    watch = invite(srv, room["id"], "watch")
+
+    async def run():
+        mic = click_track(click_every=10)
+        async with viewer(srv, room["id"], perform["token"], microphone=mic) as performer, \
+                viewer(srv, room["id"], watch["token"], voices=1) as first, \
+                viewer(srv, room["id"], watch["token"], voices=1) as second:
+            answers = [first.pc.remoteDescription.sdp, performer.pc.remoteDescription.sdp]
+            await first.next_frame()
+            heard = await asyncio.gather(loud_frames(first, LISTEN_FRAMES),
+                                         loud_frames(second, LISTEN_FRAMES))
+            voice = seat_voice(srv, room["id"])
+            counts = dict(voice.counts)
+            listeners = len(voice.listeners)
+            track_sent = mic.sent
+        return answers, heard, counts, listeners, track_sent
+
+    (watch_sdp, perform_sdp), heard, counts, listeners, sent = asyncio.run(run())
+    # The viewer's audio is in the same MediaStream (msid stream id) as its video.
+    [video], [audio] = media(watch_sdp, "video"), media(watch_sdp, "audio")
+    assert audio.direction == "sendonly" and audio.rtp.codecs[0].mimeType.lower() == "audio/opus"
+    assert audio.msid.split()[0] == video.msid.split()[0]
+    # The performer's microphone m-line is received by the server; it hears no voice back.
+    assert media(perform_sdp, "audio")[0].direction == "recvonly"
+    for frames, loud in heard:  # a click every 10 frames, each decoded at both viewers
+        assert loud >= frames // 10 - 3, (frames, loud)
+        assert loud <= frames // 10 + 3, (frames, loud)
+    assert listeners == 2
+    assert counts["forwarded"] >= LISTEN_FRAMES and counts["forwarded"] <= sent
+    assert not {"garbage", "too_large", "rate", "overflow"} & set(counts)
+    wait_until(lambda: not seat_voice(srv, room["id"]).listeners, TIMEOUT_S,
+               what="the listeners gone with their peers")
+
+
+def test_garbage_and_oversized_packets_are_dropped_counted_and_never_heard(srv):
+    room = create_room(srv)
+    perform = invite(srv, room["id"], "perform")
+    watch = invite(srv, room["id"], "watch")
+    garbage = [b"", b"\x03", b"\x03\x00", b"\x01\x00\x00\x00", b"\x02\xfc",
+               b"\x03\x82\xfc\xff" + b"\x00" * 8]  # R1, R6, R5, R3, R4, R7
+    oversized = [b"\xf8" + b"\x55" * 1300] * 3  # past voice_max_packet_bytes (1276)
+
+    async def run():
+        mic = click_track(click_every=10_000)  # silence: any click heard is garbage decoded
+        async with viewer(srv, room["id"], perform["token"], microphone=mic) as performer, \
+                viewer(srv, room["id"], watch["token"], voices=1) as listener:
+            await listener.next_audio()
+            pt = media(performer.pc.remoteDescription.sdp, "audio")[0].rtp.codecs[0].payloadType
+            voice = seat_voice(srv, room["id"])
+            before = voice.counts["forwarded"]
+            await send_raw_rtp(performer.pc, pt, garbage + oversized)
+            deadline = time.monotonic() + TIMEOUT_S
+            while (voice.counts["garbage"] < len(garbage)
+                   or voice.counts["too_large"] < len(oversized)) \
+                    and time.monotonic() < deadline:
+                await asyncio.sleep(0.05)
+            _, loud = await loud_frames(listener, 50)
+            return dict(voice.counts), before, loud
+
+    counts, before, loud = asyncio.run(run())
+    assert counts["garbage"] == len(garbage)
+    assert counts["too_large"] == len(oversized)
+    assert counts["forwarded"] > before  # the real microphone goes on
+    assert loud == 0
+    metrics = srv.ctx.metrics.render_text().decode()
+    assert 'telesplat_voice_packets_total{outcome="garbage"}' in metrics
+
+
+def test_a_viewer_can_never_publish_a_voice(srv):
+    room = create_room(srv)
+    watch = invite(srv, room["id"], "watch")
+
+    async def run():
+        mic = click_track(click_every=2)
+        async with viewer(srv, room["id"], watch["token"], microphone=mic, voices=1) as hostile, \
+                viewer(srv, room["id"], watch["token"], voices=1) as other:
+            await asyncio.gather(hostile.next_frame(), other.next_frame())
+            answer = media(hostile.pc.remoteDescription.sdp, "audio")
+            pt = answer[0].rtp.codecs[0].payloadType
+            # It sends anyway, on the refused m-line's SSRC, valid Opus.
+            await send_raw_rtp(hostile.pc, pt, [b"\xf8\xff\xfe"] * 20)
+            await asyncio.sleep(1.0)
+            voice = seat_voice(srv, room["id"])
+            return answer, dict(voice.counts), mic.sent
+
+    answer, counts, sent = asyncio.run(run())
+    mic_line = [m for m in answer if m.direction in ("inactive", "sendonly")]
+    # The microphone m-line (offered sendonly) is answered inactive; the listening one sendonly.
+    assert sorted(m.direction for m in answer) == ["inactive", "sendonly"], mic_line
+    assert counts.get("forwarded", 0) == 0
+    assert sent == 0  # aiortc's own sender never starts on an inactive m-line
+
+
+def test_a_seat_without_a_voice_sends_nothing(srv):
+    room = create_room(srv)
+    watch = invite(srv, room["id"], "watch")
+
+    async def run():
+        async with viewer(srv, room["id"], watch["token"], voices=1) as v:
+            await v.next_frame()
+            await asyncio.sleep(1.0)
+            peer = next(iter(srv.ctx.webrtc_peers._peers.values()))
+            stats = await v.stats()
+            return [t.sent for t in peer.voices.values()], stats
+
+    sent, stats = asyncio.run(run())
+    assert sent == [0]
+    audio_in = [s for s in stats.values() if s.type == "inbound-rtp" and s.kind == "audio"]
+    assert all(s.packetsReceived == 0 for s in audio_in)
