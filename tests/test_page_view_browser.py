@@ -336,7 +336,8 @@ const c = document.createElement('canvas');
 c.width = video.videoWidth; c.height = video.videoHeight;
 const ctx = c.getContext('2d');
 ctx.drawImage(video, 0, 0);
-return [...ctx.getImageData(2, 2, 1, 1).data.slice(0, 3)];
+// the bottom-right corner: the top-left strip carries the frame's stamp (rtcstats.js)
+return [...ctx.getImageData(c.width - 3, c.height - 3, 1, 1).data.slice(0, 3)];
 """
 
 

@@ -7,6 +7,8 @@
 // 1..300, default 30), and their bit rate is fixed, so one recording holds at most about
 // RECORD_BITS_PER_S / 8 x maxSeconds bytes (15 MB at 30 s).
 
+import { stampCell } from "./rtcstats.js";
+
 export const RECORD_SECONDS = { default: 30, min: 1, max: 300 };
 export const RECORD_BITS_PER_S = 4_000_000;
 const RECORD_FPS = 30;  // frames a second copied into a recording
@@ -25,6 +27,16 @@ export function recordSeconds(search, onError = () => {}) {
     return RECORD_SECONDS.default;
   }
   return value;
+}
+
+/** Draw the picture at `width` x `height`. A stamped WebRTC frame (rtcstats.js: its top strip
+ *  carries the drive seq, hidden on screen by a clip) gets the strip covered by the first row
+ *  below it, so snapshots and recordings show what the viewer sees, not the stamp. */
+function drawPicture(ctx, source, width, height) {
+  ctx.drawImage(source, 0, 0, width, height);
+  if (!(source instanceof HTMLVideoElement) || !source.style.clipPath) return;
+  const strip = Math.min(height - 1, 2 * stampCell(width));
+  if (strip > 0) ctx.drawImage(ctx.canvas, 0, strip, width, 1, 0, 0, width, strip);
 }
 
 /** "#rrggbb" -> [r, g, b] in [0, 1], the protocol's `background`. */
@@ -66,7 +78,7 @@ export class Capture {
       canvas = document.createElement("canvas");
       canvas.width = source.videoWidth;
       canvas.height = source.videoHeight;
-      canvas.getContext("2d").drawImage(source, 0, 0);
+      drawPicture(canvas.getContext("2d"), source, canvas.width, canvas.height);
     }
     const blob = await new Promise((resolve, reject) => canvas.toBlob(
       (b) => (b ? resolve(b) : reject(new Error("the frame could not be encoded"))), "image/png"));
@@ -91,7 +103,7 @@ export class Capture {
     if (!width || !height) throw new Error("nothing to record yet");
     const canvas = Object.assign(document.createElement("canvas"), { width, height });
     const ctx = canvas.getContext("2d");
-    const draw = () => ctx.drawImage(source, 0, 0, width, height);
+    const draw = () => drawPicture(ctx, source, width, height);
     draw();
     const stream = canvas.captureStream(RECORD_FPS);
     const ticker = setInterval(draw, 1000 / RECORD_FPS);

@@ -177,7 +177,15 @@ export class ViewControl {
 export function fitToViewport(stage, { margin = 16 } = {}) {
   const fit = () => {
     const top = stage.getBoundingClientRect().top + window.scrollY;
-    const room = Math.max(64, window.innerHeight - top - margin);
+    // What sits under the picture in the stage (the stats, the button bar) must fit too.
+    let below = 0;
+    for (const child of stage.children) {
+      if (child.tagName === "CANVAS" || child.tagName === "VIDEO" || child.hidden) continue;
+      const style = getComputedStyle(child);
+      if (style.display === "none" || style.position === "absolute") continue;
+      below += child.offsetHeight + parseFloat(style.marginTop) + parseFloat(style.marginBottom);
+    }
+    const room = Math.max(64, window.innerHeight - top - margin - below);
     stage.style.setProperty("--stage-max-height", `${Math.floor(room)}px`);
   };
   window.addEventListener("resize", fit);
