@@ -46,6 +46,9 @@ class ConfigError(ValueError):
     """A config file or dict that cannot be used; the message names the key."""
 
 
+LOWER_BODY_MODES = ("ignore", "background")
+
+
 @dataclass(frozen=True)
 class DataConfig:
     """Which views, at what size, on what background."""
@@ -58,9 +61,19 @@ class DataConfig:
     crop_margin: int = 16               # px around the box, at training resolution
     cache_views: int = 256              # decoded views kept in memory (LRU)
     fusion: bool = True                 # FLAME/MANO fusion when params.npz has those keys
+    # Lower-body pixels (legs, hips): "ignore" weighs them 0; "background" makes them
+    # background in the target, weighted 1, so nothing of the avatar may cover them (it ends
+    # at the cut; the hem frays past it otherwise: docs/results.md, demo artefacts).
+    lower_body: str = "ignore"
+    # A random background colour per iteration (the target re-composited on it) instead of
+    # ``background``: a Gaussian of the background's colour is then no longer free, so faint
+    # floaters that match it cannot survive (docs/results.md, demo artefacts).
+    random_background: bool = False
 
     def __post_init__(self) -> None:
         _require(0 < self.scale <= 1, "data.scale", "must be in (0, 1]", self.scale)
+        _require(self.lower_body in LOWER_BODY_MODES, "data.lower_body",
+                 f"must be one of {list(LOWER_BODY_MODES)}", self.lower_body)
         _require(self.target_size is None or self.target_size >= 16, "data.target_size",
                  "must be >= 16 px", self.target_size)
         _require(len(self.background) == 3 and all(0 <= c <= 1 for c in self.background),

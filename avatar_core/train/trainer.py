@@ -398,6 +398,16 @@ class Trainer:
                 self._frame_cache.popitem(last=False)
         return frames
 
+    def background(self, it: int) -> tuple[float, float, float]:
+        """The background of iteration ``it``: the configured one, or with
+        ``random_background`` a colour drawn from (seed, it), so a resumed run draws the
+        same colours without any generator state to checkpoint."""
+        data = self.config.data
+        if not data.random_background:
+            return data.background
+        r, g, b = np.random.default_rng([self.config.seed, it]).random(3).tolist()
+        return (r, g, b)
+
     def _loss(self, pred: Tensor, view: TrainView, visible: Tensor) -> Tensor:
         cfg = self.config.loss
         loss = photometric_loss_fast(pred, view.target, view.weight, cfg.lambda_dssim)
@@ -455,7 +465,9 @@ class Trainer:
         ph.mark("pose")
         gaussians = world_gaussians(self.state, frames, cfg.active_sh_degree(it))
         gaussians.means.retain_grad()
-        request = RenderRequest(outputs=("rgb",), background=cfg.data.background)
+        background = self.background(it)
+        view = replace(view, target=view.on_background(background), background=background)
+        request = RenderRequest(outputs=("rgb",), background=background)
         pred = rasterize(gaussians, view.camera, request).rgb  # [h, w, 3]
         ph.mark("render")
         visible, radii = visibility(gaussians, view.camera)  # [N], [N]
