@@ -173,7 +173,7 @@ def _png(path: Path, rgb: np.ndarray) -> None:
 
 
 def evaluate(package: Path, out: Path, size: int, crops: bool = True,
-             sh_degree: int | None = None) -> dict:
+             sh_degree: int | None = None, poses: tuple[str, ...] = tuple(POSES)) -> dict:
     files = ensure_models(None, seed=0)
     actor = Actor.load(files, 0)
     rig = model_rig(files, actor.model)
@@ -183,7 +183,8 @@ def evaluate(package: Path, out: Path, size: int, crops: bool = True,
     request = RenderRequest(outputs=("rgb", "alpha"), background=BACKGROUND,
                             sh_degree=sh_degree)
     rows = []
-    for pose_name, pose in POSES.items():
+    for pose_name in poses:
+        pose = POSES[pose_name]
         params = pose_to_params(pose, rig)
         params["betas"] = np.asarray(actor.betas, dtype=np.float64)
         posed_actor = actor.pose(params)
@@ -240,29 +241,97 @@ def evaluate(package: Path, out: Path, size: int, crops: bool = True,
     return result
 
 
-def package_of(path: Path, out: Path) -> Path:
+def coverage(motions: str, frames: int, size: int, stride: int = 3) -> dict[str, float]:
+    """Per region: the share of its triangles that the training cameras see (z-buffer, at
+    least one pixel) in any frame of the capture ``motions`` (every ``stride``-th frame),
+    filmed as the demo films them: is the region in the training data at all?"""
+    from avatar_core.motion.library import motion_sequence
+    from avatar_core.synth.capture import parse_sequences
+
+    files = ensure_models(None, seed=0)
+    actor = Actor.load(files, 0)
+    rig_params = model_rig(files, actor.model)
+    regions = face_regions(actor, rig_params)
+    rig = studio_rig(size, StudioConfig(), seed=0)
+    held = default_holdout(rig)
+    faces = actor.faces[: actor.num_body_faces]
+    seen = np.zeros(len(faces), bool)
+    for seq in parse_sequences(motions):
+        track = motion_sequence(list(seq))
+        for f in range(0, frames, stride):
+            params = track.sample(f / StudioConfig().fps, rig_params)
+            params["betas"] = np.asarray(actor.betas, dtype=np.float64)
+            posed = actor.pose(params)
+            for cam in rig:
+                if cam.name in held:
+                    continue
+                ids = render_mesh(posed.body_vertices, faces, cam.camera, shading=False).face_id
+                seen[np.unique(ids[ids >= 0])] = True
+    upper = np.isin(actor.face_parts[: actor.num_body_faces],
+                    [SMPLX_PART_NAMES.index(p) for p in UPPER_BODY_PARTS])
+    out = {name: float(seen[sel].mean()) for name, sel in regions.items()}
+    out["upper_body"] = float(seen[upper].mean())
+    return out
+
+
+def package_of(path: Path, out: Path, fill_unseen: bool = False) -> Path:
     """``path`` itself when it is a package, else a training folder's latest checkpoint
-    exported under ``out`` (to measure a run part-way)."""
-    if (path / "avatar.json").is_file():
+    exported under ``out`` (to measure a run part-way). ``fill_unseen`` (the swap
+    experiment for the armpit): the Gaussians still at the grey initial colour take the
+    colour that ``init_unseen = "neighbours"`` would have given them at the start; no
+    gradient reached them, so this is what that training would hold."""
+    if (path / "avatar.json").is_file() and not fill_unseen:
         return path
+    from dataclasses import replace
+
+    from avatar_core.gaussians.avatar import DEFAULT_COLOR
+    from avatar_core.render.sh import rgb_to_sh0
     from avatar_core.train.trainer import Trainer
 
-    return Trainer.resume(path).export(out / "package")
+    trainer = Trainer.resume(path)
+    if fill_unseen:
+        trainer.config = replace(trainer.config, init_unseen="neighbours")
+        filled = torch.as_tensor(trainer._projected_colors(), dtype=torch.float32)
+        sh0 = trainer.state["sh0"]
+        grey = rgb_to_sh0(torch.tensor(DEFAULT_COLOR, dtype=sh0.dtype))
+        untouched = (sh0[:, 0] == grey).all(1) & (trainer.state["sh_rest"] == 0).all(2).all(1)
+        with torch.no_grad():
+            sh0[untouched, 0] = rgb_to_sh0(filled[trainer.state["parents"][untouched]])
+        print(f"fill-unseen: {int(untouched.sum())} Gaussians still grey re-coloured")
+    return trainer.export(out / "package")
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("package", type=Path,
+    parser.add_argument("package", type=Path, nargs="?",
                         help="trained avatar package, or a training folder (its checkpoint)")
-    parser.add_argument("--out", type=Path, required=True, help="regions.json and crops/")
+    parser.add_argument("--out", type=Path, help="regions.json and crops/")
+    parser.add_argument("--coverage", default=None, metavar="MOTIONS",
+                        help="instead: the share of each region the training cameras see "
+                             "in a capture of MOTIONS (--frames per sequence)")
+    parser.add_argument("--frames", type=int, default=40, help="with --coverage")
+    parser.add_argument("--fill-unseen", action="store_true",
+                        help="swap: Gaussians still grey from the start take their "
+                             "neighbours' initial colour (a training folder only)")
     parser.add_argument("--size", type=int, default=512, help="image side, px")
     parser.add_argument("--no-crops", action="store_true")
     parser.add_argument("--sh-degree", type=int, default=None,
                         help="render with at most this SH degree (an experiment's swap)")
+    parser.add_argument("--poses", default=",".join(POSES),
+                        help=f"comma-separated, of {list(POSES)}")
     args = parser.parse_args(argv)
-    result = evaluate(package_of(args.package, args.out), args.out, args.size,
+    if args.coverage:
+        print(json.dumps(coverage(args.coverage, args.frames, args.size)))
+        return 0
+    if args.package is None or args.out is None:
+        parser.error("give PACKAGE and --out (or --coverage)")
+    poses = tuple(p for p in args.poses.split(",") if p)
+    unknown = sorted(set(poses) - set(POSES))
+    if unknown:
+        parser.error(f"unknown pose(s) {unknown}; known: {list(POSES)}")
+    result = evaluate(package_of(args.package, args.out, args.fill_unseen), args.out, args.size,
                       crops=not args.no_crops,
-                      sh_degree=args.sh_degree)
+                      sh_degree=args.sh_degree, poses=poses)
     s = result["summary"]
     print(" ".join(f"{k}={v:.4g}" for k, v in s.items()))
     print(json.dumps(result["gaussians"]))

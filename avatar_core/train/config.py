@@ -208,6 +208,9 @@ class TrainConfig:
     sh_degree: int = 3
     sh_interval: int = 1_000         # +1 active SH degree every this many iterations (3DGS)
     init_color: str = "project"      # "project": sampled from the training views; "grey"
+    # triangles no view saw at init: "neighbours" (their coloured neighbours' mean) or "grey";
+    # never seen later either (an armpit), they keep it: grey showed as smudges (demo)
+    init_unseen: str = "grey"
     checkpoint_interval: int = 10_000
     progress_interval: int = 10      # iterations between progress events
     data: DataConfig = field(default_factory=DataConfig)
@@ -223,6 +226,8 @@ class TrainConfig:
             _require(getattr(self, name) >= 1, name, "must be >= 1", getattr(self, name))
         _require(self.init_color in ("project", "grey"), "init_color",
                  "must be 'project' or 'grey'", self.init_color)
+        _require(self.init_unseen in ("neighbours", "grey"), "init_unseen",
+                 "must be 'neighbours' or 'grey'", self.init_unseen)
         _require(self.device == "auto" or self.device.split(":")[0] in ("cpu", "cuda", "mps"),
                  "device", "must be 'auto', 'cpu', 'cuda[:N]' or 'mps'", self.device)
 
