@@ -1,6 +1,7 @@
 """The recipe's fixes for the demo avatar's artefacts (issue 26), on a tiny synthetic capture:
 lower-body pixels supervised as background (the hem), a random background per iteration
-(floaters), and that both keep a resumed run identical to an uninterrupted one."""
+(floaters), unseen triangles coloured from their neighbours (armpits), and that the fixes
+keep a resumed run identical to an uninterrupted one."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from avatar_core.dataset import load_dataset
 from avatar_core.synth.capture import CaptureSpec, capture
 from avatar_core.train.config import ConfigError, DataConfig, config_from_dict, preset
 from avatar_core.train.data import composite, loss_weights, prepare_view
+from avatar_core.train.posing import fill_unseen_colors
 from avatar_core.train.trainer import Trainer
 
 
@@ -67,6 +69,7 @@ def test_a_view_recomposited_on_another_background_is_the_composite_there(datase
 @pytest.mark.parametrize("values, key", [
     ({"data": {"lower_body": "legs"}}, "data.lower_body"),
     ({"data": {"random_background": 1}}, "data.random_background"),
+    ({"init_unseen": "black"}, "init_unseen"),
 ])
 def test_bad_artefact_options_name_the_key(values, key):
     with pytest.raises(ConfigError, match=key):
@@ -106,3 +109,37 @@ def test_the_fixes_train_and_resume_bit_identically(dataset, synthetic_files, tm
     for k in straight.state:
         assert torch.equal(straight.state[k], resumed.state[k]), k
     assert straight.skipped == 0
+
+
+def test_unseen_triangles_take_their_neighbours_colour_within_their_part():
+    # a strip of 6 triangles over vertices 0..7 (each shares an edge with the next); parts
+    # 0 0 0 0 | 1 1; only the first and the last are seen
+    faces = np.array([[i, i + 1, i + 2] for i in range(6)])
+    parts = np.array([0, 0, 0, 0, 1, 1])
+    nan = [np.nan] * 3
+    colors = np.array([[1.0, 0.0, 0.0], nan, nan, nan, nan, [0.0, 0.0, 1.0]])
+    out = fill_unseen_colors(colors, faces, parts)
+    assert np.isfinite(out).all()
+    assert np.allclose(out[:4], [1.0, 0.0, 0.0])  # part 0 from its red triangle only
+    assert np.allclose(out[4:], [0.0, 0.0, 1.0])  # part 1 from its blue one
+    assert np.array_equal(out[[0, 5]], colors[[0, 5]])  # seen ones untouched
+    # a part no view saw stays NaN (the caller makes it grey); so do triangles out of reach
+    lonely = fill_unseen_colors(colors, faces, np.array([0, 0, 0, 2, 1, 1]))
+    assert np.isnan(lonely[3]).all() and np.isfinite(np.delete(lonely, 3, 0)).all()
+    ring = fill_unseen_colors(colors, faces, parts, max_rings=1)
+    assert np.isfinite(ring[1]).all() and np.isnan(ring[3]).all()
+
+
+def test_training_starts_unseen_triangles_from_their_neighbours(dataset, synthetic_files,
+                                                                tmp_path):
+    from avatar_core.gaussians.avatar import DEFAULT_COLOR
+    from avatar_core.render.sh import rgb_to_sh0
+
+    grey = rgb_to_sh0(torch.tensor(DEFAULT_COLOR))
+    still_grey = {}
+    for mode in ("grey", "neighbours"):
+        cfg = dataclasses.replace(_config(), init_unseen=mode)
+        trainer = Trainer(dataset, cfg, tmp_path / mode, body_model=synthetic_files.root)
+        still_grey[mode] = int((trainer.state["sh0"][:, 0] == grey).all(1).sum())
+    assert still_grey["grey"] > 0  # 4 cameras leave triangles unseen
+    assert still_grey["neighbours"] < still_grey["grey"] / 10
