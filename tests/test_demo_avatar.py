@@ -78,4 +78,3 @@ def test_demo_preset_is_a_compressed_quick_schedule():
     assert demo.finetune.enabled and demo.data.fusion  # the full recipe, shorter
     # with the fixes for the demo's artefacts (issue 26)
     assert demo.data.lower_body == "background" and demo.data.random_background
-    assert demo.init_unseen == "neighbours"

@@ -79,9 +79,9 @@ def test_bad_artefact_options_name_the_key(values, key):
 def _config(**data):
     cfg = preset("test")
     return dataclasses.replace(
-        cfg, iterations=20, checkpoint_interval=10, data=dataclasses.replace(cfg.data, **data),
-        densify=dataclasses.replace(cfg.densify, from_iter=5, interval=5,
-                                    opacity_reset_interval=15))
+        cfg, iterations=12, checkpoint_interval=6, data=dataclasses.replace(cfg.data, **data),
+        densify=dataclasses.replace(cfg.densify, from_iter=3, interval=3,
+                                    opacity_reset_interval=9))
 
 
 def test_random_background_is_drawn_per_iteration_from_the_seed(dataset, synthetic_files,
@@ -103,7 +103,7 @@ def test_the_fixes_train_and_resume_bit_identically(dataset, synthetic_files, tm
     straight = Trainer(dataset, cfg, tmp_path / "a", body_model=synthetic_files.root)
     straight.train()
     first = Trainer(dataset, cfg, tmp_path / "b", body_model=synthetic_files.root)
-    assert first.train(stop_at=10) is None
+    assert first.train(stop_at=6) is None
     resumed = Trainer.resume(tmp_path / "b", dataset)
     resumed.train()
     for k in straight.state:

@@ -208,8 +208,8 @@ class TrainConfig:
     sh_degree: int = 3
     sh_interval: int = 1_000         # +1 active SH degree every this many iterations (3DGS)
     init_color: str = "project"      # "project": sampled from the training views; "grey"
-    # triangles no view saw at init: "neighbours" (their coloured neighbours' mean) or "grey";
-    # never seen later either (an armpit), they keep it: grey showed as smudges (demo)
+    # triangles no view saw at init: "neighbours" (their coloured neighbours' mean) or "grey"
+    # (measured: no change to the demo's armpits, whose Gaussians leave grey anyway)
     init_unseen: str = "grey"
     checkpoint_interval: int = 10_000
     progress_interval: int = 10      # iterations between progress events
@@ -260,9 +260,7 @@ def _demo() -> TrainConfig:
     return TrainConfig(
         iterations=2_000, checkpoint_interval=500, sh_interval=400,
         # the demo's artefacts (docs/results.md): the hem frayed past the cut, faint floaters
-        # and grey smudges where the training views never look (the armpits)
         data=DataConfig(lower_body="background", random_background=True),
-        init_unseen="neighbours",
         lr=GaussianLR(position_max_steps=2_000),
         densify=DensifyConfig(from_iter=300, until_iter=1_600, interval=150,
                               opacity_reset_interval=1_000, max_gaussians=60_000))
