@@ -22,10 +22,10 @@ Per iteration (GaussianAvatars' ``train.py`` with MVFGA's additions):
 Initial colours: the synthetic captures have no texture, so each triangle's Gaussian takes
 the colour sampled at its centroid's projection in the first frame of the first training
 sequence, averaged over the training cameras that see that triangle (it faces the camera
-and the pixel shows its body part); triangles seen by none take the mean of their coloured
-neighbours of the same part, ring by ring (``init_unseen = "neighbours"``; "grey" leaves them
-grey, and ``init_color = "grey"`` gives grey everywhere). This starts the photometric loss
-near its floor instead of spending the first thousand iterations on flat colour.
+and the pixel shows its body part); triangles seen by none stay grey, or take the mean of
+their coloured neighbours of the same part with ``init_unseen = "neighbours"``
+(``init_color = "grey"`` gives grey everywhere). This starts the photometric loss near its
+floor instead of spending the first thousand iterations on flat colour.
 
 Checkpoints hold everything the next iteration depends on (Gaussians, both optimisers, the
 density statistics, the fine-tuned deltas, the view order and both generators), so a
