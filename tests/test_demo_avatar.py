@@ -76,3 +76,6 @@ def test_demo_preset_is_a_compressed_quick_schedule():
     assert d.from_iter < d.until_iter <= demo.iterations
     assert demo.lr.position_max_steps == demo.iterations
     assert demo.finetune.enabled and demo.data.fusion  # the full recipe, shorter
+    # with the fixes for the demo's artefacts (issue 26)
+    assert demo.data.lower_body == "background" and not demo.data.random_background
+    assert d.opacity_reset_interval > demo.iterations  # no reset: it cleared the armpits

@@ -10,7 +10,10 @@ LRU cache (decoding three PNGs costs as much as a training step at 512 x 512):
 - a loss weight map: 1 on upper-body pixels and on background, 0 on the lower body (part
   labels not in ``upper_body_parts``), grown by one pixel so the anti-aliased edge of a leg
   does not leak into the loss. The avatar has no legs: those pixels are not its to explain.
-  Without part labels every pixel counts.
+  Without part labels every pixel counts. With ``lower_body = "background"`` the lower-body
+  pixels are the background in the target instead, weighted 1 (only the grown rim where
+  they meet the upper body stays 0): the avatar ends at the cut, so it must leave them
+  clear; ignored, they let Gaussians of the cut's triangles fray past it unseen.
 - with ``crop_to_subject``, the box of the pixels that are both foreground (alpha > 0) and
   weighted (i.e. the upper body; the masked legs are left out), plus ``crop_margin`` px,
   clipped to the image. Only this window is rendered (``Camera.cropped``) and scored, which
@@ -45,7 +48,8 @@ from ..dataset.loader import Dataset, View, ViewKey
 from ..render.camera import Camera
 from .config import DataConfig
 
-__all__ = ["TrainView", "TrainingViews", "composite", "loss_weights", "prepare_view",
+__all__ = ["TrainView", "TrainingViews", "composite", "loss_weights", "lower_body_as_background",
+           "prepare_view",
            "sequence_params", "subject_box", "training_size"]
 
 log = logging.getLogger(__name__)
@@ -64,6 +68,16 @@ class TrainView:
     weight: Tensor        # [h, w] float loss weights (0 on the lower body)
     weight_sum: float     # 0: nothing to learn from this view
     crop: tuple[int, int, int, int] | None  # (x0, y0, w, h) in the scaled image
+    alpha: Tensor | None = None  # [h, w] the target's coverage (None: no alpha, opaque)
+    background: tuple[float, float, float] = (1.0, 1.0, 1.0)  # the target's
+
+    def on_background(self, background: tuple[float, float, float]) -> Tensor:
+        """[h, w, 3] the target composited on ``background`` instead of its own."""
+        if self.alpha is None or tuple(background) == tuple(self.background):
+            return self.target
+        shift = torch.tensor(background, dtype=self.target.dtype, device=self.target.device) \
+            - torch.tensor(self.background, dtype=self.target.dtype, device=self.target.device)
+        return self.target + (1.0 - self.alpha)[..., None] * shift
 
 
 def training_size(width: int, height: int, config: DataConfig) -> tuple[int, int]:
@@ -94,6 +108,17 @@ def loss_weights(parts: np.ndarray | None, upper_ids: tuple[int, ...], shape: tu
         kernel = np.ones((2 * grow + 1, 2 * grow + 1), np.uint8)
         lower = cv2.dilate(lower.astype(np.uint8), kernel) > 0
     return (~lower).astype(np.float32)
+
+
+def lower_body_as_background(target: np.ndarray, weight: np.ndarray, parts: np.ndarray,
+                             upper_ids: tuple[int, ...], background: tuple[float, float, float]
+                             ) -> tuple[np.ndarray, np.ndarray]:
+    """(target, weight) with the lower-body pixels set to ``background`` and weighted 1; the
+    rim that :func:`loss_weights` grew onto other pixels stays 0 (mixed colours)."""
+    lower = (parts >= 0) & ~np.isin(parts, np.asarray(upper_ids, dtype=parts.dtype))
+    target = np.where(lower[..., None], np.asarray(background, np.float32), target)
+    weight = np.where(lower, np.float32(1.0), weight)
+    return target.astype(np.float32), weight.astype(np.float32)
 
 
 def subject_box(alpha: np.ndarray | None, weight: np.ndarray, margin: int
@@ -132,14 +157,25 @@ def prepare_view(view: View, config: DataConfig, device: torch.device | str) -> 
     target = composite(rgb, alpha, config.background)            # [H, W, 3]
     weight = loss_weights(parts, view.upper_body_ids, target.shape[:2])  # [H, W]
     box = subject_box(alpha, weight, config.crop_margin) if config.crop_to_subject else None
+    if config.lower_body == "background" and parts is not None:
+        target, weight = lower_body_as_background(target, weight, parts, view.upper_body_ids,
+                                                  config.background)
+        if alpha is not None:  # the legs are background now
+            alpha = np.where(np.isin(parts, np.asarray(view.upper_body_ids, parts.dtype))
+                             | (parts < 0), alpha, 0.0).astype(np.float32)
     if box is not None:
         x0, y0, w, h = box
         camera = camera.cropped(x0, y0, w, h)
         target, weight = target[y0:y0 + h, x0:x0 + w], weight[y0:y0 + h, x0:x0 + w]
-    return TrainView(key=view.key, camera=camera,
-                     target=torch.from_numpy(np.ascontiguousarray(target)).to(device),
-                     weight=torch.from_numpy(np.ascontiguousarray(weight)).to(device),
-                     weight_sum=float(weight.sum()), crop=box)
+        alpha = None if alpha is None else alpha[y0:y0 + h, x0:x0 + w]
+
+    def tensor(a: np.ndarray) -> Tensor:
+        return torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32)).to(device)
+
+    return TrainView(key=view.key, camera=camera, target=tensor(target), weight=tensor(weight),
+                     weight_sum=float(weight.sum()), crop=box,
+                     alpha=None if alpha is None else tensor(alpha),
+                     background=tuple(config.background))
 
 
 class TrainingViews:

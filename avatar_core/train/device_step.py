@@ -22,6 +22,7 @@ path's iteration except for when a skipped view is logged (at the next report, a
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import torch
@@ -76,7 +77,9 @@ def fit_on_device(tr: Trainer, view: TrainView, it: int) -> StepResult | None:
     tr._posed_k = frames.scale.detach()
     gaussians = world_gaussians(tr.state, frames, cfg.active_sh_degree(it))
     gaussians.means.retain_grad()
-    request = RenderRequest(outputs=("rgb",), background=cfg.data.background)
+    background = tr.background(it)
+    view = replace(view, target=view.on_background(background), background=background)
+    request = RenderRequest(outputs=("rgb",), background=background)
     pred = rasterize(gaussians, view.camera, request, check_finite=False).rgb  # [h, w, 3]
     visible, radii = screen_visibility(gaussians, view.camera, validate=False)  # [N], [N]
     loss = photometric_loss_fast(pred, view.target, view.weight, cfg.loss.lambda_dssim)

@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from scipy import sparse
 from torch import Tensor
 
 from ..body.fusion import FusionModels
@@ -153,6 +154,39 @@ def project_face_colors(vertices: np.ndarray, faces: np.ndarray, face_parts: np.
         count[f] += 1
     with np.errstate(invalid="ignore", divide="ignore"):
         return total / count[:, None]
+
+
+def fill_unseen_colors(colors: np.ndarray, faces: np.ndarray, face_parts: np.ndarray,
+                       max_rings: int = 64) -> np.ndarray:
+    """[F, 3] ``colors`` with the NaN rows (triangles no view saw) filled, ring by ring, with
+    the mean of their already coloured neighbours (sharing a vertex) of the same part; rows
+    still unreached after ``max_rings`` stay NaN. Unseen triangles (an armpit the training
+    views never look into) otherwise keep a flat grey that no gradient ever corrects."""
+    out = np.array(colors, dtype=np.float64)
+    known = np.isfinite(out).all(1)
+    n_faces, n_verts = len(faces), int(faces.max()) + 1
+    incidence = sparse.csr_matrix((np.ones(faces.size), (np.repeat(np.arange(n_faces), 3),
+                                                          faces.reshape(-1))),
+                                  shape=(n_faces, n_verts))
+    adjacency = (incidence @ incidence.T).tocsr()  # faces sharing a vertex
+    same = face_parts[adjacency.nonzero()[0]] == face_parts[adjacency.nonzero()[1]]
+    rows, cols = adjacency.nonzero()
+    adjacency = sparse.csr_matrix((same.astype(np.float64), (rows, cols)),
+                                  shape=(n_faces, n_faces))
+    for _ in range(max_rings):
+        todo = ~known
+        if not todo.any():
+            break
+        weights = adjacency[todo][:, known]
+        count = np.asarray(weights.sum(1)).ravel()
+        reached = count > 0
+        if not reached.any():
+            break
+        mean = (weights @ out[known]) / np.maximum(count, 1)[:, None]
+        idx = np.flatnonzero(todo)[reached]
+        out[idx] = mean[reached]
+        known[idx] = True
+    return out
 
 
 # -- world Gaussians ----------------------------------------------------------------------

@@ -22,9 +22,10 @@ Per iteration (GaussianAvatars' ``train.py`` with MVFGA's additions):
 Initial colours: the synthetic captures have no texture, so each triangle's Gaussian takes
 the colour sampled at its centroid's projection in the first frame of the first training
 sequence, averaged over the training cameras that see that triangle (it faces the camera
-and the pixel shows its body part); triangles seen by none stay grey (``init_color =
-"grey"`` gives grey everywhere). This starts the photometric loss near its floor instead of
-spending the first thousand iterations on flat colour.
+and the pixel shows its body part); triangles seen by none stay grey, or take the mean of
+their coloured neighbours of the same part with ``init_unseen = "neighbours"``
+(``init_color = "grey"`` gives grey everywhere). This starts the photometric loss near its
+floor instead of spending the first thousand iterations on flat colour.
 
 Checkpoints hold everything the next iteration depends on (Gaussians, both optimisers, the
 density statistics, the fine-tuned deltas, the view order and both generators), so a
@@ -81,6 +82,7 @@ from .optim import (
 from .photometric import photometric_loss_fast
 from .posing import (
     face_part_ids,
+    fill_unseen_colors,
     fine_tune_deltas,
     frame_inputs,
     fusion_models,
@@ -291,9 +293,13 @@ class Trainer:
         parts = face_part_ids(self.body.model, self.body.segmentation, self.dataset.part_names)
         colors = project_face_colors(verts.cpu().double().numpy(), faces, parts, views)
         seen = np.isfinite(colors).all(1)
-        log.info("initial colours: %d of %d triangles seen in %d views of %s frame 0, the "
-                 "rest grey", int(seen.sum()), len(faces), len(views), seq)
-        colors[~seen] = DEFAULT_COLOR
+        if self.config.init_unseen == "neighbours":
+            colors = fill_unseen_colors(colors, faces, parts)
+        filled = np.isfinite(colors).all(1)
+        log.info("initial colours: %d of %d triangles seen in %d views of %s frame 0, %d "
+                 "more from their neighbours, the rest grey", int(seen.sum()), len(faces),
+                 len(views), seq, int(filled.sum() - seen.sum()))
+        colors[~filled] = DEFAULT_COLOR
         return colors
 
     # -- checkpoints ---------------------------------------------------------------------
@@ -398,6 +404,16 @@ class Trainer:
                 self._frame_cache.popitem(last=False)
         return frames
 
+    def background(self, it: int) -> tuple[float, float, float]:
+        """The background of iteration ``it``: the configured one, or with
+        ``random_background`` a colour drawn from (seed, it), so a resumed run draws the
+        same colours without any generator state to checkpoint."""
+        data = self.config.data
+        if not data.random_background:
+            return data.background
+        r, g, b = np.random.default_rng([self.config.seed, it]).random(3).tolist()
+        return (r, g, b)
+
     def _loss(self, pred: Tensor, view: TrainView, visible: Tensor) -> Tensor:
         cfg = self.config.loss
         loss = photometric_loss_fast(pred, view.target, view.weight, cfg.lambda_dssim)
@@ -455,7 +471,9 @@ class Trainer:
         ph.mark("pose")
         gaussians = world_gaussians(self.state, frames, cfg.active_sh_degree(it))
         gaussians.means.retain_grad()
-        request = RenderRequest(outputs=("rgb",), background=cfg.data.background)
+        background = self.background(it)
+        view = replace(view, target=view.on_background(background), background=background)
+        request = RenderRequest(outputs=("rgb",), background=background)
         pred = rasterize(gaussians, view.camera, request).rgb  # [h, w, 3]
         ph.mark("render")
         visible, radii = visibility(gaussians, view.camera)  # [N], [N]
