@@ -38,6 +38,7 @@ from pydantic import BaseModel, ValidationError
 
 from protocol import (
     FAMILIES,
+    AvatarReplaced,
     CameraSpec,
     Drive,
     Error,
@@ -480,6 +481,9 @@ class StreamClient:
         elif isinstance(message, Presence):
             self.presence = message
             self._presence_event.set()
+        elif isinstance(message, AvatarReplaced):  # the trained demo, swapped in: same link
+            if message.avatar.id == self.welcome.avatar.id:
+                self.welcome = self.welcome.model_copy(update={"avatar": message.avatar})
         elif isinstance(message, Error):
             self.errors.append(message)
             if message.code == RESTARTING:

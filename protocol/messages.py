@@ -28,7 +28,8 @@ from .limits import DEFAULT_LIMITS, Limits
 from .params import validate_family
 
 PROTOCOL_VERSION = 1
-PROTOCOL_MINOR = 1  # 1: rooms (hello.role/seat, welcome.room/minor, presence)
+PROTOCOL_MINOR = 2  # 1: rooms (hello.role/seat, welcome.room/minor, presence); 2: avatar
+#                    (a seat's avatar replaced in place)
 MAX_SEATS = 16      # seat indices on the wire; server settings bound a room's seats further
 MAX_SEQ = 2**53 - 1  # exact in a JavaScript number
 
@@ -319,6 +320,16 @@ class Presence(_Message):
     role: Role | None = None
 
 
+class AvatarReplaced(_Message):
+    """The avatar ``avatar.id`` was replaced in place (the trained demo built behind its
+    stand-in): the frames after this message show it on ``seats``. Sent to every participant
+    of a scene that shows it, plain sessions included; the connection stays."""
+
+    type: Literal["avatar"] = "avatar"
+    avatar: AvatarInfo
+    seats: list[SeatIndex]
+
+
 class Timings(_Message):
     """Milliseconds per stage of this frame (track is 0 unless a webcam frame drove it)."""
 
@@ -371,9 +382,9 @@ class Pong(_Message):
 
 ClientMessage = Annotated[Hello | Drive | View | Request | Image | Ping,
                           Field(discriminator="type")]
-ServerMessage = Annotated[Welcome | Frame | Error | Stats | Pong | Presence,
-                          Field(discriminator="type")]
+ServerMessage = Annotated[Welcome | Frame | Error | Stats | Pong | Presence
+                          | AvatarReplaced, Field(discriminator="type")]
 CLIENT_TYPES = {m.model_fields["type"].default: m for m in (Hello, Drive, View, Request, Image,
                                                              Ping)}
 SERVER_TYPES = {m.model_fields["type"].default: m for m in (Welcome, Frame, Error, Stats, Pong,
-                                                             Presence)}
+                                                             Presence, AvatarReplaced)}

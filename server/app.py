@@ -11,10 +11,12 @@ CORSMiddleware answers browsers of those origins (preflights included).
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import contextlib
 import logging
 import time
 from collections.abc import AsyncIterator
+from functools import partial
 from pathlib import Path
 
 from fastapi import FastAPI
@@ -33,8 +35,9 @@ from .jobs.demo_build import DemoBuild
 from .logsafe import install_log_redaction
 from .metrics import ServerMetrics
 from .private import private_dir
-from .registry import DEMO_ID, AvatarRegistry
+from .registry import DEMO_ID, AvatarRecord, AvatarRegistry
 from .rooms.registry import Placement, RoomRegistry, SeatSpec
+from .rooms.reload import reload_avatar
 from .rooms.restart import RESTART_MESSAGE, announce_restart
 from .rooms.store import RoomStore, store_path
 from .routers import avatars, jobs, motions, rooms, stream, system, webrtc
@@ -115,6 +118,20 @@ def _start(ctx: ServerContext) -> None:
         open_startup_room(ctx)
 
 
+def _reload_demo(ctx: ServerContext, loop: asyncio.AbstractEventLoop,
+                 stand_in: AvatarRecord | None) -> None:
+    """The trained demo replaced its stand-in: reload it into the live rooms and sessions
+    (on the loop; called from the build's thread, which waits until the server stops)."""
+    future = asyncio.run_coroutine_threadsafe(reload_avatar(ctx, DEMO_ID, stand_in), loop)
+    while not ctx.demo_build.stopping:
+        try:
+            future.result(timeout=1.0)
+            return
+        except concurrent.futures.TimeoutError:
+            continue
+    future.cancel()
+
+
 async def _sweep_rooms(ctx: ServerContext) -> None:
     """Close rooms left empty for room_idle_timeout_s (checked a few times per timeout)."""
     interval = min(5.0, ctx.settings.room_idle_timeout_s / 4)
@@ -164,6 +181,8 @@ def create_app(settings: Settings) -> FastAPI:
         try:
             async with jobs.lifespan(ctx):  # the training worker
                 # the trained demo, when not built yet: its job trains while we serve
+                ctx.demo_build.on_replaced = partial(_reload_demo, ctx,
+                                                     asyncio.get_running_loop())
                 await asyncio.to_thread(ctx.demo_build.start, ctx.jobs)
                 try:
                     yield

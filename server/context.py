@@ -78,6 +78,13 @@ class ServerContext:
                 manos = self._manos[avatar_id] = mano_models(loaded)
         return animator, manos
 
+    def forget_models(self, avatar_id: str) -> None:
+        """The avatar was replaced in place: its cached MANO models and motion rig go (the
+        registry drops its loaded copy itself)."""
+        with self._manos_lock:
+            self._manos.pop(avatar_id, None)
+        self.motion_rigs.pop(avatar_id, None)
+
     def session_tracker(self, avatar_id: str) -> SessionTracker:
         """A session's own webcam tracker, fitting on the avatar's (shared, read-only) body
         model with the avatar's identity; its models load on the first image."""

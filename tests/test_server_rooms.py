@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import websockets
 
-from protocol import Drive, Hello, Image, Orbit, Ping, Request, View, encode
+from protocol import PROTOCOL_MINOR, Drive, Hello, Image, Orbit, Ping, Request, View, encode
 from server.stream import scene as room_frames
 from server.stream.drive import DriveState, fit_drive
 from server.stream.scene import view_camera
@@ -140,7 +140,8 @@ def test_a_performers_jaw_reaches_the_viewer_and_the_viewers_view_stays_its_own(
     async def run():
         async with join(srv, room["id"], perform["token"], client="cam") as performer, \
                 join(srv, room["id"], watch["token"], client="viewer") as viewer:
-            assert performer.welcome.room.role == "perform" and performer.welcome.minor == 1
+            assert performer.welcome.room.role == "perform"
+            assert performer.welcome.minor == PROTOCOL_MINOR
             assert viewer.welcome.room.role == "watch" and viewer.welcome.room.seat is None
             presence = await recv_until(viewer, is_type("presence"))
             assert presence.seats[0].performer == "cam" and presence.viewers == 1

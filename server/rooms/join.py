@@ -171,8 +171,8 @@ async def seat_participant(ctx: ServerContext, room: Room, role: str, seat: int,
     spec = next(x for x in room.seats if x.index == seat)
     try:
         live = await open_live(ctx, room)
-        record = ctx.registry.get(spec.avatar)
         tracker = await asyncio.to_thread(ctx.session_tracker, spec.avatar)
+        record = ctx.registry.get(spec.avatar)  # after the last wait: the welcome's is current
     except Exception as exc:  # noqa: BLE001 - a broken package must not take the server down
         log.exception("cannot open room %s", room.id)
         if room.private and room.live is not None:
@@ -206,10 +206,14 @@ async def seat_participant(ctx: ServerContext, room: Room, role: str, seat: int,
     return session, welcome
 
 
+def avatar_info(record: AvatarRecord) -> AvatarInfo:
+    return AvatarInfo(id=record.id, name=record.name, num_gaussians=record.num_gaussians,
+                      sh_degree=record.sh_degree, owner=record.owner, metadata=record.metadata)
+
+
 def _welcome(session: Session, record: AvatarRecord, room: Room, role: str, seat: int,
              request: Request, s: Any) -> Welcome:
-    info = AvatarInfo(id=record.id, name=record.name, num_gaussians=record.num_gaussians,
-                      sh_degree=record.sh_degree, owner=record.owner, metadata=record.metadata)
+    info = avatar_info(record)
     if room.private:  # a plain session: no room in its welcome
         return Welcome(session=session.id, avatar=info, limits=s.limits, codecs=list(CODECS),
                        request=request, encoders=encoders_info())
