@@ -13,6 +13,7 @@ from protocol import (
     CLIENT_TYPES,
     SERVER_TYPES,
     AvatarInfo,
+    AvatarReplaced,
     CameraSpec,
     Drive,
     Error,
@@ -77,6 +78,8 @@ SERVER_EXAMPLES = [
     Presence(room="r1", seats=[SeatPresence(index=0, avatar="demo", performer="cam",
                                             holding=False)],
              viewers=3, event="join", who="viewer", role="watch"),
+    AvatarReplaced(avatar=AvatarInfo(id="demo", name="ada", num_gaussians=9, sh_degree=3,
+                                     owner="public", metadata={"trained": True}), seats=[0]),
 ]
 
 

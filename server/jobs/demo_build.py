@@ -165,9 +165,9 @@ class DemoBuild:
         command, env = capture_process(self.settings, command)
         log.info("trained demo avatar: filming its dataset in %s", root)
         with open(root / CAPTURE_LOG, "ab") as logf:
-            self._process = process = subprocess.Popen(
+            self._process = process = subprocess.Popen(  # process group: as a training job's
                 command, stdout=subprocess.PIPE, stderr=logf, stdin=subprocess.DEVNULL,
-                env=env, text=True, bufsize=1)
+                env=env, text=True, bufsize=1, process_group=0)
             assert process.stdout is not None
             for line in process.stdout:  # ends when the process does (or is terminated)
                 try:
