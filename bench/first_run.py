@@ -49,6 +49,7 @@ sys.path.insert(0, str(REPO))
 
 from bench.waitpolicy import hogs  # noqa: E402
 from client.stream import StreamClient  # noqa: E402
+from server.jobs.demo_build import CAPTURE_SHARE  # noqa: E402
 
 VIEW_HZ = 30.0
 STREAM_WINDOW_S = 20.0  # a session turns the view for this long ...
@@ -256,10 +257,15 @@ def run(args: argparse.Namespace) -> dict:
               "health_ms": {s: {"median": statistics.median(v),
                                 "p95": sorted(v)[int(0.95 * (len(v) - 1))], "n": len(v)}
                             for s, v in line.health_ms.items() if v}}
-    if "trained" not in line.marks and line.progress > 0 and "page" in line.marks:
-        # the rate seen so far, over the build's time (from the server being up)
-        build_s = elapsed - line.marks["page"]
-        result["trained_estimate_s"] = line.marks["page"] + build_s / line.progress
+    marks = line.marks
+    if "trained" not in marks and "captured" in marks and line.progress > CAPTURE_SHARE:
+        # the training's rate so far (its share of the progress since the capture ended)
+        part = (line.progress - CAPTURE_SHARE) / (1 - CAPTURE_SHARE)
+        result["trained_estimate_s"] = marks["captured"] + (elapsed - marks["captured"]) / part
+    elif "trained" not in marks and "page" in marks and line.progress > 0:
+        # still filming: the capture's rate so far, over its share
+        result["captured_estimate_s"] = (marks["page"] + (elapsed - marks["page"])
+                                         * CAPTURE_SHARE / line.progress)
     if "page" not in line.marks:
         result["server_log_tail"] = log_tail
     return result
@@ -293,9 +299,12 @@ def main() -> None:
     print("|---:|---:|---:|---:|---:|---:|---:|")
     cells = [f"{marks[k]:.0f} s" if k in marks else "-" for k in
              ("health", "page", "frame", "captured", "trained")]
-    if "trained" not in marks and "trained_estimate_s" in result:
-        cells[-1] = (f"not by {result['elapsed_s']:.0f} s ({100 * result['progress_at_end']:.0f}%"
-                     f", ~{result['trained_estimate_s'] / 60:.0f} min at that rate)")
+    if "trained" not in marks:
+        cells[-1] = f"not by {result['elapsed_s']:.0f} s ({100 * result['progress_at_end']:.0f}%)"
+        if "trained_estimate_s" in result:
+            cells[-1] += f", ~{result['trained_estimate_s'] / 60:.0f} min at the training's rate"
+        if "captured_estimate_s" in result:
+            cells[-2] = f"~{result['captured_estimate_s'] / 60:.0f} min at its rate"
     load = result["load_avg"]["median"]
     load_cell = "-" if load is None else f"{load:.1f}"
     print(f"| {args.hog} | " + " | ".join(cells) + f" | {load_cell} |")
