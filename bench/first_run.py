@@ -227,10 +227,13 @@ def run(args: argparse.Namespace) -> dict:
                 streamer = threading.Thread(target=lambda: asyncio.run(
                     stream_session(base, token, line, deadline)), daemon=True)
                 streamer.start()
-                while time.monotonic() < deadline and not line.done.is_set() \
-                        and "failed" not in line.marks and server.poll() is None:
-                    loads.append(os.getloadavg()[0])
-                    time.sleep(5.0)
+                try:
+                    while time.monotonic() < deadline and not line.done.is_set() \
+                            and "failed" not in line.marks and server.poll() is None:
+                        loads.append(os.getloadavg()[0])
+                        time.sleep(5.0)
+                except KeyboardInterrupt:  # stopped early: what was seen so far is reported
+                    line.marks.setdefault("stopped", line.now())
                 line.done.set()
                 streamer.join(timeout=15)
                 watcher.join(timeout=15)
