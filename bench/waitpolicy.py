@@ -31,10 +31,12 @@ _HOG = (
 
 
 @contextlib.contextmanager
-def hogs(n: int) -> Iterator[list[subprocess.Popen]]:
-    """``n`` busy-loop processes for the duration of the block."""
-    procs = [subprocess.Popen([sys.executable, "-c", _HOG.format(max_s=HOG_MAX_S)])
-             for _ in range(max(0, n))]
+def hogs(n: int, own_session: bool = False) -> Iterator[list[subprocess.Popen]]:
+    """``n`` busy-loop processes for the duration of the block; ``own_session``: each in a
+    session of its own (Linux's autogroup scheduling then shares the CPU with them as with
+    other users' programs, and ``nice`` values here do not count against them)."""
+    procs = [subprocess.Popen([sys.executable, "-c", _HOG.format(max_s=HOG_MAX_S)],
+                              start_new_session=own_session) for _ in range(max(0, n))]
     try:
         yield procs
     finally:

@@ -38,6 +38,7 @@ from pydantic import BaseModel, ValidationError
 
 from protocol import (
     FAMILIES,
+    AvatarReplaced,
     CameraSpec,
     Drive,
     Error,
@@ -506,6 +507,9 @@ class StreamClient:
         elif isinstance(message, Voice):
             if self.on_voice is not None:
                 self.on_voice(message, time.monotonic())
+        elif isinstance(message, AvatarReplaced):  # the trained demo, swapped in: same link
+            if message.avatar.id == self.welcome.avatar.id:
+                self.welcome = self.welcome.model_copy(update={"avatar": message.avatar})
         elif isinstance(message, Error):
             self.errors.append(message)
             if message.code == RESTARTING:

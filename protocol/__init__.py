@@ -16,6 +16,7 @@ from .messages import (
     PROTOCOL_VERSION,
     SERVER_TYPES,
     AvatarInfo,
+    AvatarReplaced,
     CameraSpec,
     Drive,
     Error,
@@ -41,7 +42,8 @@ from .params import FAMILIES
 
 __all__ = [
     "CLIENT_TYPES", "CODECS", "DEFAULT_LIMITS", "ERROR_CODES", "FAMILIES", "OUTPUTS",
-    "PROTOCOL_MINOR", "PROTOCOL_VERSION", "SERVER_TYPES", "AvatarInfo", "CameraSpec", "Drive",
+    "PROTOCOL_MINOR", "PROTOCOL_VERSION", "SERVER_TYPES", "AvatarInfo", "AvatarReplaced",
+    "CameraSpec", "Drive",
     "Error", "Frame", "Framing", "Hello", "Image", "Limits", "Orbit", "Ping", "Pong", "Presence",
     "ProtocolError", "Request", "RoomWelcome", "SeatPresence", "Stats", "Timings", "Tracked",
     "View", "Voice", "Welcome", "decode_client", "decode_server", "encode", "pack_array",

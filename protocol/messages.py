@@ -34,7 +34,8 @@ from .params import validate_family
 
 PROTOCOL_VERSION = 1
 PROTOCOL_MINOR = 2  # 1: rooms (hello.role/seat, welcome.room/minor, presence)
-#                     2: hello.name, avatar.expression_names, tracked, voice, t_capture
+#                     2: hello.name, avatar.expression_names, tracked, voice, t_capture,
+#                        avatar (a seat's avatar replaced in place)
 MAX_SEATS = 16      # seat indices on the wire; server settings bound a room's seats further
 MAX_SEQ = 2**53 - 1  # exact in a JavaScript number
 MAX_EXPRESSION_NAMES = 100  # as many as an expression vector may hold (params.FAMILIES)
@@ -368,6 +369,16 @@ class Tracked(_Message):
     seen: dict[str, bool] = Field(default_factory=dict)
 
 
+class AvatarReplaced(_Message):
+    """The avatar ``avatar.id`` was replaced in place (the trained demo built behind its
+    stand-in): the frames after this message show it on ``seats``. Sent to every participant
+    of a scene that shows it, plain sessions included; the connection stays."""
+
+    type: Literal["avatar"] = "avatar"
+    avatar: AvatarInfo
+    seats: list[SeatIndex]
+
+
 class Timings(_Message):
     """Milliseconds per stage of this frame (track is 0 unless a webcam frame drove it)."""
 
@@ -434,9 +445,10 @@ class Voice(_Message):
 
 ClientMessage = Annotated[Hello | Drive | View | Request | Image | Ping | Voice,
                           Field(discriminator="type")]
-ServerMessage = Annotated[Welcome | Frame | Error | Stats | Pong | Presence | Tracked | Voice,
-                          Field(discriminator="type")]
+ServerMessage = Annotated[Welcome | Frame | Error | Stats | Pong | Presence | Tracked | Voice
+                          | AvatarReplaced, Field(discriminator="type")]
 CLIENT_TYPES = {m.model_fields["type"].default: m for m in (Hello, Drive, View, Request, Image,
                                                              Ping, Voice)}
 SERVER_TYPES = {m.model_fields["type"].default: m for m in (Welcome, Frame, Error, Stats, Pong,
-                                                             Presence, Tracked, Voice)}
+                                                             Presence, Tracked, Voice,
+                                                             AvatarReplaced)}

@@ -3,18 +3,21 @@
 ``app.state`` carries one thing, ``ctx`` (the ServerContext: settings, tokens, avatars,
 schedulers, metrics, sessions, the job service; in local auth mode ``ctx.local_token`` is the
 admin token printed at start-up, the same at every start: data_dir/local_token). Routes reach
-it through server/dependencies.py. The demo avatar is registered and a warm-up frame rendered
-in the lifespan's start-up (numba compiles its kernels once). With ``cors_origins`` set,
-CORSMiddleware answers browsers of those origins (preflights included).
+it through server/dependencies.py. The demo avatar is registered in the lifespan's start-up; a
+warm-up frame (numba compiles its kernels once) renders behind it, the server already up.
+With ``cors_origins`` set, CORSMiddleware answers browsers of those origins (preflights
+included).
 """
 
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import contextlib
 import logging
 import time
 from collections.abc import AsyncIterator
+from functools import partial
 from pathlib import Path
 
 from fastapi import FastAPI
@@ -33,8 +36,9 @@ from .jobs.demo_build import DemoBuild
 from .logsafe import install_log_redaction
 from .metrics import ServerMetrics
 from .private import private_dir
-from .registry import DEMO_ID, AvatarRegistry
+from .registry import DEMO_ID, AvatarRecord, AvatarRegistry
 from .rooms.registry import Placement, RoomRegistry, SeatSpec
+from .rooms.reload import reload_avatar
 from .rooms.restart import RESTART_MESSAGE, announce_restart
 from .rooms.store import RoomStore, store_path
 from .routers import avatars, jobs, motions, rooms, stream, system, webrtc
@@ -107,12 +111,35 @@ def _start(ctx: ServerContext) -> None:
     if rec is not None:
         log.info("demo avatar %r (%s, %d Gaussians)", rec.id, rec.name, rec.num_gaussians)
     ctx.metrics.avatars.set(len(ctx.registry.list()))
-    if s.warmup and s.render_backend == "local":  # a worker compiles its own
-        took = warm_up(ctx)
-        if took is not None:
-            log.info("warm-up frame rendered in %.1f s", took)
     if s.startup_room:
         open_startup_room(ctx)
+
+
+def _warm_up_behind(ctx: ServerContext) -> None:
+    """The warm-up frame, while the server already answers: the page shows at once, and a
+    first frame asked meanwhile waits for the same kernels (compiled once, under numba's
+    lock). Minutes on a fresh clone of a busy machine (docs/benchmarks.md, "First run")."""
+    try:
+        took = warm_up(ctx)
+    except Exception:  # noqa: BLE001 - a session's first frame compiles them instead
+        log.exception("the warm-up frame failed")
+        return
+    if took is not None:
+        log.info("warm-up frame rendered in %.1f s", took)
+
+
+def _reload_demo(ctx: ServerContext, loop: asyncio.AbstractEventLoop,
+                 stand_in: AvatarRecord | None) -> None:
+    """The trained demo replaced its stand-in: reload it into the live rooms and sessions
+    (on the loop; called from the build's thread, which waits until the server stops)."""
+    future = asyncio.run_coroutine_threadsafe(reload_avatar(ctx, DEMO_ID, stand_in), loop)
+    while not ctx.demo_build.stopping:
+        try:
+            future.result(timeout=1.0)
+            return
+        except concurrent.futures.TimeoutError:
+            continue
+    future.cancel()
 
 
 async def _sweep_rooms(ctx: ServerContext) -> None:
@@ -167,11 +194,17 @@ def create_app(settings: Settings) -> FastAPI:
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         await asyncio.to_thread(_start, ctx)
+        warming = None
+        if settings.warmup and settings.render_backend == "local":  # a worker compiles its own
+            warming = asyncio.create_task(asyncio.to_thread(_warm_up_behind, ctx),
+                                          name="warm-up")
         await ctx.render.start()  # render_backend ray: connects, starts the render workers
         sweeper = asyncio.create_task(_sweep_rooms(ctx), name="rooms:sweep")
         try:
             async with jobs.lifespan(ctx):  # the training worker
                 # the trained demo, when not built yet: its job trains while we serve
+                ctx.demo_build.on_replaced = partial(_reload_demo, ctx,
+                                                     asyncio.get_running_loop())
                 await asyncio.to_thread(ctx.demo_build.start, ctx.jobs)
                 try:
                     yield
@@ -183,6 +216,8 @@ def create_app(settings: Settings) -> FastAPI:
             await announce_restart(ctx, settings.restart_notice_s)
             await ctx.webrtc_peers.close_all(RESTART_MESSAGE)
             await ctx.render.stop()
+        if warming is not None:
+            await warming  # its frame is on the render threads: before they shut down
         await asyncio.to_thread(ctx.scheduler.shutdown)
         await asyncio.to_thread(ctx.track_scheduler.shutdown)
         if ctx.rooms.store is not None:

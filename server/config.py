@@ -222,12 +222,15 @@ class Settings(BaseModel):
                                      "doubles it); bounds how many frames a slow client can "
                                      "have queued. 0: the OS default (autotuned, megabytes).")
     stats_interval_s: float = Field(2.0, gt=0, description="Seconds between 'stats' messages.")
-    warmup: bool = Field(True, description="Render one frame at start-up (numba compiles once).")
+    warmup: bool = Field(True, description="Render one frame at start-up, behind the open "
+                                          "server (numba compiles once).")
     backend: Literal["auto", "torch", "cpu", "gsplat"] = Field(
         "auto", description="Rasterizer backend (auto: gsplat on CUDA, else cpu).")
     job_threads: int = Field(
-        1, ge=1, le=64, description="torch / numba / BLAS threads of each training process "
-                                    "(and of the trained demo's capture process).")
+        2, ge=1, le=64, description="torch / numba / BLAS threads of each training process "
+                                    "(and of the trained demo's capture process). Its pools "
+                                    "wait passively, so 2 trains faster than 1 also beside "
+                                    "other work (docs/benchmarks.md, \"First run\").")
     job_nice: int = Field(
         10, ge=0, le=19, description="CPU priority increment of each training process (and "
                                      "of the trained demo's capture): live sessions go first. "

@@ -89,6 +89,13 @@ class ServerContext:
                                                           loaded.animator.body_model)
         return rig
 
+    def forget_models(self, avatar_id: str) -> None:
+        """The avatar was replaced in place: its cached MANO models and motion rig go (the
+        registry drops its loaded copy itself)."""
+        with self._manos_lock:
+            self._manos.pop(avatar_id, None)
+        self.motion_rigs.pop(avatar_id, None)
+
     def session_tracker(self, avatar_id: str) -> SessionTracker:
         """A session's own webcam tracker, fitting on the avatar's (shared, read-only) body
         model with the avatar's identity; its models load on the first image."""

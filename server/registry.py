@@ -206,20 +206,26 @@ class AvatarRegistry:
     def add_package(self, src: str | Path, owner: str, name: str | None = None, *,
                     avatar_id: str | None = None, source: str = "",
                     metadata: dict[str, Any] | None = None,
-                    max_size_bytes: int | None = None) -> AvatarRecord:
+                    max_size_bytes: int | None = None,
+                    check_rest_now: bool = True) -> AvatarRecord:
         """Validate a package (folder or zip) and copy it in atomically; PackageError if bad,
         StorageQuotaExceeded when it unpacks to more than ``max_size_bytes`` (None: no cap).
 
         ``avatar_id``: a fixed id (replaces an avatar of that id), else a fresh random one.
+        ``check_rest_now=False`` leaves :meth:`check_at_rest` to the first :meth:`open`, which
+        runs it for every avatar before any frame: for the server's own synthetic demo, whose
+        check would compile numba's posing and tile kernels before the server answers (55 of
+        the 60 s of registering it on a fresh clone at load 6; docs/benchmarks.md).
         """
         src = Path(src)
         package = load_package(src, max_bytes=self.max_package_bytes,
                                npz_limits=self.npz_limits, ranges=self.ranges)  # PackageError
         self._check_body(package)
         model = upper_body_model(models_for_reference(package.body.model, self.body_models))
-        self.check_at_rest(AvatarAnimator(model, package.avatar,
-                                          betas=np.asarray(package.body.betas),
-                                          cache=StageCache(enabled=False)))
+        if check_rest_now:
+            self.check_at_rest(AvatarAnimator(model, package.avatar,
+                                              betas=np.asarray(package.body.betas),
+                                              cache=StageCache(enabled=False)))
         avatar_id = avatar_id or secrets.token_hex(8)
         if not ID_PATTERN.match(avatar_id):
             raise ValueError(f"bad avatar id {avatar_id!r}")
@@ -358,7 +364,7 @@ class AvatarRegistry:
         with tempfile.TemporaryDirectory(dir=self.root, prefix=".incoming-") as tmp:
             src = save_package(loaded.package, Path(tmp) / "pkg")
             return self.add_package(src, PUBLIC_OWNER, avatar_id=DEMO_ID, source=source,
-                                    metadata=metadata)
+                                    metadata=metadata, check_rest_now=False)
 
     def register_trained_demo(self, package: str | Path, cache: str | Path | None,
                               job_id: str) -> AvatarRecord:

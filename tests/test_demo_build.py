@@ -10,16 +10,20 @@ the page has shown the banner, so that a fast machine cannot finish the build un
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import threading
 import time
 from pathlib import Path
 
+import cv2
 import httpx
+import numpy as np
 import pytest
+import websockets
 
 import server.jobs.demo_build as demo_build
-from protocol import Frame
+from protocol import Frame, Hello, Orbit, View, encode
 from server.registry import AvatarRegistry
 from tests.server_fixtures import is_type, recv_until, run_server, stream
 from tests.test_client_units import chromium_missing, make_chromium, node, run_node
@@ -46,6 +50,71 @@ def _page_probe(driver) -> dict:
         return {hidden: b.hidden, text: b.textContent, frames: window.telesplat.framesShown,
                 build: window.telesplat.demoBuild?.state ?? null,
                 trained: w ? w.metadata?.trained ?? null : null};""")
+
+
+NUDGE = View(orbit=Orbit(yaw_deg=20.0))  # a new view: renders once more, from the new scene
+QUIET_S = 1.5  # no frame for this long: the last one shows the newest state
+
+
+async def _settled_frame(ws, timeout: float = 60.0) -> np.ndarray:
+    """After sending NUDGE: the frames until none comes for QUIET_S (bounded), the last one
+    decoded."""
+    await ws.send(encode(NUDGE))
+    last, deadline = None, time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            msg = await recv_until(ws, is_type("frame"), timeout=QUIET_S if last else 30.0)
+        except TimeoutError:
+            break
+        last = msg
+    assert last is not None, "no frame after the new view"
+    return cv2.imdecode(np.frombuffer(last.data, np.uint8), cv2.IMREAD_COLOR).astype(np.float32)
+
+
+class KeptConnections:
+    """The start-up room's performer and viewer and a plain session, connected while the
+    stand-in shows and kept open across the swap (an event loop of their own, in a thread)."""
+
+    def __init__(self, srv) -> None:
+        self.srv = srv
+        self.connected = threading.Event()
+        self.result: dict = {}
+        self.error: BaseException | None = None
+        self.thread = threading.Thread(target=self._run, daemon=True, name="kept-sessions")
+
+    def _run(self) -> None:
+        try:
+            asyncio.run(self._main())
+        except BaseException as exc:  # reported by the test
+            self.error = exc
+            self.connected.set()
+
+    async def _main(self) -> None:
+        links = self.srv.ctx.startup_links
+        room_url = self.srv.url.replace("http://", "ws://") + f"/v1/stream?room={links['room']}"
+        tokens = {scope: links[scope].split("#token=")[1] for scope in ("perform", "watch")}
+        async with contextlib.AsyncExitStack() as stack:
+            sockets = {}
+            for scope in ("perform", "watch"):
+                ws = await stack.enter_async_context(websockets.connect(
+                    room_url, max_size=None, open_timeout=30, close_timeout=5))
+                await ws.send(encode(Hello(token=tokens[scope], role=scope)))
+                ws.welcome = await recv_until(ws, is_type("welcome"), timeout=60)
+                sockets[scope] = ws
+            sockets["plain"] = await stack.enter_async_context(stream(self.srv, avatar="demo"))
+            before = {name: await _settled_frame(ws) for name, ws in sockets.items()}
+            self.result["welcomes"] = {n: ws.welcome for n, ws in sockets.items()}
+            self.connected.set()
+            # read on meanwhile (stats): a client that stops reading loses control messages
+            told = await asyncio.gather(*(recv_until(ws, is_type("avatar"),
+                                                     timeout=BUILD_TIMEOUT_S)
+                                          for ws in sockets.values()))
+            replaced = dict(zip(sockets, told, strict=True))
+            after = {name: await _settled_frame(ws) for name, ws in sockets.items()}
+            async with stream(self.srv, avatar="demo") as newcomer:  # a new plain session
+                assert newcomer.welcome.avatar.metadata["trained"] is True
+                fresh = await _settled_frame(newcomer)
+            self.result.update(before=before, replaced=replaced, after=after, fresh=fresh)
 
 
 def test_first_run_serves_at_once_and_swaps_in_the_trained_demo(tmp_path, monkeypatch):
@@ -78,6 +147,11 @@ def test_first_run_serves_at_once_and_swaps_in_the_trained_demo(tmp_path, monkey
                     return await recv_until(ws, is_type("frame"), timeout=60)
 
             assert isinstance(asyncio.run(one_frame()), Frame)
+            kept = KeptConnections(srv)
+            kept.thread.start()
+            assert kept.connected.wait(GATE_TIMEOUT_S) and kept.error is None, kept.error
+            assert all(w.avatar.metadata["trained"] is False
+                       for w in kept.result["welcomes"].values())
 
             driver = make_chromium() if browser else None
             try:
@@ -128,6 +202,18 @@ def test_first_run_serves_at_once_and_swaps_in_the_trained_demo(tmp_path, monkey
                         return await recv_until(ws, is_type("frame"), timeout=60)
 
                 assert isinstance(asyncio.run(trained_frame()), Frame)
+
+                # the room's performer and viewer and the plain session, still on their first
+                # connections: told, then shown the trained avatar, as a newcomer sees it
+                kept.thread.join(120)
+                assert not kept.thread.is_alive() and kept.error is None, kept.error
+                got = kept.result
+                for name, msg in got["replaced"].items():
+                    assert msg.avatar.id == "demo" and msg.avatar.metadata["trained"], name
+                    assert msg.seats == [0]
+                    shown = np.abs(got["after"][name] - got["fresh"]).mean()
+                    changed = np.abs(got["after"][name] - got["before"][name]).mean()
+                    assert shown < 1.0 and changed > 5 * max(shown, 0.2), (name, shown, changed)
 
                 if driver is not None:  # the banner goes, the page switches to the trained one
                     _poll(lambda: (p := _page_probe(driver))["hidden"] and p["trained"] is True,

@@ -47,6 +47,10 @@ def test_a_clean_stop_checkpoints_and_a_cancel_stops_the_resumed_run(tmp_path, c
     try:
         job = first.submit_named("alice", _named(first, capture_dir), LONG)
         wait_for(lambda: "progress" in _kinds(first, job.id), 60, what="training")
+        # the server's session (one autogroup: job_nice yields to its live sessions), a
+        # process group of its own (a Ctrl-C at the terminal reaches the server only)
+        pid = first.worker.process_id(job.id)
+        assert os.getsid(pid) == os.getsid(0) and os.getpgid(pid) == pid
     finally:
         first.stop(grace_s=30)  # SIGTERM: it checkpoints at its next progress event
     store = SQLiteJobStore(tmp_path / "jobs" / "jobs.db")

@@ -13,6 +13,7 @@ from protocol import (
     CLIENT_TYPES,
     SERVER_TYPES,
     AvatarInfo,
+    AvatarReplaced,
     CameraSpec,
     Drive,
     Error,
@@ -89,6 +90,8 @@ SERVER_EXAMPLES = [
     Tracked(seq=4, found=True, seen={"face": True, "left_hand": False}),
     Tracked(seq=5, found=False),
     Voice(seq=4, data=b"\xf8\xff\xfe", t_capture=12.52, seat=0),
+    AvatarReplaced(avatar=AvatarInfo(id="demo", name="ada", num_gaussians=9, sh_degree=3,
+                                     owner="public", metadata={"trained": True}), seats=[0]),
 ]
 
 

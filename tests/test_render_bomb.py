@@ -10,12 +10,14 @@ stops at its next stage."""
 
 import asyncio
 import concurrent.futures
+import contextlib
 import threading
 import time
 
 import httpx
 import numpy as np
 import pytest
+from websockets.exceptions import ConnectionClosed
 
 from avatar_core.gaussians.loading import load_avatar
 from avatar_core.gaussians.package import PackageError, save_package
@@ -26,7 +28,7 @@ from server.rooms.registry import Placement
 from server.stream.drive import DriveState
 from server.stream.scene import FrameAbandoned, FrameJob, Scene, SceneFrames, SeatPoser
 from server.stream.scheduler import RenderScheduler, WorkFuture, abandon_check, abandoned
-from tests.server_fixtures import count_frames, run_server, stream, wait_until
+from tests.server_fixtures import count_frames, recv_msg, run_server, stream, wait_until
 
 BOMB_LOG_SCALE = 6.0  # the largest log-scale GaussianRanges allows
 
@@ -336,3 +338,48 @@ def test_a_bomb_let_in_renders_within_its_bound_and_freezes_nobody(synthetic, tm
     # (measured 30% at load average 8 on 2 cores). Before, the first bomb frame held the
     # thread for 15 s: no cheap frame in the window.
     assert shared >= 0.15 * alone * 4.0 / 3.0, (alone, shared, bombs)
+
+
+# -- the server's own demo: checked when first opened (issue 26) -------------------------------
+
+TOO_FEW_PAIRS = 1  # a max_avatar_tile_pairs no avatar's rest frame fits
+
+
+def test_the_synthetic_demo_is_checked_at_its_first_open_not_at_registration(tmp_path):
+    # registering it compiled numba's posing and tile kernels before the server answered
+    # (55 of 60 s on a fresh clone): now the check waits for the first open, which every
+    # frame goes through, so a demo that fails it still never renders
+    limit = RestFrameLimit(max_tile_pairs=TOO_FEW_PAIRS, width=1920, height=1080)
+    registry = AvatarRegistry(tmp_path / "avatars", rest_frame=limit)
+    for spec in ("synthetic", "trained"):  # 'trained' with an empty cache: the stand-in
+        record = registry.register_demo(spec, cache=tmp_path / "demo-cache")
+        assert record.id == "demo" and registry.get("demo") == record
+        with pytest.raises(PackageError, match=r"avatar demo: .*more than "
+                                               rf"max_avatar_tile_pairs {TOO_FEW_PAIRS}"):
+            registry.open("demo")
+    # the same package uploaded is still refused at once
+    with pytest.raises(PackageError, match="max_avatar_tile_pairs"):
+        registry.add_package(registry.package_dir("demo"), owner="alice")
+
+
+def test_the_server_answers_before_the_demo_is_checked_and_its_stream_is_refused(tmp_path):
+    with run_server(tmp_path / "data", startup_room=False, warmup=False,
+                    max_avatar_tile_pairs=TOO_FEW_PAIRS) as srv:
+        with httpx.Client(base_url=srv.url, headers=srv.headers(), timeout=60) as c:
+            assert c.get("/v1/health").status_code == 200
+            assert c.get("/").status_code == 200
+            assert "demo" in [a["id"] for a in c.get("/v1/avatars").json()]
+            assert c.get("/v1/demo").status_code == 200
+        assert "demo" not in srv.ctx.registry._loaded  # nothing has opened (checked) it yet
+
+        async def join():
+            async with stream(srv, welcome=False) as ws:
+                seen = []
+                with contextlib.suppress(ConnectionClosed, TimeoutError):
+                    for _ in range(100):  # bounded: it is refused within a few messages
+                        seen.append(await recv_msg(ws, timeout=30.0))
+                return seen, ws.close_code, ws.close_reason
+        messages, code, reason = asyncio.run(join())
+    assert [m.type for m in messages] == ["error"], messages  # no welcome, no frame
+    assert "more than max_avatar_tile_pairs 1" in messages[0].message
+    assert code == 1011 and "cannot load avatar 'demo'" in reason

@@ -308,6 +308,7 @@ async function connect(target, { retrying = false } = {}) {
   let rejoin = null;      // after the welcome: the same room, role and seat
   let lastError = null;   // the last error that answered nothing (restarting, gone, ...)
   session.addEventListener("presence", (e) => showPresence(e.detail));
+  session.addEventListener("avatar", (e) => showReplacedAvatar(e.detail.avatar));
   session.addEventListener("frame", (e) => showFrame(e.detail));
   session.addEventListener("servererror", (e) => {
     if (!e.detail.answers) lastError = e.detail.code;
@@ -545,8 +546,21 @@ async function joinRoom(roomId) {
   if (state.room?.role === "perform") loadMotions();
 }
 
-/** The trained demo's background build: a banner while it runs; when it is done a solo page
- *  on `demo` reconnects to get the trained avatar (a room's page is told to rejoin). */
+/** The avatar shown was replaced in place (the trained demo, swapped in by the server on
+ *  this same connection): its name and controls follow. */
+function showReplacedAvatar(info) {
+  if (info.id !== state.avatar) return;
+  const status = $("status").textContent;
+  const rest = status.includes(" Gaussians, ") ? status.slice(status.indexOf(" Gaussians, ")) : "";
+  $("status").textContent = `${info.name} — ${info.num_gaussians}${rest}`;
+  controls.build(info.expression_names || [], state.session?.welcome?.limits);
+  if (state.room && state.room.id !== state.privateRoom) {
+    $("avatar").replaceChildren(new Option(`${info.name || info.id} (${info.id})`, info.id));
+  }
+}
+
+/** The trained demo's background build: a banner while it runs. When it is done the server
+ *  swaps it into every session and room showing the stand-in (an "avatar" message). */
 function followDemoBuild() {
   const banner = $("demo-build");
   watchDemoBuild({
@@ -558,14 +572,7 @@ function followDemoBuild() {
       banner.textContent = text || "";
       banner.className = status?.state === "failed" ? "error" : "";
     },
-    onReady: () => {
-      notify("the trained demo avatar is ready");
-      if (state.avatar === "demo" && (!state.room || state.room.id === state.privateRoom)) {
-        connect("demo");
-      } else if (state.room) {
-        notify("reload the page to see the trained demo avatar in this room");
-      }
-    },
+    onReady: () => notify("the trained demo avatar is ready"),
   });
 }
 

@@ -274,6 +274,7 @@ export const CLIENT_TYPES = Object.freeze([
 ]);
 
 export const SERVER_TYPES = Object.freeze([
+  "avatar",
   "error",
   "frame",
   "pong",
@@ -377,6 +378,36 @@ export const SCHEMA_DEFS = Object.freeze({
       "sh_degree"
     ],
     "title": "AvatarInfo",
+    "type": "object"
+  },
+  "AvatarReplaced": {
+    "additionalProperties": false,
+    "description": "The avatar ``avatar.id`` was replaced in place (the trained demo built behind its\nstand-in): the frames after this message show it on ``seats``. Sent to every participant\nof a scene that shows it, plain sessions included; the connection stays.",
+    "properties": {
+      "avatar": {
+        "$ref": "#/$defs/AvatarInfo"
+      },
+      "seats": {
+        "items": {
+          "exclusiveMaximum": 16,
+          "minimum": 0,
+          "type": "integer"
+        },
+        "title": "Seats",
+        "type": "array"
+      },
+      "type": {
+        "const": "avatar",
+        "default": "avatar",
+        "title": "Type",
+        "type": "string"
+      }
+    },
+    "required": [
+      "avatar",
+      "seats"
+    ],
+    "title": "AvatarReplaced",
     "type": "object"
   },
   "CameraSpec": {
@@ -1849,6 +1880,9 @@ export const CLIENT_SCHEMAS = Object.freeze({
 });
 
 export const SERVER_SCHEMAS = Object.freeze({
+  "avatar": {
+    "$ref": "#/$defs/AvatarReplaced"
+  },
   "error": {
     "$ref": "#/$defs/Error"
   },

@@ -1,7 +1,7 @@
 // One streaming session over the WebSocket: messages in and out, seq numbers, latency.
 //
-// Events (EventTarget): "welcome", "frame", "stats", "presence", "tracked", "servererror",
-// "pong", "shown", "close";
+// Events (EventTarget): "welcome", "frame", "stats", "presence", "tracked", "avatar",
+// "servererror", "pong", "shown", "close";
 // each event's `detail` is the decoded message (close: {code, reason}; shown: {seq,
 // latencyMs}, a WebRTC frame whose stamp names one of this page's drives).
 
@@ -65,6 +65,10 @@ export class MessageSession extends EventTarget {
     } else if (message.type === "error") {
       if (!this.welcome) this._reject?.(new ProtocolError(message.code, message.message));
       this._emit("servererror", message);
+    } else if (message.type === "avatar") {
+      // the avatar was replaced in place (the trained demo): the welcome's now describes it
+      if (this.welcome?.avatar?.id === message.avatar.id) this.welcome.avatar = message.avatar;
+      this._emit("avatar", message);
     } else if (message.type === "pong") {
       message.rttMs = performance.now() - message.t;
       this._emit("pong", message);

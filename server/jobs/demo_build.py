@@ -16,8 +16,10 @@ at once with the synthetic avatar standing in as ``demo`` (server/registry.py) a
    the demo cache and registers it as ``demo`` in place of the stand-in.
 
 ``GET /v1/demo`` (no auth, like /v1/health) reports :meth:`DemoBuild.status`; the page shows
-it as a banner and reconnects to ``demo`` when the build is done. Sessions already open keep
-streaming the stand-in they loaded.
+it as a banner. When the job succeeds, :attr:`DemoBuild.on_replaced` (server/app.py) reloads
+the trained demo into every live room and plain session showing the stand-in
+(server/rooms/reload.py: connections kept, an ``avatar`` message, then frames of the trained
+one), and only then is the state ``ready``.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ import os
 import shutil
 import subprocess
 import threading
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -36,7 +39,7 @@ from avatar_core.threads import passive_waiting
 from ..auth import PUBLIC_OWNER
 
 if TYPE_CHECKING:
-    from ..registry import AvatarRegistry
+    from ..registry import AvatarRecord, AvatarRegistry
     from .service import JobService
     from .store import Job
 
@@ -61,6 +64,10 @@ class DemoBuild:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._process: subprocess.Popen[str] | None = None
+        # called (on this build's thread) once the trained demo is registered: the server
+        # reloads it into the live rooms and sessions showing the stand-in
+        self.on_replaced: Callable[[AvatarRecord | None], None] | None = None
+        self._stand_in: AvatarRecord | None = None  # the record the trained one replaces
         self._status: dict[str, Any] = {"state": "off", "stage": None, "progress": 0.0,
                                         "stage_progress": 0.0, "job_id": None, "error": None}
 
@@ -105,10 +112,15 @@ class DemoBuild:
         if jobs is None:
             self._set(state="failed", error="no job service to train it")
             return
+        self._stand_in = record
         self._set(state="building", stage="capture", stage_progress=0.0)
         self._thread = threading.Thread(target=self._run, args=(jobs,), daemon=True,
                                         name="telesplat-demo-build")
         self._thread.start()
+
+    @property
+    def stopping(self) -> bool:
+        return self._stop.is_set()
 
     def stop(self) -> None:
         """Stop following (the job itself is checkpointed and re-queued by the job service's
@@ -150,20 +162,12 @@ class DemoBuild:
 
     def _capture(self, command: list[str], root: Path) -> None:
         root.mkdir(parents=True, exist_ok=True)
-        env = passive_waiting(dict(os.environ))
-        path = env.get("PYTHONPATH")  # this checkout's engine, as the training processes get
-        env["PYTHONPATH"] = str(_REPO_ROOT) + (os.pathsep + path if path else "")
-        threads = str(getattr(self.settings, "job_threads", 1))
-        for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
-            env[name] = threads
-        nice = int(getattr(self.settings, "job_nice", 10))
-        if nice and shutil.which("nice"):
-            command = ["nice", "-n", str(nice), *command]
+        command, env = capture_process(self.settings, command)
         log.info("trained demo avatar: filming its dataset in %s", root)
         with open(root / CAPTURE_LOG, "ab") as logf:
-            self._process = process = subprocess.Popen(
+            self._process = process = subprocess.Popen(  # process group: as a training job's
                 command, stdout=subprocess.PIPE, stderr=logf, stdin=subprocess.DEVNULL,
-                env=env, text=True, bufsize=1)
+                env=env, text=True, bufsize=1, process_group=0)
             assert process.stdout is not None
             for line in process.stdout:  # ends when the process does (or is terminated)
                 try:
@@ -185,6 +189,8 @@ class DemoBuild:
             job = jobs.store.get(job_id)
             self._set(stage_progress=job.progress)
             if job.state == "succeeded":
+                if self.on_replaced is not None:  # live rooms first: "ready" means shown
+                    self.on_replaced(self._stand_in)
                 self._set(state="ready", stage=None, stage_progress=1.0)
                 log.info("trained demo avatar ready (job %s)", job_id)
                 return
@@ -192,6 +198,21 @@ class DemoBuild:
                 self._set(state="failed", error=job.error or job.state)
                 return
             self._stop.wait(POLL_S)
+
+
+def capture_process(settings: Any, command: list[str]) -> tuple[list[str], dict[str, str]]:
+    """The capture's command line and environment: niced and thread-limited like a training
+    job (``job_nice``, ``job_threads``), passive thread pools, this checkout's engine."""
+    env = passive_waiting(dict(os.environ))
+    path = env.get("PYTHONPATH")  # this checkout's engine, as the training processes get
+    env["PYTHONPATH"] = str(_REPO_ROOT) + (os.pathsep + path if path else "")
+    threads = str(getattr(settings, "job_threads", 1))
+    for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
+        env[name] = threads
+    nice = int(getattr(settings, "job_nice", 10))
+    if nice and shutil.which("nice"):
+        command = ["nice", "-n", str(nice), *command]
+    return command, env
 
 
 def _find_job(jobs: JobService) -> Job | None:
@@ -218,4 +239,4 @@ def register_job_package(settings: Any, registry: AvatarRegistry, job: Job,
     return registry.register_trained_demo(package, settings.demo_cache_dir, job.id).id
 
 
-__all__ = ["DEMO_DATASET", "DemoBuild", "register_job_package"]
+__all__ = ["DEMO_DATASET", "DemoBuild", "capture_process", "register_job_package"]

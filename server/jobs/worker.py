@@ -289,11 +289,15 @@ class Worker:
                    f"---\n".encode())
         logf.flush()
         try:
-            # own session: a Ctrl-C at the server's terminal reaches the server, which
-            # then stops the process cleanly (SIGTERM, checkpoint)
+            # own process group: a Ctrl-C at the server's terminal reaches the server only,
+            # which then stops the process cleanly (SIGTERM, checkpoint). The server's
+            # session, not one of its own: with Linux's autogroup scheduling a session is
+            # one group of CPU share and nice counts only within it, so job_nice makes the
+            # training yield to this server's live sessions while the group as a whole keeps
+            # its fair share against other programs (docs/benchmarks.md, "First run").
             process = subprocess.Popen(self._command(job), stdout=logf,
                                        stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                       env=self._env(), cwd=folder, start_new_session=True)
+                                       env=self._env(), cwd=folder, process_group=0)
         except OSError as exc:
             logf.close()
             self.store.transition(job.id, "failed",

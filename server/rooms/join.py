@@ -177,9 +177,9 @@ async def seat_participant(ctx: ServerContext, room: Room, role: str, seat: int,
     spec = next(x for x in room.seats if x.index == seat)
     try:
         live = await open_live(ctx, room)
-        record = ctx.registry.get(spec.avatar)
         tracker, rig = await asyncio.to_thread(
             lambda: (ctx.session_tracker(spec.avatar), ctx.rig(spec.avatar)))
+        record = ctx.registry.get(spec.avatar)  # after the last wait: the welcome's is current
     except Exception as exc:  # noqa: BLE001 - a broken package must not take the server down
         log.exception("cannot open room %s", room.id)
         if room.private and room.live is not None:
@@ -218,12 +218,16 @@ async def seat_participant(ctx: ServerContext, room: Room, role: str, seat: int,
     return session, welcome
 
 
+def avatar_info(record: AvatarRecord, expression_names: tuple[str, ...] = ()) -> AvatarInfo:
+    return AvatarInfo(id=record.id, name=record.name, num_gaussians=record.num_gaussians,
+                      sh_degree=record.sh_degree, owner=record.owner, metadata=record.metadata,
+                      expression_names=list(expression_names) or None)
+
+
 def _welcome(session: Session, record: AvatarRecord, expression_names: tuple[str, ...],
              room: Room, role: str, seat: int, request: Request, framing: Framing,
              s: Any) -> Welcome:
-    info = AvatarInfo(id=record.id, name=record.name, num_gaussians=record.num_gaussians,
-                      sh_degree=record.sh_degree, owner=record.owner, metadata=record.metadata,
-                      expression_names=list(expression_names) or None)
+    info = avatar_info(record, expression_names)
     if room.private:  # a plain session: no room in its welcome
         return Welcome(session=session.id, avatar=info, limits=s.limits, codecs=list(CODECS),
                        request=request, encoders=encoders_info(), framing=framing)

@@ -8,8 +8,10 @@ holds its last pose for ``room_seat_hold_s``, then eases back to rest over ``roo
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -24,6 +26,7 @@ from .voice import publish_message
 
 if TYPE_CHECKING:
     from ..stream.session import Session
+    from ..stream.tracking import SessionTracker
     from .voice import SeatVoice
 
 log = logging.getLogger(__name__)
@@ -86,6 +89,26 @@ class LiveRoom:
         """A seat's drive changed: every participant renders the new state."""
         for p in self.participants:
             p.wake()
+
+    # -- an avatar replaced in place ------------------------------------------------------------
+
+    def replace_scene(self, scene: Scene, tracker: Callable[[Session], SessionTracker | None],
+                      sh_degree: tuple[int, int] | None = None) -> None:
+        """Show ``scene`` (this room's seats with an avatar reloaded) from now on. Every
+        participant switches to it and keeps its connection; ``tracker(participant)`` gives
+        a performer its new webcam tracker (None: the old one stays); ``sh_degree``: see
+        :meth:`Session.switch_scene`. A seat whose
+        parameter shapes changed goes back to the rest pose. The old scene is closed once no
+        thread renders for it any more."""
+        old, self.scene = self.scene, scene
+        for seat, before, after in zip(self.seats, old.shapes, scene.shapes, strict=True):
+            if before != after:
+                seat.drive.families = {family: {} for family in seat.drive.families}
+                seat.drive.version += 1
+        pending = [f for p in self.participants if (f := p.render_work()) is not None]
+        for p in self.participants:
+            p.switch_scene(scene, tracker(p), sh_degree)
+        _when_done(pending, old.close)
 
     # -- joining and leaving ----------------------------------------------------------------------
 
@@ -202,3 +225,19 @@ class LiveRoom:
     def _dispose(self) -> None:
         """Closed and empty: the scene goes (here, or on its render worker)."""
         self.scene.close()
+
+
+def _when_done(futures: list[concurrent.futures.Future], fn: Callable[[], None]) -> None:
+    """``fn()`` once every future is done (at once when none is pending)."""
+    left = [len(futures)]
+    if not futures:
+        fn()
+        return
+
+    def one_done(_: concurrent.futures.Future) -> None:
+        left[0] -= 1
+        if not left[0]:
+            fn()
+
+    for future in futures:
+        future.add_done_callback(one_done)

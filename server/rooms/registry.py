@@ -153,6 +153,11 @@ class RoomRegistry:
                 self._stored("remove_rooms", [room_id])
             return self._rooms.pop(room_id, None)
 
+    def live_rooms(self) -> list[Room]:
+        """Rooms with a runtime (someone is or was recently in them)."""
+        with self._lock:
+            return [r for r in self._rooms.values() if r.live is not None]
+
     def idle_rooms(self, now: float) -> list[Room]:
         """Rooms empty for room_idle_timeout_s (not pinned): taken out of the registry."""
         timeout = self.settings.room_idle_timeout_s

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import concurrent.futures
 import contextlib
 import dataclasses
 import logging
@@ -61,7 +62,7 @@ from ..metrics import ServerMetrics
 from .drive import DriveState, fit_drive
 from .encoders import check_request
 from .inbound import InboundDecoder, InboundLimits
-from .scene import Frame, FrameJob
+from .scene import Frame, FrameJob, Scene
 from .scheduler import RenderScheduler
 from .tracking import (
     DecodedImage,
@@ -464,6 +465,34 @@ class Session:
         m.bytes_sent.inc(sent)
         for stage in ("pose", "render", "encode"):
             m.stage_ms.labels(stage).observe(getattr(f.timings, stage))
+
+    # -- the room's avatars reloaded -----------------------------------------------------------
+
+    def render_work(self) -> concurrent.futures.Future | None:
+        """The render this session's frame in flight follows, while a thread works on it."""
+        work = getattr(self._inflight, "work", self._inflight)
+        return work if work is not None and not work.done() else None
+
+    def switch_scene(self, scene: Scene, tracker: SessionTracker | None,
+                     sh_degree: tuple[int, int] | None = None) -> None:
+        """The room's scene was reopened with a replaced avatar: frames come from ``scene``
+        from the next one on (one in flight on the old scene still arrives); ``tracker``
+        (None: the old one stays) fits webcam images on the new avatar; ``sh_degree`` (old,
+        new): a request at the old avatar's full SH degree moves to the new one's."""
+        if sh_degree is not None and self.request.sh_degree == sh_degree[0]:
+            self.request = self.request.model_copy(update={"sh_degree": sh_degree[1]})
+        self.scene = scene
+        self.shapes = scene.shapes[self.position]
+        self.share_key = scene.share_key
+        self._last_codec = None  # the encoders' state stayed with the old scene
+        if tracker is not None:
+            old, self.tracking = self.tracking, tracker
+            pending = self._track_inflight
+            if pending is None or pending.done():
+                old.close()
+            else:  # a tracking job still uses it
+                pending.add_done_callback(lambda _: old.close())
+        self._changed()
 
     # -- stats ---------------------------------------------------------------------------------
 
