@@ -60,7 +60,7 @@ class _Studio:
     def sample(self, clip: str, yaw_deg: float, framing: str, rng: np.random.Generator,
                supersample: int) -> dict[str, np.ndarray]:
         from ..motion.library import motion_sequence
-        from ..track.fit.observations import from_landmarks, hand_sides
+        from ..track.fit.observations import all_landmarks
         from .tracking_eval.scene import render_frame, subject_transl
 
         track = motion_sequence([clip])
@@ -72,13 +72,7 @@ class _Studio:
         self.tracker.reset()
         frame = render_frame(self.actor, p, self.camera, self.bg, 2 / 255, rng, supersample)
         result = self.tracker.track(frame)
-        hands, pose = hand_sides(result), result.pose
-        obs = from_landmarks(
-            result.image_size, face=None if result.face is None else result.face.points,
-            left_hand=hands.get("left"), right_hand=hands.get("right"),
-            pose=None if pose is None else pose.points,
-            pose_visibility=None if pose is None else pose.visibility,
-            pose_world=None if pose is None else pose.world)
+        obs = all_landmarks(result)
         f = self.fitter
         x = f.pack({k: v for k, v in p.items() if k != "betas"})
         points, _ = f._keypoints(x, False)

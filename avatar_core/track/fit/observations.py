@@ -130,17 +130,24 @@ MISMATCHED_ROWS = np.array([*range(cor.FACE_SLICE.start, cor.FACE_SLICE.start + 
                             *(cor.POSE_SLICE.start + i for i in (7, 8, 23, 24))])
 
 
-def from_track_result(result: TrackResult) -> Observations:
-    """The hands by side (:func:`hand_sides`), and the face and pose, if any; landmarks that
-    MediaPipe defines differently from the model (`MISMATCHED_ROWS`) get weight 0."""
+def all_landmarks(result: TrackResult) -> Observations:
+    """Every landmark the tracker found: the hands by side (:func:`hand_sides`), the face and
+    the pose (with its world landmarks), at their own weights (the embedding builder reads
+    them all)."""
     hands = hand_sides(result)
     pose = result.pose
-    obs = from_landmarks(
+    return from_landmarks(
         result.image_size, face=None if result.face is None else result.face.points,
         left_hand=hands.get("left"), right_hand=hands.get("right"),
         pose=None if pose is None else pose.points,
         pose_visibility=None if pose is None else pose.visibility,
         pose_world=None if pose is None else pose.world)
+
+
+def from_track_result(result: TrackResult) -> Observations:
+    """:func:`all_landmarks`, but landmarks that MediaPipe defines differently from the model
+    (`MISMATCHED_ROWS`) get weight 0; the iris too, when the face has one."""
+    obs = all_landmarks(result)
     obs.weights[MISMATCHED_ROWS] = 0.0
     if result.face is not None and result.face.iris is not None and obs.seen.get("face"):
         obs.iris = np.asarray(result.face.iris[:, 0, :2], dtype=np.float64)
