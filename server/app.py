@@ -124,6 +124,8 @@ def _warm_up_behind(ctx: ServerContext) -> None:
     except Exception:  # noqa: BLE001 - a session's first frame compiles them instead
         log.exception("the warm-up frame failed")
         return
+    finally:
+        ctx.warmed.set()
     if took is not None:
         log.info("warm-up frame rendered in %.1f s", took)
 
@@ -198,6 +200,8 @@ def create_app(settings: Settings) -> FastAPI:
         if settings.warmup and settings.render_backend == "local":  # a worker compiles its own
             warming = asyncio.create_task(asyncio.to_thread(_warm_up_behind, ctx),
                                           name="warm-up")
+        else:
+            ctx.warmed.set()
         await ctx.render.start()  # render_backend ray: connects, starts the render workers
         sweeper = asyncio.create_task(_sweep_rooms(ctx), name="rooms:sweep")
         try:

@@ -44,6 +44,8 @@ class ServerContext:
     jobs: JobService | None = None  # set while the app's lifespan runs (server/routers/jobs.py)
     demo_build: Any = None  # the trained demo's background build (server/jobs/demo_build.py)
     motion_rigs: dict[str, Rig] = field(default_factory=dict)  # avatar id -> its motion rig
+    # set once the warm-up frame is done (or skipped): first frames no longer wait on numba
+    warmed: threading.Event = field(default_factory=threading.Event)
     admission: Admission = None  # type: ignore[assignment]  # made from settings below
     rooms: RoomRegistry = None  # type: ignore[assignment]  # made from settings below
     webrtc_peers: PeerRegistry = None  # type: ignore[assignment]  # made from settings below

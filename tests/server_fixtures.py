@@ -97,6 +97,11 @@ def run_server(data_dir: Path, *, ws: Any = None, **overrides: Any) -> Iterator[
                    what="the server to start")
         if not server.started:
             raise RuntimeError("the test server failed to start (see the log above)")
+        # The warm-up renders behind the open server: a test's first frame should not wait
+        # on numba compiling (minutes on a fresh clone) within its own timeouts.
+        ctx = app.state.ctx
+        wait_until(lambda: ctx.warmed.is_set() or not thread.is_alive(), START_TIMEOUT_S,
+                   what="the warm-up frame")
         yield RunningServer(f"http://127.0.0.1:{port}", app.state.ctx.local_token, app, settings)
     finally:
         server.should_exit = True

@@ -47,8 +47,9 @@ def ray_head():
 
 def _serve(data_dir: Path, backend: str, head=None, **overrides):
     extra = {"job_backend": "ray", "cluster_address": head.address} if backend == "ray" else {}
-    # no warm-up render: the numba kernels are cached on disk, and the jobs are the point
-    return run_server(data_dir, warmup=False, **extra, **overrides)
+    # no warm-up render: the numba kernels are cached on disk, and the jobs are the point;
+    # one thread per job: two jobs share the 2-CPU test cluster (a Ray job asks its threads)
+    return run_server(data_dir, warmup=False, **{"job_threads": 1, **extra, **overrides})
 
 
 def _tune(server, capture_dir) -> None:
@@ -283,7 +284,8 @@ def test_serve_cluster_joins_the_head_and_a_crashed_gateways_job_resumes(ray_hea
     env = {**ray_head.env, "TELESPLAT_WARMUP": "false", "TELESPLAT_STARTUP_ROOM": "false",
            "TELESPLAT_DEFAULT_WIDTH": "64", "TELESPLAT_DEFAULT_HEIGHT": "64",
            # the render actors take little of the test cluster: the job needs one CPU
-           "TELESPLAT_RENDER_ACTORS": "1", "TELESPLAT_RENDER_ACTOR_NUM_CPUS": "0.5"}
+           "TELESPLAT_RENDER_ACTORS": "1", "TELESPLAT_RENDER_ACTOR_NUM_CPUS": "0.5",
+           "TELESPLAT_JOB_THREADS": "1"}
     cmd = [sys.executable, "-m", "server", "--cluster", ray_head.address, "--port", "0",
            "--data-dir", str(data_dir), "--demo-avatar", "synthetic"]
     proc = subprocess.Popen(cmd, env=env, cwd=REPO, stdout=subprocess.PIPE,
