@@ -82,7 +82,9 @@ def test_a_performer_page_speaks_and_a_viewer_page_hears_it(server, room):  # no
         # The performer mutes: packets go on (silence), no beep reaches the viewer.
         performer.find_element("id", "mic-mute").click()
         assert performer.find_element("id", "mic-mute").text == "Unmute"
-        time.sleep(2.0)  # what was on its way plays out
+        # what was on its way plays out: wait (bounded) until the viewer hears silence
+        wait_for(viewer, "(window.telesplat.voices.find(v => v.seat === 0) || {}).level <= 0.02",
+                 10, "the muted performer's silence")
         levels = []
         for _ in range(10):  # bounded: 5 s of one-second polls, several beeps' worth
             time.sleep(0.5)
