@@ -100,6 +100,7 @@ class Check:
         self.arch: str | None = None
         self.pytest_timeout = False
         self.gsplat_blocker: Path | None = None  # set when gsplat's kernels did not build
+        self.tests: list[str] | None = getattr(args, "tests", None)
 
     def elapsed(self) -> float:
         return time.monotonic() - self.t0
@@ -268,7 +269,8 @@ def stage_gsplat_build(check: Check, budget: float) -> Outcome:
 
 
 def stage_pytest(check: Check, budget: float) -> Outcome:
-    tests = sorted(str(p.relative_to(ROOT)) for p in (ROOT / "tests").glob("test_gpu_*.py"))
+    tests = check.tests or sorted(str(p.relative_to(ROOT))
+                                  for p in (ROOT / "tests").glob("test_gpu_*.py"))
     cmd = [sys.executable, "-m", "pytest", "-p", "no:cacheprovider", "-p", "no:xdist",
            "-m", "gpu", "-rs", *tests]
     if check.dry:
@@ -320,6 +322,20 @@ def stage_bench(check: Check, budget: float) -> Outcome:
     return Outcome("passed", f"{seconds:.1f} s a measurement; figures in gpu.md")
 
 
+def stage_profile(check: Check, budget: float) -> Outcome:
+    """Where a frame's time goes (bench/gpu_profile.py): its tables go to stages.log, its
+    numbers (the output's last line) to summary.json (no file of its own: the device tool
+    brings back 8)."""
+    cmd = [sys.executable, str(BENCH / "gpu_profile.py"), *(["--dry-run"] if check.dry else [])]
+    rc, tail = check.run_logged(cmd, budget)
+    check.facts["profile"] = last_json(tail)
+    if rc is None:
+        return Outcome("failed", f"timed out after {budget:.0f} s")
+    return Outcome("passed" if rc == 0 else "failed",
+                   "tables in stages.log, numbers in summary.json" if rc == 0
+                   else f"exit {rc}: see stages.log")
+
+
 STAGES = (
     Stage("gpu", stage_gpu, cap_s=30, min_s=5, cuda=True),
     Stage("wheels", stage_wheels, cap_s=120, min_s=10),
@@ -328,6 +344,8 @@ STAGES = (
           after=("gpu", "imports")),
     Stage("pytest-gpu", stage_pytest, cap_s=240, min_s=60, after=("gpu", "imports")),
     Stage("bench", stage_bench, cap_s=200, min_s=90, cuda=True,
+          after=("gpu", "imports", "gsplat-build")),
+    Stage("profile", stage_profile, cap_s=150, min_s=30, cuda=True,
           after=("gpu", "imports", "gsplat-build")),
 )
 
@@ -437,13 +455,21 @@ def main(argv: list[str] | None = None) -> int:
                         help="a gsplat-cache.tar.gz from an earlier run")
     parser.add_argument("--deadline", type=float, default=DEFAULT_DEADLINE_S)
     parser.add_argument("--dry-run", action="store_true")
+    parser.add_argument("--stages", default=",".join(s.name for s in STAGES),
+                        help="comma-separated stages to run, in their fixed order (default: all)")
+    parser.add_argument("--tests", nargs="*", default=None,
+                        help="the pytest stage's test files (default: tests/test_gpu_*.py)")
     args = parser.parse_args(argv)
+    chosen = set(args.stages.split(","))
+    unknown = chosen - {s.name for s in STAGES}
+    if unknown:
+        parser.error(f"unknown stages: {', '.join(sorted(unknown))}")
     args.out.mkdir(parents=True, exist_ok=True)
     check = Check(args)
     check.log.write_text("")
     check.say(f"gpu check{' (dry run)' if check.dry else ''}: results in {check.out}, "
               f"deadline {check.deadline_s:.0f} s")
-    ok = run_stages(check)
+    ok = run_stages(check, tuple(s for s in STAGES if s.name in chosen))
     check.say(f"gpu check: {'every stage passed' if ok else 'NOT every stage passed'} in "
               f"{check.elapsed():.1f} s; summary in {check.out / 'summary.md'}")
     return 0 if ok else 1

@@ -59,7 +59,7 @@ def test_the_dry_run_installs_the_wheels_and_skips_the_cuda_stages(tmp_path):
     log = done.stdout
     for stage in ("wheels", "imports", "pytest-gpu"):
         assert re.search(rf"<== {stage}: passed in \d+\.\d s", log), stage
-    for stage in ("gpu", "gsplat-build", "bench"):
+    for stage in ("gpu", "gsplat-build", "bench", "profile"):
         assert f"==> {stage}: skipped (CUDA only: a dry run has no GPU)" in log
     assert "left out elsewhere-2.0-cp399" in log
     probe = subprocess.run([sys.executable, "-c", "import telesplat_probe, sys; "
@@ -71,7 +71,8 @@ def test_the_dry_run_installs_the_wheels_and_skips_the_cuda_stages(tmp_path):
     assert summary["passed"] and summary["installed"] == ["telesplat-probe 1.0"]
     status = {s["name"]: s["status"] for s in summary["stages"]}
     assert status == {"gpu": "skipped", "wheels": "passed", "imports": "passed",
-                      "gsplat-build": "skipped", "pytest-gpu": "passed", "bench": "skipped"}
+                      "gsplat-build": "skipped", "pytest-gpu": "passed", "bench": "skipped",
+                      "profile": "skipped"}
     assert "server.app" in summary["imports"]["found"]
     page = (out / "summary.md").read_text()
     assert "| gsplat-build | skipped |" in page and "| wheels | passed |" in page

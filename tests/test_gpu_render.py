@@ -172,6 +172,40 @@ def test_masked_culling_keeps_the_picture():
         assert torch.allclose(getattr(out, name), getattr(ref, name), atol=1e-6), name
 
 
+@pytest.mark.parametrize("antialiased", [False, True])
+@pytest.mark.parametrize("max_tile_pairs", [None, 40])
+def test_batched_masks_equal_the_camera_by_camera_rule(antialiased, max_tile_pairs):
+    """The vectorised masks (every camera in one pass) keep exactly what the single-camera
+    rule keeps, hard cases included: behind or on a camera's plane, a veil, a degenerate
+    (zero-scale, zero-quaternion) splat, and a pair bound that drops splats."""
+    from avatar_core.render.budget import select_rendered
+    from avatar_core.render.cost import pair_bound, tile_pairs
+    from avatar_core.render.projection import project_gaussians
+    from avatar_core.render.rasterize_gsplat import kept_masks_batched
+
+    gs = random_scene(120, 7)
+    gs.means[:4, 2] = 2.6  # behind the front cameras
+    gs.means[4] = torch.tensor([0.0, 0.0, 2.5])  # on the first camera's centre
+    gs.scales[5] = 5.5e34  # a veil: culled
+    gs.scales[6] = 0.0
+    gs.quats[7] = 0.0
+    cams = _cams(5) + [look_at((0.0, 0.0, -2.5), (0.0, 0.0, 0.0), width=40, height=32)]
+    req = RenderRequest(antialiased=antialiased, max_tile_pairs=max_tile_pairs)
+    masks = kept_masks_batched(gs, cams, req)
+    assert masks.shape == (len(cams), gs.num) and masks.dtype == torch.bool
+    for c, cam in enumerate(cams):
+        viewmat, K = cam.to_torch(gs.means.device, gs.means.dtype)
+        p = project_gaussians(gs.means, gs.quats, gs.scales, gs.opacities, viewmat, K,
+                              cam.width, cam.height, antialiased=antialiased)
+        pairs = tile_pairs(p.means2d, p.radii, cam.width, cam.height)
+        sel, _ = select_rendered(p, None, pairs, pair_bound(max_tile_pairs))
+        assert masks[c].nonzero().squeeze(1).tolist() == sel.tolist(), c
+    assert not masks[:, 5].any()
+    if max_tile_pairs is not None:  # the bound dropped splats that the cameras see
+        unbounded = kept_masks_batched(gs, cams, RenderRequest(antialiased=antialiased))
+        assert not (masks & ~unbounded).any() and (masks.sum(1) < unbounded.sum(1)).any()
+
+
 def test_batched_gsplat_budget_is_per_camera():
     gs = random_scene(50, 2)
     kw, counts = gsplat_views_arguments(gs, _cams(3), RenderRequest(budget=5), 3)

@@ -42,8 +42,8 @@ def budget_count(budget: int | float | None, n_visible: int) -> int:
 
 
 def footprint_area(conics: Tensor) -> Tensor:
-    """Area in px^2 of the 3-sigma ellipse of each conic [N, 3] (``9 pi sqrt(det cov2d)``)."""
-    det_conic = (conics[:, 0] * conics[:, 2] - conics[:, 1] ** 2).clamp_min(_DET_FLOOR)
+    """Area in px^2 of the 3-sigma ellipse of each conic [..., 3] (``9 pi sqrt(det cov2d)``)."""
+    det_conic = (conics[..., 0] * conics[..., 2] - conics[..., 1] ** 2).clamp_min(_DET_FLOOR)
     return 9.0 * math.pi / torch.sqrt(det_conic)
 
 
@@ -74,15 +74,14 @@ def select_rendered(proj: Projected, budget: int | float | None,
 
 
 def kept_within_pairs(proj: Projected, pairs: Tensor, max_pairs: int) -> Tensor:
-    """[N] bool: :func:`select_rendered`'s choice without a budget, as a mask computed on the
-    device with no host read: the visible Gaussians, less the least important ones whose
-    pairs do not fit in ``max_pairs``."""
+    """[..., N] bool: :func:`select_rendered`'s choice without a budget, as a mask computed on
+    the device with no host read: the visible Gaussians, less the least important ones whose
+    pairs do not fit in ``max_pairs``. Leading dimensions (cameras) are independent rows."""
     importance = torch.where(proj.valid, _importance(proj),
                              torch.full_like(proj.opacities, -torch.inf).detach())
-    order = torch.sort(importance, descending=True, stable=True).indices  # [N]
-    cost = torch.where(proj.valid, pairs, torch.zeros_like(pairs))[order]
-    fits = torch.zeros_like(proj.valid)
-    fits[order] = torch.cumsum(cost, 0) <= max_pairs
+    order = torch.sort(importance, dim=-1, descending=True, stable=True).indices  # [..., N]
+    cost = torch.where(proj.valid, pairs, torch.zeros_like(pairs)).gather(-1, order)
+    fits = torch.zeros_like(proj.valid).scatter(-1, order, torch.cumsum(cost, -1) <= max_pairs)
     return proj.valid & fits
 
 

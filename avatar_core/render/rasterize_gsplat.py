@@ -44,7 +44,7 @@ from .budget import kept_within_pairs, select_rendered
 from .camera import Camera
 from .contract import EPS2D, FAR_PLANE, NEAR_PLANE, SH_COEFF_MAX, TILE_SIZE
 from .cost import pair_bound, tile_pairs
-from .projection import project_gaussians
+from .projection import Projected, project_gaussians
 from .types import GaussianSet, RenderOutput, RenderRequest, background_output
 
 __all__ = ["available", "gsplat_arguments", "gsplat_views_arguments", "rasterize_gsplat",
@@ -169,7 +169,10 @@ def rasterize_gsplat(gaussians: GaussianSet, camera: Camera, request: RenderRequ
 def _kept_masks(gaussians: GaussianSet, cameras: Sequence[Camera],
                 request: RenderRequest) -> torch.Tensor:
     """[C, N] bool: the Gaussians our projection keeps and the budget and the pair bound
-    select, per camera (the single-camera rule of :func:`_apply_budget`)."""
+    select, per camera (the single-camera rule of :func:`_apply_budget`). Without a budget,
+    every camera at once (:func:`kept_masks_batched`); with one, camera by camera."""
+    if request.budget is None:
+        return kept_masks_batched(gaussians, cameras, request)
     n = gaussians.num
     masks = torch.zeros(len(cameras), n, dtype=torch.bool, device=gaussians.means.device)
     with torch.no_grad():
@@ -183,6 +186,30 @@ def _kept_masks(gaussians: GaussianSet, cameras: Sequence[Camera],
                                      pair_bound(request.max_tile_pairs))
             masks[c, sel] = True
     return masks
+
+
+def kept_masks_batched(gaussians: GaussianSet, cameras: Sequence[Camera],
+                       request: RenderRequest) -> torch.Tensor:
+    """[C, N] bool: :func:`_mask_culled`'s kept set for every camera (one size, no budget),
+    with the projection and the pair bound vectorised over the cameras (``torch.func.vmap``):
+    one pass of kernels for all of them and no host read, instead of one pass and a read
+    per camera. Equal to the camera-by-camera masks (tested)."""
+    width, height = cameras[0].width, cameras[0].height
+    device, dtype = gaussians.means.device, gaussians.means.dtype
+    mats = [cam.to_torch(device, dtype) for cam in cameras]
+    viewmats = torch.stack([v for v, _ in mats])  # [C, 4, 4]
+    Ks = torch.stack([k for _, k in mats])  # [C, 3, 3]
+    g = gaussians
+
+    def one(viewmat: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        p = project_gaussians(g.means, g.quats, g.scales, g.opacities, viewmat, K, width,
+                              height, antialiased=request.antialiased, validate=False)
+        return (p.means2d, p.conics, p.depths, p.radii, p.opacities, p.valid,
+                tile_pairs(p.means2d, p.radii, width, height))
+
+    with torch.no_grad():
+        *fields, pairs = torch.func.vmap(one)(viewmats, Ks)  # each [C, N, ...]
+        return kept_within_pairs(Projected(*fields), pairs, pair_bound(request.max_tile_pairs))
 
 
 def gsplat_views_arguments(gaussians: GaussianSet, cameras: Sequence[Camera],
