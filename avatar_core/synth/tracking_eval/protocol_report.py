@@ -13,17 +13,18 @@ import numpy as np
 
 from .protocol import (
     CURVE_SETTINGS,
-    DRIVE_LABELS,
-    DRIVES,
+    DEFAULT_DRIVES,
     FRAMINGS,
     MIN_TAKE_S,
     TAKE,
     Condition,
     Progress,
     RunResult,
+    check_drives,
     motion_of_frames,
     run_condition,
 )
+from .protocol_drives import DRIVE_LABELS
 
 METRIC_KEYS = ("psnr", "root", "shoulders", "elbows", "neck_head", "upper_arms", "forearms",
                "jitter_px", "fit_ms")
@@ -83,7 +84,8 @@ def summarise(runs: list[RunResult]) -> dict[str, Any]:
 
 def run_protocol(identities: Sequence[int] = (0, 1), framings: Sequence[str] = tuple(FRAMINGS),
                  fps: float = 15.0, *, max_frames: int | None = None,
-                 score_size: tuple[int, int] = (320, 240), drives: Sequence[str] = tuple(DRIVES),
+                 score_size: tuple[int, int] = (320, 240),
+                 drives: Sequence[str] = DEFAULT_DRIVES,
                  model_dir=None, curve: bool = True, start_frame: int = 0,
                  runs_out: list[RunResult] | None = None,
                  progress: Progress | None = None) -> dict[str, Any]:
@@ -94,9 +96,7 @@ def run_protocol(identities: Sequence[int] = (0, 1), framings: Sequence[str] = t
     unknown = [f for f in framings if f not in FRAMINGS]
     if unknown:
         raise ValueError(f"unknown framing(s) {unknown}; known: {', '.join(FRAMINGS)}")
-    unknown = [d for d in drives if d not in DRIVES]
-    if unknown or not drives:
-        raise ValueError(f"drives must be among {', '.join(DRIVES)}, got {list(drives)}")
+    check_drives(drives)
     runs = [run_condition(Condition(i, f), fps, max_frames=max_frames, score_size=score_size,
                           drives=drives, model_dir=model_dir, curve=curve,
                           start_frame=start_frame, progress=progress)
