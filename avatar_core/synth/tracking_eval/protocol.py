@@ -64,7 +64,8 @@ SCORE_ANGLE_DEG = 30.0
 JPEG_QUALITY = 90
 SENSOR_NOISE = 2 / 255
 ANGLE_JOINTS = {"shoulders": ("left_shoulder", "right_shoulder"),
-                "elbows": ("left_elbow", "right_elbow")}
+                "elbows": ("left_elbow", "right_elbow"),
+                "wrists": ("left_wrist", "right_wrist")}
 # One Euro settings for the jitter-vs-lag curve (min_cutoff Hz, beta); None: no smoothing.
 CURVE_SETTINGS: tuple[tuple[float, float] | None, ...] = (
     None, (6.0, 0.3), (4.0, 0.3), (3.0, 0.3), (2.0, 0.3), (1.5, 0.3), (1.0, 0.1), (0.5, 0.05),
@@ -96,6 +97,9 @@ class RunResult:
     seen: dict[str, np.ndarray]                      # group -> [T] bool (live tracker)
     in_view: dict[str, np.ndarray]                   # hand -> [T] all true keypoints inside
     metrics: dict[str, dict[str, float]] = field(default_factory=dict)
+    # hand -> [T] bool: placed by the live tracker, by its own landmarks or by the pose
+    # model's points of it (`observations.pose_hand_seen`)
+    placed: dict[str, np.ndarray] = field(default_factory=dict)
     curve: list[dict[str, float]] = field(default_factory=list)  # `temporal_curve`
     start_frame: int = 0
 
@@ -235,7 +239,7 @@ def run_condition(condition: Condition, fps: float, *, max_frames: int | None = 
     from avatar_core.synth.actor import Actor
     from avatar_core.synth.model_writer import ensure_models
     from avatar_core.track.fit.camera import WebcamCamera
-    from avatar_core.track.fit.observations import from_track_result
+    from avatar_core.track.fit.observations import from_track_result, pose_hand_seen
     from avatar_core.track.fit.sequence import SequenceFit, SequenceFitConfig
     from avatar_core.track.image import decode_image
     from avatar_core.track.tracker import LIVE_PALM_INTERVAL, Tracker
@@ -272,6 +276,9 @@ def run_condition(condition: Condition, fps: float, *, max_frames: int | None = 
             res.track_ms.append((time.perf_counter() - t0) * 1e3)
             for g in GROUPS:
                 res.seen[g][i] = bool(live.seen.get(g))
+            for side in ("left", "right"):
+                res.placed.setdefault(f"{side}_hand", np.zeros(len(truth), bool))[i] = bool(
+                    live.seen.get(f"{side}_hand")) or pose_hand_seen(live, side)
             true_obs, true_points = None, None
             with torch.no_grad():
                 reference = actor.render(actor.pose(params), score_cam, background=(0, 0, 0),
@@ -313,7 +320,7 @@ def run_condition(condition: Condition, fps: float, *, max_frames: int | None = 
 
 def joint_errors(pred: list[dict], truth: list[dict]) -> dict[str, float]:
     """Mean geodesic errors (deg): root (global_orient: the webcam is the model frame),
-    shoulders and elbows (local rotations), neck/head (neck then head: the head relative to
+    shoulders, elbows and wrists (local rotations), neck/head (neck then head: the head relative to
     the chest, whichever of the two joints carries it)."""
     def rows(ps, name):
         return aa_to_matrix(np.stack([np.asarray(p["body_pose"])[JOINT[name] - 1] for p in ps]))
