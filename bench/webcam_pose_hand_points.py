@@ -6,7 +6,8 @@ the webcam protocol does not score (the embedding family's 2-5) playing hand cli
 yaws are tracked by the live tracker; each tracked point is compared with the candidate model
 points (each finger's three joints and its tip vertex) projected at the true parameters.
 Median px error per candidate, over the frames where BlazePose gives the point visibility
->= 0.5; the nearest is the point's meaning.
+>= 0.5 and the candidate is inside the image; the nearest is the point's meaning. BlazePose's
+wrists against the wrist joints are the reference for how far its arm points are off.
 
     PYTHONPATH=. python bench/webcam_pose_hand_points.py --out bench_hand_points.json
 """
@@ -24,11 +25,14 @@ from scipy.spatial.transform import Rotation
 from avatar_core.body.skeleton import JOINT
 from avatar_core.track.fit import correspondence as cor
 
-POINTS = {17: ("left", "pinky"), 18: ("right", "pinky"), 19: ("left", "index"),
-          20: ("right", "index"), 21: ("left", "thumb"), 22: ("right", "thumb")}
+POINTS = {15: ("left", "wrist"), 16: ("right", "wrist"), 17: ("left", "pinky"),
+          18: ("right", "pinky"), 19: ("left", "index"), 20: ("right", "index"),
+          21: ("left", "thumb"), 22: ("right", "thumb")}
 
 
 def candidates(side: str, finger: str) -> list[str]:
+    if finger == "wrist":  # the reference: BlazePose's own wrist against the wrist joint
+        return [f"joint:{side}_wrist"]
     return [f"joint:{side}_{finger}{i}" for i in (1, 2, 3)] + [f"vertex:{side[0]}{finger}"]
 
 
@@ -94,6 +98,8 @@ def main() -> None:
                             point = posed.joints[JOINT[key]] if kind == "joint" else \
                                 posed.body_vertices[cor.SMPLX_SEMANTIC_VERTEX_IDS[key]]
                             px = wcam.project(torch.as_tensor(point)).numpy()
+                            if not (0 <= px[0] < wcam.width and 0 <= px[1] < wcam.height):
+                                continue
                             names[name].append(float(np.linalg.norm(
                                 px - result.pose.points[k, :2])))
     tracker.close()
@@ -101,9 +107,9 @@ def main() -> None:
     for k, names in errors.items():
         med = {n: float(np.median(v)) if v else float("nan") for n, v in names.items()}
         best = min(med, key=lambda n: med[n] if np.isfinite(med[n]) else np.inf)
-        report["points"][k] = {"seen": len(next(iter(names.values()))), "median_px": med,
-                               "nearest": best}
-        print(k, POINTS[k], len(next(iter(names.values()))), "frames;",
+        seen = max(len(v) for v in names.values())
+        report["points"][k] = {"seen": seen, "median_px": med, "nearest": best}
+        print(k, POINTS[k], seen, "frames;",
               ", ".join(f"{n.split(':')[1]} {v:.1f}" for n, v in med.items()), "->", best)
     if args.out:
         with open(args.out, "w") as f:

@@ -56,6 +56,11 @@ def test_pose_hand_points_are_used_only_where_the_hand_is_not():
     # One point alone cannot turn a wrist: none of them is used.
     obs = from_track_result(_result(left_hand=False, right_visible=1))
     assert (obs.weights[RIGHT_ROWS] == 0).all() and not pose_hand_seen(obs, "right")
+    # BlazePose's guess of a hand below the image is no observation of it.
+    below = _result(left_hand=False)
+    below.pose.points[list(POSE_HAND_POINTS["right"]), 1] = 500.0
+    obs = from_track_result(below)
+    assert (obs.weights[RIGHT_ROWS] == 0).all() and (obs.weights[LEFT_ROWS] > 0).all()
     off = without_pose_hands(from_track_result(_result(left_hand=False)))
     assert (off.weights[LEFT_ROWS + RIGHT_ROWS] == 0).all()
 
