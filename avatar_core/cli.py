@@ -501,7 +501,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="comma-separated: live (the tracked landmarks, today's fit), "
                           "embedding (+ the learned landmark embedding and image z), "
                           "true_body, true_body_face, true_all (those parts' 2D landmarks "
-                          "from the truth), live_true_depth, true_all_arm_depth, "
+                          "from the truth), live_pose_hands (+ BlazePose's hand points for "
+                          "declined hands), live_true_depth, true_all_arm_depth, "
                           "true_all_torso_depth, true_all_depth (+ the true depth of the "
                           "arms' / torso's body landmarks)")
     web.add_argument("--models", type=Path, default=None, help="synthetic model folder")

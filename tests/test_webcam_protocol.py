@@ -75,7 +75,7 @@ def test_each_drive_fits_with_its_own_inputs():
     assert embedded.image_z_weight == pd.EMBEDDING_IMAGE_Z_WEIGHT > 0
     depth = pd.drive_config("true_all_arm_depth", base).fit
     assert depth.world_weight == pd.TRUE_DEPTH_WEIGHT and depth.embedding is None
-    assert not pd.drive_config("live_no_pose_hands", base).pose_hands
+    assert pd.drive_config("live_pose_hands", base).pose_hands and not base.pose_hands
     points = np.arange(33 * 3, dtype=float).reshape(33, 3)
     world = pd.true_world(points, ("torso",))  # shoulders' line, nose against each shoulder
     assert set(np.flatnonzero(np.isfinite(world[:, 2]))) == {0, 11, 12}

@@ -40,14 +40,13 @@ class Drive:
     true_2d: tuple[str, ...] = ()         # landmark groups whose 2D comes from the truth
     true_depth: tuple[str, ...] = ()      # `DEPTH_PARTS` whose depth comes from the truth
     embedding: bool = False               # the learned landmark embedding + image z
-    pose_hands: bool = True               # `SequenceFitConfig.pose_hands`
+    pose_hands: bool | None = None        # `SequenceFitConfig.pose_hands`; None: as given
 
 
 DRIVES = {
     "live": Drive("webcam, live fit"),
     "embedding": Drive("webcam, learned embedding + 3D cues", embedding=True),
-    "live_no_pose_hands": Drive("webcam, live fit without the pose's hand points",
-                                pose_hands=False),
+    "live_pose_hands": Drive("webcam, live fit + the pose's hand points", pose_hands=True),
     "true_body": Drive("true body 2D", ("pose",)),
     "true_body_face": Drive("true body + face 2D", ("pose", "face")),
     "true_all": Drive("all 2D true", ALL_PARTS),
@@ -81,7 +80,8 @@ def drive_config(name: str, base, embedding=None):
                                   image_z_weight=EMBEDDING_IMAGE_Z_WEIGHT)
     if drive.true_depth:
         fit = dataclasses.replace(fit, world_weight=TRUE_DEPTH_WEIGHT, embedding=None)
-    return dataclasses.replace(base, fit=fit, pose_hands=base.pose_hands and drive.pose_hands)
+    pose_hands = base.pose_hands if drive.pose_hands is None else drive.pose_hands
+    return dataclasses.replace(base, fit=fit, pose_hands=pose_hands)
 
 
 def true_world(model_points: np.ndarray, parts) -> np.ndarray:
