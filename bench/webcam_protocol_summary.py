@@ -58,6 +58,9 @@ def main() -> None:
     ap.add_argument("runs", nargs="+", type=Path, help="runs.pkl files (our own output)")
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--score-size", type=int, default=320, help="as the runs used (4:3)")
+    ap.add_argument("--recompute", action="store_true",
+                    help="recompute every metric and the One Euro curve with today's code "
+                         "(else the runs' own), and the declined hands' errors")
     args = ap.parse_args()
 
     from avatar_core.synth.tracking_eval.protocol import run_metrics, temporal_curve
@@ -69,7 +72,7 @@ def main() -> None:
             runs.extend(pickle.load(f))  # noqa: S301 (our own file)
     size = (args.score_size, args.score_size * 3 // 4)
     declined = []
-    for res in runs:
+    for res in runs if args.recompute else ():
         actor, cam = _score_camera(res.condition, size)
         res.metrics = run_metrics(actor, res, cam)
         if "live" in res.raw:
@@ -81,7 +84,7 @@ def main() -> None:
     js, md = write_protocol(summary, args.out)
     lines = ["", "Hands the hand model declines (in view, not seen): world rotation error "
              "of the hand (deg), frames:", ""]
-    drives = [d for d in declined[0] if isinstance(declined[0][d], dict)]
+    drives = [d for d in declined[0] if isinstance(declined[0][d], dict)] if declined else []
     for d in drives:
         n = sum(r[d]["frames"] for r in declined)
         mean = sum(r[d]["hand_world_deg"] * r[d]["frames"] for r in declined

@@ -46,7 +46,9 @@ class SequenceFitConfig:
     relax_s: float = 1.0     # ... then ease to neutral over this long
     smoothing: bool = True
     gaze: bool = True        # turn the eyes onto the iris centres, when the tracker reads them
-    min_cutoff: float = 1.5  # One Euro: Hz at rest
+    # One Euro: Hz at rest. 3 Hz: today's jitter or less at 2/3 of 1.5 Hz's lag on the studio
+    # webcam protocol (docs/tracking.md, "One Euro: jitter against lag").
+    min_cutoff: float = 3.0
     beta: float = 0.3        # cutoff gain per unit/s of speed
     # A hand's palm rotation (`palm.py`) is trusted for the fitter's palm retry only when it
     # is within this (deg) of the same hand's in the previous frame, at most `palm_gap_s`
