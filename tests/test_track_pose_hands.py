@@ -46,22 +46,24 @@ def _result(left_hand: bool, right_visible: int = 3) -> TrackResult:
 
 
 def test_pose_hand_points_are_used_only_where_the_hand_is_not():
-    obs = from_track_result(_result(left_hand=False))
+    default = from_track_result(_result(left_hand=False))  # off unless asked for
+    assert (default.weights[LEFT_ROWS + RIGHT_ROWS] == 0).all()
+    obs = from_track_result(_result(left_hand=False), pose_hands=True)
     assert (obs.weights[LEFT_ROWS] > 0).all() and (obs.weights[RIGHT_ROWS] > 0).all()
     assert pose_hand_seen(obs, "left") and pose_hand_seen(obs, "right")
-    obs = from_track_result(_result(left_hand=True))
+    obs = from_track_result(_result(left_hand=True), pose_hands=True)
     assert obs.seen["left_hand"]
     assert (obs.weights[LEFT_ROWS] == 0).all() and not pose_hand_seen(obs, "left")
     assert (obs.weights[RIGHT_ROWS] > 0).all()
     # One point alone cannot turn a wrist: none of them is used.
-    obs = from_track_result(_result(left_hand=False, right_visible=1))
+    obs = from_track_result(_result(left_hand=False, right_visible=1), pose_hands=True)
     assert (obs.weights[RIGHT_ROWS] == 0).all() and not pose_hand_seen(obs, "right")
     # BlazePose's guess of a hand below the image is no observation of it.
     below = _result(left_hand=False)
     below.pose.points[list(POSE_HAND_POINTS["right"]), 1] = 500.0
-    obs = from_track_result(below)
+    obs = from_track_result(below, pose_hands=True)
     assert (obs.weights[RIGHT_ROWS] == 0).all() and (obs.weights[LEFT_ROWS] > 0).all()
-    off = without_pose_hands(from_track_result(_result(left_hand=False)))
+    off = without_pose_hands(from_track_result(_result(left_hand=False), pose_hands=True))
     assert (off.weights[LEFT_ROWS + RIGHT_ROWS] == 0).all()
 
 

@@ -272,7 +272,9 @@ def run_condition(condition: Condition, fps: float, *, max_frames: int | None = 
             if not ok:
                 raise RuntimeError("JPEG encoding failed")
             t0 = time.perf_counter()
-            live = from_track_result(tracker.track(decode_image(jpeg.tobytes())))
+            # With the pose's hand points: drives without them (`pose_hands`) drop them.
+            live = from_track_result(tracker.track(decode_image(jpeg.tobytes())),
+                                     pose_hands=True)
             res.track_ms.append((time.perf_counter() - t0) * 1e3)
             for g in GROUPS:
                 res.seen[g][i] = bool(live.seen.get(g))

@@ -163,11 +163,12 @@ def without_pose_hands(obs: Observations) -> Observations:
     return dataclasses.replace(obs, weights=weights)
 
 
-def from_track_result(result: TrackResult) -> Observations:
+def from_track_result(result: TrackResult, pose_hands: bool = False) -> Observations:
     """:func:`all_landmarks`, but landmarks that MediaPipe defines differently from the model
-    (`MISMATCHED_ROWS`) get weight 0; the iris too, when the face has one. The pose model's
-    points of a hand (`POSE_HAND_POINTS`) are used only while that hand's own landmarks are
-    not seen, inside the image, and only with at least `MIN_POSE_HAND_POINTS` of them."""
+    (`MISMATCHED_ROWS`) get weight 0; the iris too, when the face has one. `pose_hands`: the
+    pose model's points of a hand (`POSE_HAND_POINTS`) are kept while that hand's own
+    landmarks are not seen, inside the image, and only with at least `MIN_POSE_HAND_POINTS`
+    of them (off by default: measured worse, docs/tracking.md)."""
     obs = all_landmarks(result)
     obs.weights[MISMATCHED_ROWS] = 0.0
     w, h = obs.image_size
@@ -176,7 +177,7 @@ def from_track_result(result: TrackResult) -> Observations:
         px = obs.pixels[rows]
         outside = (px[:, 0] < 0) | (px[:, 0] >= w) | (px[:, 1] < 0) | (px[:, 1] >= h)
         obs.weights[np.array(rows)[outside]] = 0.0  # BlazePose's guess of a hand out of view
-        if obs.seen.get(f"{side}_hand") or not pose_hand_seen(obs, side):
+        if not pose_hands or obs.seen.get(f"{side}_hand") or not pose_hand_seen(obs, side):
             obs.weights[rows] = 0.0
     if result.face is not None and result.face.iris is not None and obs.seen.get("face"):
         obs.iris = np.asarray(result.face.iris[:, 0, :2], dtype=np.float64)

@@ -56,10 +56,10 @@ class SequenceFitConfig:
     palm_stable_deg: float = 30.0
     palm_gap_s: float = 0.1
     # A hand the hand landmark model declines is placed by the pose model's points of it
-    # (`observations.POSE_HAND_POINTS`): its wrist follows them while the fingers hold, then
-    # relax. False: those points are not used and the wrist holds and relaxes. Off: on the
-    # studio protocol it made the wrists worse (docs/tracking.md, "Hands the landmark model
-    # declines").
+    # (`from_track_result(..., pose_hands=True)`): its wrist follows them while the fingers
+    # hold, then relax. False: those points are dropped and the wrist holds and relaxes. Off:
+    # on the studio protocol it made the wrists worse (docs/tracking.md, "Hands the landmark
+    # model declines").
     pose_hands: bool = False
     fit: FitConfig = field(default_factory=FitConfig)
 
