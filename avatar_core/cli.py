@@ -497,9 +497,14 @@ def build_parser() -> argparse.ArgumentParser:
                      help="the first N frames of the take (a smoke run; the protocol is "
                           "the whole take, >= 10 s)")
     web.add_argument("--score-size", type=int, default=320, help="score camera width (4:3)")
-    web.add_argument("--drives", default="live,true_body,true_body_face,true_all",
-                     help="comma-separated: live (the tracked landmarks), true_body, "
-                          "true_body_face, true_all (those parts' 2D landmarks from the truth)")
+    web.add_argument("--drives", default="live,embedding,true_body,true_body_face,true_all",
+                     help="comma-separated: live (the tracked landmarks, today's fit), "
+                          "embedding (+ the learned landmark embedding and image z), "
+                          "true_body, true_body_face, true_all (those parts' 2D landmarks "
+                          "from the truth), live_pose_hands (+ BlazePose's hand points for "
+                          "declined hands), live_true_depth, true_all_arm_depth, "
+                          "true_all_torso_depth, true_all_depth (+ the true depth of the "
+                          "arms' / torso's body landmarks)")
     web.add_argument("--models", type=Path, default=None, help="synthetic model folder")
     web.add_argument("--keep-frames", action="store_true",
                      help="also write runs.pkl: every frame's true, fitted and smoothed "

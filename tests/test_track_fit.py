@@ -106,7 +106,7 @@ def test_correspondence_tables_are_consistent(fitter):
     avail = fitter.keypoints.available.numpy()
     assert avail[cor.FACE_SLICE].all()  # 51 static + 17 contour landmarks
     assert avail[cor.LEFT_HAND_SLICE].all() and avail[cor.RIGHT_HAND_SLICE].all()
-    assert avail[cor.POSE_SLICE].sum() == 13  # nose, eyes, ears, arms, hips
+    assert avail[cor.POSE_SLICE].sum() == 19  # nose, eyes, ears, arms, hands, hips
 
 
 def test_fit_recovers_known_parameters(setup, fitter):

@@ -64,6 +64,27 @@ def _obs(value: float):
                         {g: True for g in cor.GROUP_SLICES}, np.full(k, value))
 
 
+def test_each_drive_fits_with_its_own_inputs():
+    from avatar_core.synth.tracking_eval import protocol_drives as pd
+    from avatar_core.track.fit.sequence import SequenceFitConfig
+
+    base = SequenceFitConfig()
+    assert pd.drive_config("live", base) == base
+    embedded = pd.drive_config("embedding", base).fit
+    assert embedded.embedding is not None
+    assert embedded.image_z_weight == pd.EMBEDDING_IMAGE_Z_WEIGHT > 0
+    depth = pd.drive_config("true_all_arm_depth", base).fit
+    assert depth.world_weight == pd.TRUE_DEPTH_WEIGHT and depth.embedding is None
+    assert pd.drive_config("live_pose_hands", base).pose_hands and not base.pose_hands
+    points = np.arange(33 * 3, dtype=float).reshape(33, 3)
+    world = pd.true_world(points, ("torso",))  # shoulders' line, nose against each shoulder
+    assert set(np.flatnonzero(np.isfinite(world[:, 2]))) == {0, 11, 12}
+    np.testing.assert_array_equal(world[[0, 11, 12], 2], -points[[0, 11, 12], 2])
+    assert np.isfinite(pd.true_world(points, ("arms",))[:, 2]).sum() == 6
+    with pytest.raises(ValueError, match="drives must be among"):
+        pd.check_drives(["live", "nope"])
+
+
 def test_mixing_takes_only_the_named_parts_from_the_truth():
     from avatar_core.track.fit import correspondence as cor
 
@@ -138,8 +159,8 @@ def test_a_few_frames_of_the_protocol_through_the_real_tracker():
     except ModelFetchError as exc:
         pytest.skip(f"cannot fetch the MediaPipe landmark models: {exc}")
     # The first 0.6 s at 5 fps: the right arm rising into the wave.
-    summary = run_protocol((0,), ("waist_up",), 5.0, max_frames=4,
-                           score_size=(160, 120), drives=("live", "true_all"))
+    summary = run_protocol((0,), ("waist_up",), 5.0, max_frames=4, score_size=(160, 120),
+                           drives=("live", "embedding", "true_all", "true_all_depth"))
     live, true = summary["overall"]["live"], summary["overall"]["true_all"]
     assert summary["conditions"][0]["frames"] == 4
     assert summary["presence"]["face"] == 1.0 and summary["presence"]["pose"] == 1.0
@@ -150,8 +171,15 @@ def test_a_few_frames_of_the_protocol_through_the_real_tracker():
     assert true["root"] < live["root"] and true["forearms"] < live["forearms"]
     assert live["fit_ms"] > 0 and np.isfinite(live["jitter_px"])
     assert [r["min_cutoff"] for r in summary["curve"]][0] is None  # unsmoothed first
+    # The true depth of the arms and torso on top settles the forearms that 2D leaves open.
+    depth = summary["overall"]["true_all_depth"]
+    assert depth["forearms"] < true["forearms"] and depth["elbows"] < true["elbows"]
+    embedded = summary["overall"]["embedding"]
+    assert np.isfinite(embedded["psnr"]) and embedded["fit_ms"] > 0
     md = protocol_markdown(summary)
-    assert "| webcam, live fit |" in md and "| all 2D true |" in md
+    for label in ("webcam, live fit", "webcam, learned embedding + 3D cues", "all 2D true",
+                  "all 2D true + true arm and torso depth"):
+        assert f"| {label} |" in md
 
 
 def test_each_frame_is_labelled_with_the_motion_playing():

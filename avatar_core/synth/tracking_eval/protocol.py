@@ -8,11 +8,13 @@ with sensor noise, JPEG-encoded as a browser sends it. The frames go through the
 (`Tracker` with the server's palm interval and irises, `from_track_result`, `SequenceFit`
 with the actor's betas) once per *drive*:
 
-* ``live``: the tracked landmarks;
+* ``live``: the tracked landmarks; ``embedding``: the same through the learned landmark
+  embedding and BlazePose's image z;
 * ``true_body``, ``true_body_face``, ``true_all``: the same, with the tracked 2D landmarks of
   the pose model, then also the face, then also the hands replaced by the truth (the model's
   own keypoints of the true parameters, projected; points outside the image dropped) and
-  refitted: the part-attribution table (which landmarks cost what).
+  refitted: the part-attribution table (which landmarks cost what);
+* ``*_depth``: the true depth of one part's body landmarks given as well (`protocol_drives`).
 
 Each drive's parameters, without ``transl`` (the avatar stays at its own place, as on the
 server), pose the same textured actor at a *score* camera `SCORE_ANGLE_DEG` to the side of the
@@ -42,6 +44,13 @@ from avatar_core.body.skeleton import JOINT
 from avatar_core.render.camera import Camera, look_at
 
 from .metrics import GROUPS, Posed, aa_to_matrix, evaluate_params, geodesic_deg
+from .protocol_drives import (
+    DEFAULT_DRIVES,
+    DRIVES,
+    check_drives,
+    drive_config,
+    true_world,
+)
 from .scene import FOV_X_DEG, background, render_frame, webcam_camera
 
 TAKE = ("wave", "clapping", "pointing", "hands_to_face", "reach_out")
@@ -51,19 +60,16 @@ MIN_TAKE_S = 10.0
 FRAMINGS = {"head_shoulders": ("spine3", -0.05), "waist_up": ("pelvis", 0.0)}
 HEAD_TOP_M = 0.30
 FRAMING_MARGIN = 1.05
-DRIVES = {"live": (), "true_body": ("pose",), "true_body_face": ("pose", "face"),
-          "true_all": ("pose", "face", "left_hand", "right_hand")}
-DRIVE_LABELS = {"true": "true parameters", "live": "webcam, live fit",
-                "true_body": "true body 2D", "true_body_face": "true body + face 2D",
-                "true_all": "all 2D true"}
 SCORE_ANGLE_DEG = 30.0
 JPEG_QUALITY = 90
 SENSOR_NOISE = 2 / 255
 ANGLE_JOINTS = {"shoulders": ("left_shoulder", "right_shoulder"),
-                "elbows": ("left_elbow", "right_elbow")}
+                "elbows": ("left_elbow", "right_elbow"),
+                "wrists": ("left_wrist", "right_wrist")}
 # One Euro settings for the jitter-vs-lag curve (min_cutoff Hz, beta); None: no smoothing.
 CURVE_SETTINGS: tuple[tuple[float, float] | None, ...] = (
-    None, (4.0, 0.3), (1.5, 0.3), (1.0, 0.1), (0.5, 0.05), (0.25, 0.02))
+    None, (6.0, 0.3), (4.0, 0.3), (3.0, 0.3), (2.0, 0.3), (1.5, 0.3), (1.0, 0.1), (0.5, 0.05),
+    (0.25, 0.02))
 MAX_LAG_S = 0.5
 LAG_STEP_S = 0.005
 
@@ -91,6 +97,9 @@ class RunResult:
     seen: dict[str, np.ndarray]                      # group -> [T] bool (live tracker)
     in_view: dict[str, np.ndarray]                   # hand -> [T] all true keypoints inside
     metrics: dict[str, dict[str, float]] = field(default_factory=dict)
+    # hand -> [T] bool: placed by the live tracker, by its own landmarks or by the pose
+    # model's points of it (`observations.pose_hand_seen`)
+    placed: dict[str, np.ndarray] = field(default_factory=dict)
     curve: list[dict[str, float]] = field(default_factory=list)  # `temporal_curve`
     start_frame: int = 0
 
@@ -175,6 +184,16 @@ def _true_observations(fitter, params: dict[str, np.ndarray], wcam):
     return obs, cor
 
 
+def _true_pose_points(fitter, params: dict[str, np.ndarray]) -> np.ndarray:
+    """[33, 3] the fitter's pose keypoints of the true parameters, in the model (camera)
+    frame; NaN where BlazePose has no model point."""
+    from avatar_core.track.fit import correspondence as cor
+    from avatar_core.track.fit.synthetic import model_keypoints
+
+    return model_keypoints(fitter, {k: v for k, v in params.items() if k != "betas"}
+                           ).numpy()[cor.POSE_SLICE]
+
+
 def mix_observations(live, truth, parts: Sequence[str]):
     """`live` with the landmark groups in `parts` taken from `truth` (pixels, weights, depth,
     seen); a new object, `live` untouched."""
@@ -183,7 +202,7 @@ def mix_observations(live, truth, parts: Sequence[str]):
 
     out = type(live)(live.pixels.copy(), live.weights.copy(), live.image_size,
                      dict(live.seen), None if live.depth is None else live.depth.copy(),
-                     live.iris)
+                     live.iris, None if live.world is None else live.world.copy())
     for g in parts:
         sl = cor.GROUP_SLICES[g]
         out.pixels[sl], out.weights[sl] = truth.pixels[sl], truth.weights[sl]
@@ -208,8 +227,9 @@ def _psnr(pred, truth) -> float:
 
 
 def run_condition(condition: Condition, fps: float, *, max_frames: int | None = None,
-                  score_size: tuple[int, int] = (320, 240), drives: Sequence[str] = tuple(DRIVES),
-                  model_dir=None, take: Sequence[str] = TAKE, fit_config=None,
+                  score_size: tuple[int, int] = (320, 240),
+                  drives: Sequence[str] = DEFAULT_DRIVES, model_dir=None,
+                  take: Sequence[str] = TAKE, fit_config=None,
                   curve: bool = True, start_frame: int = 0,
                   progress: Progress | None = None) -> RunResult:
     """Film, track, fit (every drive) and score one identity in one framing; `curve`: also
@@ -219,14 +239,12 @@ def run_condition(condition: Condition, fps: float, *, max_frames: int | None = 
     from avatar_core.synth.actor import Actor
     from avatar_core.synth.model_writer import ensure_models
     from avatar_core.track.fit.camera import WebcamCamera
-    from avatar_core.track.fit.observations import from_track_result
+    from avatar_core.track.fit.observations import from_track_result, pose_hand_seen
     from avatar_core.track.fit.sequence import SequenceFit, SequenceFitConfig
     from avatar_core.track.image import decode_image
     from avatar_core.track.tracker import LIVE_PALM_INTERVAL, Tracker
 
-    unknown = [d for d in drives if d not in DRIVES]
-    if unknown or not drives:
-        raise ValueError(f"drives must be among {', '.join(DRIVES)}, got {list(drives)}")
+    check_drives(drives)
     files = ensure_models(model_dir)
     actor = Actor.load(files, condition.identity)
     cam = webcam_camera()
@@ -241,7 +259,7 @@ def run_condition(condition: Condition, fps: float, *, max_frames: int | None = 
     betas = np.asarray(actor.betas, dtype=np.float64)
     cfg = fit_config or SequenceFitConfig(fov_x_deg=FOV_X_DEG)
     body_model = synthetic_package(files.root, condition.identity)[1]  # the avatar's, as live
-    fits = {d: SequenceFit(body_model, betas, cfg) for d in drives}
+    fits = {d: SequenceFit(body_model, betas, drive_config(d, cfg)) for d in drives}
     tracker = Tracker(threads=1, palm_interval=LIVE_PALM_INTERVAL, iris=True)
     rng = np.random.default_rng([23, condition.identity, len(condition.framing)])
     res = RunResult(condition, fps, truth, {d: [] for d in drives}, {d: [] for d in drives},
@@ -254,20 +272,28 @@ def run_condition(condition: Condition, fps: float, *, max_frames: int | None = 
             if not ok:
                 raise RuntimeError("JPEG encoding failed")
             t0 = time.perf_counter()
-            live = from_track_result(tracker.track(decode_image(jpeg.tobytes())))
+            # With the pose's hand points: drives without them (`pose_hands`) drop them.
+            live = from_track_result(tracker.track(decode_image(jpeg.tobytes())),
+                                     pose_hands=True)
             res.track_ms.append((time.perf_counter() - t0) * 1e3)
             for g in GROUPS:
                 res.seen[g][i] = bool(live.seen.get(g))
-            true_obs = None
+            for side in ("left", "right"):
+                res.placed.setdefault(f"{side}_hand", np.zeros(len(truth), bool))[i] = bool(
+                    live.seen.get(f"{side}_hand")) or pose_hand_seen(live, side)
+            true_obs, true_points = None, None
             with torch.no_grad():
                 reference = actor.render(actor.pose(params), score_cam, background=(0, 0, 0),
                                          supersample=1)
             for d in drives:
-                obs = live
-                if DRIVES[d]:
+                obs, drive = live, DRIVES[d]
+                if drive.true_2d or drive.true_depth:
                     if true_obs is None:
                         true_obs = _true_observations(fits[d].fitter, params, wcam)[0]
-                    obs = mix_observations(live, true_obs, DRIVES[d])
+                        true_points = _true_pose_points(fits[d].fitter, params)
+                    obs = mix_observations(live, true_obs, drive.true_2d)
+                    if drive.true_depth:
+                        obs.world = true_world(true_points, drive.true_depth)
                 t1 = time.perf_counter()
                 out = fits[d].step(obs, (start_frame + i) / fps)
                 res.fit_ms[d].append((time.perf_counter() - t1) * 1e3)
@@ -296,7 +322,7 @@ def run_condition(condition: Condition, fps: float, *, max_frames: int | None = 
 
 def joint_errors(pred: list[dict], truth: list[dict]) -> dict[str, float]:
     """Mean geodesic errors (deg): root (global_orient: the webcam is the model frame),
-    shoulders and elbows (local rotations), neck/head (neck then head: the head relative to
+    shoulders, elbows and wrists (local rotations), neck/head (neck then head: the head relative to
     the chest, whichever of the two joints carries it)."""
     def rows(ps, name):
         return aa_to_matrix(np.stack([np.asarray(p["body_pose"])[JOINT[name] - 1] for p in ps]))

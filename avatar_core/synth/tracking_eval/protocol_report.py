@@ -13,20 +13,21 @@ import numpy as np
 
 from .protocol import (
     CURVE_SETTINGS,
-    DRIVE_LABELS,
-    DRIVES,
+    DEFAULT_DRIVES,
     FRAMINGS,
     MIN_TAKE_S,
     TAKE,
     Condition,
     Progress,
     RunResult,
+    check_drives,
     motion_of_frames,
     run_condition,
 )
+from .protocol_drives import DRIVE_LABELS
 
-METRIC_KEYS = ("psnr", "root", "shoulders", "elbows", "neck_head", "upper_arms", "forearms",
-               "jitter_px", "fit_ms")
+METRIC_KEYS = ("psnr", "root", "shoulders", "elbows", "wrists", "neck_head", "upper_arms",
+               "forearms", "jitter_px", "fit_ms")
 
 
 def _weighted(rows: list[tuple[float, int]]) -> float:
@@ -45,12 +46,16 @@ def _presence(runs: list[RunResult]) -> dict[str, float]:
         view = np.concatenate([r.in_view[g] for r in runs])
         out[g] = float(seen[view].mean()) if view.any() else float("nan")
         out[f"{g}_in_view"] = float(view.mean())
+        placed = [getattr(r, "placed", {}).get(g) for r in runs]
+        if all(p is not None for p in placed):  # runs from before the pose's hand points
+            placed = np.concatenate(placed)
+            out[f"{g}_placed"] = float(placed[view].mean()) if view.any() else float("nan")
     return out
 
 
 def summarise(runs: list[RunResult]) -> dict[str, Any]:
     drives = list(runs[0].metrics)
-    overall = {d: {k: _weighted([(r.metrics[d][k], len(r.truth)) for r in runs])
+    overall = {d: {k: _weighted([(r.metrics[d].get(k), len(r.truth)) for r in runs])
                    for k in METRIC_KEYS} for d in drives}
     curve = []
     for j, setting in enumerate(runs[0].curve):
@@ -83,7 +88,8 @@ def summarise(runs: list[RunResult]) -> dict[str, Any]:
 
 def run_protocol(identities: Sequence[int] = (0, 1), framings: Sequence[str] = tuple(FRAMINGS),
                  fps: float = 15.0, *, max_frames: int | None = None,
-                 score_size: tuple[int, int] = (320, 240), drives: Sequence[str] = tuple(DRIVES),
+                 score_size: tuple[int, int] = (320, 240),
+                 drives: Sequence[str] = DEFAULT_DRIVES,
                  model_dir=None, curve: bool = True, start_frame: int = 0,
                  runs_out: list[RunResult] | None = None,
                  progress: Progress | None = None) -> dict[str, Any]:
@@ -94,9 +100,7 @@ def run_protocol(identities: Sequence[int] = (0, 1), framings: Sequence[str] = t
     unknown = [f for f in framings if f not in FRAMINGS]
     if unknown:
         raise ValueError(f"unknown framing(s) {unknown}; known: {', '.join(FRAMINGS)}")
-    unknown = [d for d in drives if d not in DRIVES]
-    if unknown or not drives:
-        raise ValueError(f"drives must be among {', '.join(DRIVES)}, got {list(drives)}")
+    check_drives(drives)
     runs = [run_condition(Condition(i, f), fps, max_frames=max_frames, score_size=score_size,
                           drives=drives, model_dir=model_dir, curve=curve,
                           start_frame=start_frame, progress=progress)
@@ -120,13 +124,14 @@ def protocol_markdown(summary: dict[str, Any]) -> str:
              "degrees; jitter = keypoint TJE px at the score camera; fit ms = median per frame.",
              "Upper arm / forearm: the bones' world directions (what the landmarks show), "
              "beside the local joint angles (which also carry the arm's twist).",
-             "", "| drive | PSNR | root° | shoulders° | elbows° | neck/head° | upper arm / "
-             "forearm dir° | jitter px | fit ms/frame |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
-             "| true parameters | exact | 0 | 0 | 0 | 0 | 0 / 0 | 0 | - |"]
+             "", "| drive | PSNR | root° | shoulders° | elbows° | neck/head° | wrists° | "
+             "upper arm / forearm dir° | jitter px | fit ms/frame |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+             "| true parameters | exact | 0 | 0 | 0 | 0 | 0 | 0 / 0 | 0 | - |"]
     for d, m in summary["overall"].items():
         lines.append(f"| {DRIVE_LABELS.get(d, d)} | {_f(m['psnr'], 2)} | {_f(m['root'])} | "
                      f"{_f(m['shoulders'])} | {_f(m['elbows'])} | {_f(m['neck_head'])} | "
+                     f"{_f(m.get('wrists'))} | "
                      f"{_f(m['upper_arms'])} / {_f(m['forearms'])} | "
                      f"{_f(m['jitter_px'], 2)} | {_f(m['fit_ms'])} |")
     drives = list(summary["overall"])
@@ -145,15 +150,17 @@ def protocol_markdown(summary: dict[str, Any]) -> str:
             lines.append(f"| {name} | " + " | ".join(_f(row.get(d), 2) for d in drives) + " |")
     lines += ["", "Presence (live tracker; a hand over the frames where all its true keypoints "
                   "are inside the image, the share of such frames in brackets):", "",
-              "| identity | framing | face | pose | left hand | right hand | track ms |",
-              "|---:|---|---:|---:|---:|---:|---:|"]
+              "| identity | framing | face | pose | left hand | right hand | left / right "
+              "hand placed (own or pose points) | track ms |",
+              "|---:|---|---:|---:|---:|---:|---:|---:|"]
     pct = lambda x: "-" if not np.isfinite(x) else f"{100 * x:.0f}%"  # noqa: E731
     for c in summary["conditions"]:
         p = c["presence"]
         lines.append(f"| {c['identity']} | {c['framing']} | {pct(p['face'])} | "
                      f"{pct(p['pose'])} | {pct(p['left_hand'])} ({pct(p['left_hand_in_view'])}) "
                      f"| {pct(p['right_hand'])} ({pct(p['right_hand_in_view'])}) | "
-                     f"{_f(c['track_ms'], 0)} |")
+                     f"{pct(p.get('left_hand_placed', np.nan))} / "
+                     f"{pct(p.get('right_hand_placed', np.nan))} | {_f(c['track_ms'], 0)} |")
     if summary["curve"]:
         lines += ["", "One Euro on the live fit (the same frames, smoothed afterwards): jitter "
                       "vs the lag it adds:", "",

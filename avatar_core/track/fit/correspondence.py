@@ -41,12 +41,16 @@ HAND_MP_TO_SMPLX: tuple[str, ...] = (
 NUM_HAND = 21
 
 # BlazePose 33 -> SMPL-X joint ("joint:<name>") or semantic vertex ("vertex:<name>"); None:
-# no counterpart (eye corners, mouth, hand ends, legs).
+# no counterpart (eye corners, mouth, legs).
 POSE_MP_TO_SMPLX: tuple[str | None, ...] = (
     "vertex:nose", None, "vertex:leye", None, None, "vertex:reye", None,
     "vertex:lear", "vertex:rear", None, None,
     "joint:left_shoulder", "joint:right_shoulder", "joint:left_elbow", "joint:right_elbow",
-    "joint:left_wrist", "joint:right_wrist", None, None, None, None, None, None,
+    "joint:left_wrist", "joint:right_wrist",
+    # pinky, index, thumb: nearest to the finger's first joint on studio renders
+    # (bench/webcam_pose_hand_points.py); used only for a hand whose own landmarks are not seen.
+    "joint:left_pinky1", "joint:right_pinky1", "joint:left_index1", "joint:right_index1",
+    "joint:left_thumb1", "joint:right_thumb1",
     "joint:left_hip", "joint:right_hip", None, None, None, None, None, None, None, None,
 )  # fmt: skip
 NUM_POSE = 33

@@ -6,6 +6,7 @@ A landmark that is NaN, missing or below the visibility threshold gets weight 0;
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -90,6 +91,16 @@ def from_landmarks(image_size: tuple[int, int], *, face: np.ndarray | None = Non
 
 
 POSE_WRISTS = {"left": 15, "right": 16}  # BlazePose: the person's own left / right wrist
+# BlazePose's points of each hand (pinky, index, thumb): they place a hand that the hand
+# landmark model declines (docs/tracking.md: it rejects most hands hanging in front view).
+POSE_HAND_POINTS = {"left": (17, 19, 21), "right": (18, 20, 22)}
+MIN_POSE_HAND_POINTS = 2  # fewer cannot turn the wrist
+
+
+def pose_hand_seen(obs: Observations, side: str) -> bool:
+    """The pose model's points of this hand are in use (`from_track_result`)."""
+    rows = [cor.POSE_SLICE.start + i for i in POSE_HAND_POINTS[side]]
+    return int((obs.weights[rows] > 0).sum()) >= MIN_POSE_HAND_POINTS
 
 
 def hand_sides(result: TrackResult) -> dict[str, np.ndarray]:
@@ -144,11 +155,30 @@ def all_landmarks(result: TrackResult) -> Observations:
         pose_world=None if pose is None else pose.world)
 
 
-def from_track_result(result: TrackResult) -> Observations:
+def without_pose_hands(obs: Observations) -> Observations:
+    """A copy of `obs` with the pose model's hand points (`POSE_HAND_POINTS`) unused."""
+    rows = [cor.POSE_SLICE.start + i for ids in POSE_HAND_POINTS.values() for i in ids]
+    weights = obs.weights.copy()
+    weights[rows] = 0.0
+    return dataclasses.replace(obs, weights=weights)
+
+
+def from_track_result(result: TrackResult, pose_hands: bool = False) -> Observations:
     """:func:`all_landmarks`, but landmarks that MediaPipe defines differently from the model
-    (`MISMATCHED_ROWS`) get weight 0; the iris too, when the face has one."""
+    (`MISMATCHED_ROWS`) get weight 0; the iris too, when the face has one. `pose_hands`: the
+    pose model's points of a hand (`POSE_HAND_POINTS`) are kept while that hand's own
+    landmarks are not seen, inside the image, and only with at least `MIN_POSE_HAND_POINTS`
+    of them (off by default: measured worse, docs/tracking.md)."""
     obs = all_landmarks(result)
     obs.weights[MISMATCHED_ROWS] = 0.0
+    w, h = obs.image_size
+    for side, ids in POSE_HAND_POINTS.items():
+        rows = [cor.POSE_SLICE.start + i for i in ids]
+        px = obs.pixels[rows]
+        outside = (px[:, 0] < 0) | (px[:, 0] >= w) | (px[:, 1] < 0) | (px[:, 1] >= h)
+        obs.weights[np.array(rows)[outside]] = 0.0  # BlazePose's guess of a hand out of view
+        if not pose_hands or obs.seen.get(f"{side}_hand") or not pose_hand_seen(obs, side):
+            obs.weights[rows] = 0.0
     if result.face is not None and result.face.iris is not None and obs.seen.get("face"):
         obs.iris = np.asarray(result.face.iris[:, 0, :2], dtype=np.float64)
     return obs

@@ -1,11 +1,14 @@
 """A stream of frames -> a stream of SMPL-X parameters: warm starts, One Euro smoothing, and
 the lost-track policy.
 
-Each part of the body belongs to one landmark group (face, left hand, right hand, pose).
-While a group is seen its parameters come from the fit; when it is lost they hold their last
-fitted value for `hold_s`, then ease to the neutral stance over `relax_s`. A group never seen
-stays neutral. With nothing seen for longer than `hold_s` the next detection starts cold
-(placement solved again) instead of warm from a stale pose.
+Each part of the body belongs to one landmark group (face, left hand, right hand, pose), each
+wrist to its own (seen with its hand, or with the pose model's points of that hand). While a
+group is seen its parameters come from the fit; when it is lost they hold their last fitted
+value for `hold_s`, then ease to the neutral stance over `relax_s`: fingers lost while the
+pose still places the hand keep their last confident state, then ease to the relaxed hand,
+while the wrist follows the pose. A group never seen stays neutral. With nothing seen for
+longer than `hold_s` the next detection starts cold (placement solved again) instead of warm
+from a stale pose.
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ from ...body.skeleton import JOINT
 from .camera import WebcamCamera
 from .fitter import FitConfig, FitResult, FrameFitter
 from .gaze import gaze_solver
-from .observations import Observations
+from .observations import Observations, pose_hand_seen, without_pose_hands
 from .one_euro import ParamSmoother
 from .palm import rotation_angle_deg
 
@@ -27,9 +30,13 @@ from .palm import rotation_angle_deg
 GROUP_OF_PARAM = {"expression": "face", "jaw_pose": "face", "leye_pose": "face",
                   "reye_pose": "face", "left_hand_pose": "left_hand",
                   "right_hand_pose": "right_hand", "global_orient": "pose", "transl": "pose"}
-GROUP_OF_BODY_JOINT = {"neck": "face", "head": "face", "left_wrist": "left_hand",
-                       "right_wrist": "right_hand"}  # other body joints: "pose"
-GROUPS = ("face", "left_hand", "right_hand", "pose")
+GROUP_OF_BODY_JOINT = {"neck": "face", "head": "face", "left_wrist": "left_wrist",
+                       "right_wrist": "right_wrist"}  # other body joints: "pose"
+GROUPS = ("face", "left_hand", "right_hand", "pose")  # the landmark groups
+# What is held and relaxed on its own: the landmark groups, and each wrist, which is seen
+# while its hand is, or while the pose model's points of that hand are (`POSE_HAND_POINTS`:
+# the hand landmark model declines many hands that BlazePose still places).
+HOLD_GROUPS = ("face", "left_hand", "right_hand", "left_wrist", "right_wrist", "pose")
 
 
 @dataclass
@@ -39,13 +46,21 @@ class SequenceFitConfig:
     relax_s: float = 1.0     # ... then ease to neutral over this long
     smoothing: bool = True
     gaze: bool = True        # turn the eyes onto the iris centres, when the tracker reads them
-    min_cutoff: float = 1.5  # One Euro: Hz at rest
+    # One Euro: Hz at rest. 3 Hz: today's jitter or less at 2/3 of 1.5 Hz's lag on the studio
+    # webcam protocol (docs/tracking.md, "One Euro: jitter against lag").
+    min_cutoff: float = 3.0
     beta: float = 0.3        # cutoff gain per unit/s of speed
     # A hand's palm rotation (`palm.py`) is trusted for the fitter's palm retry only when it
     # is within this (deg) of the same hand's in the previous frame, at most `palm_gap_s`
     # before: a single frame's palm flips (a hand entering or leaving the view) are not.
     palm_stable_deg: float = 30.0
     palm_gap_s: float = 0.1
+    # A hand the hand landmark model declines is placed by the pose model's points of it
+    # (`from_track_result(..., pose_hands=True)`): its wrist follows them while the fingers
+    # hold, then relax. False: those points are dropped and the wrist holds and relaxes. Off:
+    # on the studio protocol it made the wrists worse (docs/tracking.md, "Hands the landmark
+    # model declines").
+    pose_hands: bool = False
     fit: FitConfig = field(default_factory=FitConfig)
 
 
@@ -77,7 +92,7 @@ class SequenceFit:
         self.gaze = gaze_solver(model) if self.config.gaze else None
         self.neutral = self.fitter.neutral
         self.smoother = ParamSmoother(self.config.min_cutoff, self.config.beta)
-        self._rows = {g: _body_rows(g) for g in GROUPS}
+        self._rows = {g: _body_rows(g) for g in HOLD_GROUPS}
         self.reset()
 
     def reset(self) -> None:
@@ -97,7 +112,7 @@ class SequenceFit:
         out = {k: np.array(v, dtype=np.float64) for k, v in self.neutral.items()}
         if self.current is not None:
             out["transl"] = self.current["transl"].copy()  # placement is held, never relaxed
-        for group in GROUPS:
+        for group in HOLD_GROUPS:
             if seen.get(group) and fitted is not None:
                 values = self._group_values(fitted, group)
                 self.held[group], self.last_seen[group] = dict(values), t
@@ -135,6 +150,8 @@ class SequenceFit:
     def step(self, obs: Observations, t: float) -> FrameParams:
         camera = WebcamCamera(*obs.image_size, fov_x_deg=self.config.fov_x_deg)
         seen = {g: bool(obs.seen.get(g)) for g in GROUPS}
+        if not self.config.pose_hands:
+            obs = without_pose_hands(obs)
         fit = None
         if any(seen.values()):
             stale = not self.last_seen or t - max(self.last_seen.values()) > self.config.hold_s
@@ -144,7 +161,11 @@ class SequenceFit:
                 eyes = self.gaze.fit(fit.params, obs.iris, camera, self.fitter.betas[0].numpy())
                 fit.params.update(eyes.params)
                 fit.stats["gaze_px"] = eyes.residual_px
-        params = self._compose(None if fit is None else fit.params, seen, t)
+        held = dict(seen)
+        for side in ("left", "right"):
+            held[f"{side}_wrist"] = seen[f"{side}_hand"] or (
+                seen["pose"] and pose_hand_seen(obs, side))
+        params = self._compose(None if fit is None else fit.params, held, t)
         self.current = params
         if self.config.smoothing:
             params = self.smoother(params, t)

@@ -1,0 +1,94 @@
+"""What each drive of the studio webcam protocol feeds the fit (`protocol.run_condition`).
+
+A drive is the live path with some of its inputs swapped for the truth, or with another fit
+configuration:
+
+* ``live``: the tracked landmarks, today's fit;
+* ``embedding``: the same landmarks through the learned landmark embedding and BlazePose's
+  image z (the issue's "learned embedding + 3D cues"; the weight set on held-out renders,
+  docs/tracking.md);
+* ``true_body``, ``true_body_face``, ``true_all``: the tracked 2D landmarks of those parts
+  replaced by the truth (the part-attribution table);
+* ``*_depth``: the depth question. The true camera depth of the body landmarks of one part
+  (the arms' bones, or the torso: the shoulders' line and the nose against each shoulder)
+  is given to the fit through its world term (`world_cues`), as if BlazePose's metric z were
+  exact, on top of the tracked or the true 2D landmarks: what the remaining gap costs
+  because a monocular 2D fit cannot tell near from far.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from avatar_core.track.fit.world_cues import DEPTH_PAIRS
+
+ALL_PARTS = ("pose", "face", "left_hand", "right_hand")
+# BlazePose pairs (landmark, reference) of each part whose true depth a drive may give.
+DEPTH_PARTS = {"arms": DEPTH_PAIRS[:4], "torso": DEPTH_PAIRS[4:]}
+# The world term's weight for a true depth: a pose landmark's 2D weight (`GROUP_WEIGHT`).
+TRUE_DEPTH_WEIGHT = 2.0
+# The embedding drive's image-z weight: set on identity 1's held-out frames (docs/results.md).
+EMBEDDING_IMAGE_Z_WEIGHT = 0.1
+
+
+@dataclass(frozen=True)
+class Drive:
+    label: str
+    true_2d: tuple[str, ...] = ()         # landmark groups whose 2D comes from the truth
+    true_depth: tuple[str, ...] = ()      # `DEPTH_PARTS` whose depth comes from the truth
+    embedding: bool = False               # the learned landmark embedding + image z
+    pose_hands: bool | None = None        # `SequenceFitConfig.pose_hands`; None: as given
+
+
+DRIVES = {
+    "live": Drive("webcam, live fit"),
+    "embedding": Drive("webcam, learned embedding + 3D cues", embedding=True),
+    "live_pose_hands": Drive("webcam, live fit + the pose's hand points", pose_hands=True),
+    "true_body": Drive("true body 2D", ("pose",)),
+    "true_body_face": Drive("true body + face 2D", ("pose", "face")),
+    "true_all": Drive("all 2D true", ALL_PARTS),
+    "live_true_depth": Drive("live 2D + true arm and torso depth",
+                             true_depth=tuple(DEPTH_PARTS)),
+    "true_all_arm_depth": Drive("all 2D true + true arm depth", ALL_PARTS, ("arms",)),
+    "true_all_torso_depth": Drive("all 2D true + true torso depth", ALL_PARTS, ("torso",)),
+    "true_all_depth": Drive("all 2D true + true arm and torso depth", ALL_PARTS,
+                            tuple(DEPTH_PARTS)),
+}
+DEFAULT_DRIVES = ("live", "embedding", "true_body", "true_body_face", "true_all")
+DRIVE_LABELS = {"true": "true parameters", **{k: d.label for k, d in DRIVES.items()}}
+
+
+def check_drives(drives) -> None:
+    unknown = [d for d in drives if d not in DRIVES]
+    if unknown or not drives:
+        raise ValueError(f"drives must be among {', '.join(DRIVES)}, got {list(drives)}")
+
+
+def drive_config(name: str, base, embedding=None):
+    """`base` (a SequenceFitConfig) as drive `name` fits: the embedding and its image z, or
+    the world term that carries a true depth; `embedding`: the one to load (default: the
+    committed asset)."""
+    drive = DRIVES[name]
+    fit = base.fit
+    if drive.embedding:
+        from avatar_core.track.fit.embedding import load_embedding
+
+        fit = dataclasses.replace(fit, embedding=embedding or load_embedding(),
+                                  image_z_weight=EMBEDDING_IMAGE_Z_WEIGHT)
+    if drive.true_depth:
+        fit = dataclasses.replace(fit, world_weight=TRUE_DEPTH_WEIGHT, embedding=None)
+    pose_hands = base.pose_hands if drive.pose_hands is None else drive.pose_hands
+    return dataclasses.replace(base, fit=fit, pose_hands=pose_hands)
+
+
+def true_world(model_points: np.ndarray, parts) -> np.ndarray:
+    """[33, 3] BlazePose-layout world landmarks whose z is the true camera depth (m, away from
+    the camera) of the pose rows in the pairs of `parts`; NaN elsewhere (those pairs drop).
+    `model_points`: the fitter's pose rows [33, 3] in the model frame (the camera's)."""
+    out = np.full((len(model_points), 3), np.nan)
+    rows = sorted({i for part in parts for pair in DEPTH_PARTS[part] for i in pair})
+    out[rows, 2] = -model_points[rows, 2]
+    return out
