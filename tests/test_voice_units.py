@@ -130,3 +130,43 @@ def test_a_full_listener_drops_its_oldest_and_counts():
     assert seat.counts["overflow"] == 6 and listener.overflowed == 6
     listener.close()
     assert not seat.listeners
+
+
+def test_speaking_presence_is_sent_at_most_once_per_interval():
+    from server.rooms.live import LiveRoom
+    from server.rooms.registry import Room, SeatSpec
+    from server.rooms.voice import seat_voice
+
+    settings = Settings(voice_presence_interval_s=0.5)
+    packet = libopus_packets(20, 32000, 1)[0]
+
+    class Listening:  # a participant as presence sees one: its role and control queue
+        role = "watch"
+
+        def __init__(self) -> None:
+            self.sent: list[tuple[float, object]] = []
+
+        def send_control(self, message) -> None:
+            self.sent.append((time.monotonic(), message))
+
+    async def run() -> list:
+        room = Room("r", "r", "owner", [SeatSpec(0, "demo")], time.time())
+        live = LiveRoom(room, None, settings)
+        who = Listening()
+        live.participants.append(who)
+        voice = seat_voice(live.seats[0], settings)
+        for i in range(8):  # loud, then 0.35 s quiet (past SPEAKING_S): it flips each time
+            voice.publish(voice, packet, i * 960 * 20, level_dbov=-10.0)
+            await asyncio.sleep(0.35)
+        voice.publish(voice, packet, 10**6, level_dbov=-100.0)  # a quiet packet: no flip
+        for _ in range(100):  # the end of speech is announced within SPEAKING_S + interval
+            if not (live.speaking()[0] or live._announced[0]):
+                break
+            await asyncio.sleep(0.05)
+        return who.sent
+
+    sent = asyncio.run(run())
+    times = [t for t, _ in sent]
+    assert len(sent) >= 2 and sent[0][1].seats[0].speaking and not sent[-1][1].seats[0].speaking
+    assert min(np.diff(times)) >= 0.5  # 16 flips of the voice, no update closer than that
+    assert len(sent) < 16

@@ -13,6 +13,12 @@ Packets carry a media time in 48 kHz ticks: the publisher's RTP timestamps, unwr
 continuous across publishers (a new performer goes on where the last one stopped), so a
 listener's outgoing timestamps never jump back. A seat nobody publishes to sends nothing and
 wakes nobody.
+
+A seat speaks while a packet louder than ``voice_speaking_dbov`` came in the last
+``SPEAKING_S`` (the level the sender put in the packet: RTP's RFC 6464 extension, or a
+``voice`` message's ``level_dbov``; a packet without one counts as speech). The moment a seat
+starts speaking it calls ``on_speaking`` (the room's presence, server/rooms/live.py), which
+polls for the end.
 """
 
 from __future__ import annotations
@@ -21,6 +27,7 @@ import asyncio
 import collections
 import statistics
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -29,7 +36,7 @@ from protocol.opus import OpusPacketError, packet_duration_ms
 
 CLOCK_RATE = 48_000                 # Opus' RTP clock
 DISCONTINUITY_TICKS = 5 * CLOCK_RATE  # a timestamp jump past this is a new stream, not a gap
-SPEAKING_S = 0.3                    # a seat speaks while its last packet is this recent
+SPEAKING_S = 0.3                    # a seat speaks while its last loud packet is this recent
 LAG_SAMPLES = 15                    # picture lags the voice delay is the median of
 
 
@@ -98,8 +105,12 @@ class Listener:
 
 
 class SeatVoice:
-    def __init__(self, settings: Any, metrics: Any = None) -> None:
+    def __init__(self, settings: Any, metrics: Any = None,
+                 on_speaking: Callable[[], None] | None = None) -> None:
         self.max_packet_bytes = settings.voice_max_packet_bytes
+        self.speaking_dbov = settings.voice_speaking_dbov
+        self.on_speaking = on_speaking
+        self.loud_at: float | None = None
         self.max_bytes_per_s = settings.voice_max_bitrate / 8
         self.max_delay_s = settings.voice_max_delay_s
         self.buffer_packets = settings.voice_buffer_packets
@@ -115,20 +126,30 @@ class SeatVoice:
 
     @property
     def speaking(self) -> bool:
-        return (self.last_packet_at is not None
-                and time.monotonic() - self.last_packet_at < SPEAKING_S)
+        return self.loud_at is not None and time.monotonic() - self.loud_at < SPEAKING_S
+
+    def _heard(self, level_dbov: float | None, now: float) -> None:
+        if level_dbov is not None and level_dbov < self.speaking_dbov:
+            return
+        was = self.speaking
+        self.loud_at = now
+        if not was and self.on_speaking is not None:
+            self.on_speaking()
 
     # -- publishing ---------------------------------------------------------------------------
 
     def publish(self, publisher: object, payload: bytes, rtp_ts: int,
-                now: float | None = None, t_capture: float | None = None) -> str:
-        """Check ``payload`` and fan it out; the outcome (a voice_packets label)."""
+                now: float | None = None, t_capture: float | None = None,
+                level_dbov: float | None = None) -> str:
+        """Check ``payload`` and fan it out; the outcome (a voice_packets label).
+        ``level_dbov``: its audio level as the sender measured it (None: not given)."""
         now = time.monotonic() if now is None else now
         outcome = self._check(payload, now)
         if outcome == "forwarded":
             packet = VoicePacket(payload, self._timeline(publisher, rtp_ts, now), now,
                                  t_capture)
             self.last_packet_at = now
+            self._heard(level_dbov, now)
             for listener in list(self.listeners):
                 if not listener.put(packet):
                     self._count("overflow")
@@ -179,9 +200,9 @@ class SeatVoice:
 
 
 def seat_voice(seat: Any, settings: Any, metrics: Any = None) -> SeatVoice:
-    """The seat's voice, made on first use."""
+    """The seat's voice, made on first use (telling ``seat.on_speaking`` when it speaks)."""
     if seat.voice is None:
-        seat.voice = SeatVoice(settings, metrics)
+        seat.voice = SeatVoice(settings, metrics, getattr(seat, "on_speaking", None))
     return seat.voice
 
 
@@ -192,7 +213,8 @@ def publish_message(seat: Any, performer: Any, message: Voice, settings: Any,
     now = time.monotonic()
     at = message.t_capture if message.t_capture is not None else now
     return seat_voice(seat, settings, metrics).publish(
-        performer, message.data, round(at * CLOCK_RATE) % 2**32, now, message.t_capture)
+        performer, message.data, round(at * CLOCK_RATE) % 2**32, now, message.t_capture,
+        message.level_dbov)
 
 
 async def relay_voices(session: Any, live: Any, settings: Any, metrics: Any = None) -> None:
