@@ -102,13 +102,18 @@ class Ear:
         self.closed: np.ndarray | None = None
         self.mouth: list[float] = []
         self.clicks: list[float] = []
-        self.arrivals: dict[int, float] = {}  # audio RTP timestamp - first -> arrival
-        self.video_arrivals: dict[int, float] = {}  # video RTP timestamp -> its last packet's
+        # aiortc's frames carry their RTP timestamp less the track's first one as pts
+        self.first_ts: dict[str, int] = {}
+        self.arrivals: dict[int, float] = {}  # audio pts -> arrival
+        self.video_arrivals: dict[int, float] = {}  # video pts -> its last packet's arrival
         self.packet_times: list[float] = []
         self.packet_seqs: list[int] = []  # RTP sequence numbers: a gap with none missing
         self.frames = 0
+        self.missed_arrivals = 0  # clicks whose packet's arrival was not seen (then: decode)
         self._open = False
-        self._first_ts: int | None = None
+        self.sr: dict[str, list[tuple[int, float]]] = {"audio": [], "video": []}  # (rtp, ntp)
+        self.click_ts: list[int] = []   # RTP timestamps of the clicks and mouth edges: what
+        self.mouth_ts: list[int] = []   # the sender reports map to one clock, as a browser does
 
     def hook(self) -> None:
         """Note each RTP packet's arrival before aiortc handles it."""
@@ -117,19 +122,50 @@ class Ear:
             if receiver.track.kind == "audio":
                 async def handle(packet, arrival_time_ms: int = 0, original=original):
                     now = time.monotonic()
-                    if self._first_ts is None:
-                        self._first_ts = packet.timestamp
-                    self.arrivals[(packet.timestamp - self._first_ts) % 2**32] = now
+                    self.arrivals[self.pts("audio", packet.timestamp)] = now
                     self.packet_times.append(now)
                     self.packet_seqs.append(packet.sequence_number)
                     await original(packet, arrival_time_ms=arrival_time_ms)
             else:
                 async def handle(packet, arrival_time_ms: int = 0, original=original):
-                    self.video_arrivals[packet.timestamp] = time.monotonic()
+                    self.video_arrivals[self.pts("video", packet.timestamp)] = time.monotonic()
                     if len(self.video_arrivals) > 4096:  # bounded: the oldest go
                         self.video_arrivals.pop(next(iter(self.video_arrivals)))
                     await original(packet, arrival_time_ms=arrival_time_ms)
             receiver._handle_rtp_packet = handle
+            self._hook_reports(receiver)
+
+    def pts(self, kind: str, rtp_ts: int) -> int:
+        return (rtp_ts - self.first_ts.setdefault(kind, rtp_ts)) % 2**32
+
+    def _hook_reports(self, receiver) -> None:
+        from aiortc.rtp import RtcpSrPacket
+
+        original, kind = receiver._handle_rtcp_packet, receiver.track.kind
+
+        async def handle(packet):
+            if isinstance(packet, RtcpSrPacket):
+                info = packet.sender_info
+                if kind in self.first_ts:
+                    self.sr[kind].append((self.pts(kind, info.rtp_timestamp),
+                                          info.ntp_timestamp / 2**32))
+            await original(packet)
+
+        receiver._handle_rtcp_packet = handle
+
+    def sr_offsets(self) -> list[float]:
+        """Click minus mouth (ms) on the sender reports' clock, each click paired with the
+        mouth edge before it within an event interval: the offset a browser that syncs the
+        tracks by their reports plays them at."""
+        mouths = [on_report_clock(ts, self.sr["video"], 90_000) for ts in self.mouth_ts]
+        out = []
+        for ts in self.click_ts:
+            click = on_report_clock(ts, self.sr["audio"], RATE)
+            near = [m for m in mouths if m is not None and click is not None
+                    and abs(click - m) < EVENT_EVERY_S / 2]
+            if near:
+                out.append((click - near[0]) * 1e3)
+        return out
 
     async def watch_video(self, end: float) -> None:
         track = await self.viewer._track  # the raw av.VideoFrame: its pts is the RTP timestamp
@@ -148,6 +184,7 @@ class Ear:
             if is_open and not self._open:
                 self.mouth.append(decoded if self.mouth_clock == "decode"
                                   else self.video_arrivals.get(frame.pts, decoded))
+                self.mouth_ts.append(frame.pts)
             self._open = is_open
 
     async def listen(self, end: float) -> None:
@@ -159,8 +196,22 @@ class Ear:
                 continue
             peak = np.abs(frame.to_ndarray()).max() / 32768
             if peak > CLICK_LEVEL and not loud:
-                self.clicks.append(self.arrivals.get(frame.pts, at))
+                arrived = self.arrivals.get(frame.pts)
+                self.missed_arrivals += arrived is None
+                self.clicks.append(at if self.mouth_clock == "decode" or arrived is None
+                                   else arrived)
+                self.click_ts.append(frame.pts)
             loud = peak > CLICK_LEVEL
+
+
+def on_report_clock(rtp_ts: int, reports: list[tuple[int, float]], rate: int) -> float | None:
+    """``rtp_ts`` on the sender's report clock (NTP seconds), by the report sent last before
+    it, as a receiver maps it to sync tracks (RFC 3550 6.4.1)."""
+    if not reports:
+        return None
+    before = [r for r in reports if (rtp_ts - r[0]) % 2**32 < 2**31] or reports[:1]
+    rtp, ntp = before[-1]
+    return ntp + (((rtp_ts - rtp + 2**31) % 2**32) - 2**31) / rate
 
 
 def pair(events: list[float], later: list[float], window: float = EVENT_EVERY_S
@@ -196,7 +247,8 @@ async def listen_in_process(url: str, token: str, room: str, count: int, size: i
     for ear in ears:
         await ear.viewer.close()
     return [{"mouth": e.mouth, "clicks": e.clicks, "packets": e.packet_times,
-             "seqs": e.packet_seqs, "frames": e.frames, "cpu": cpu / count} for e in ears]
+             "seqs": e.packet_seqs, "frames": e.frames, "cpu": cpu / count,
+             "sr_offsets": e.sr_offsets(), "missed_arrivals": e.missed_arrivals} for e in ears]
 
 
 def viewer_process(args: tuple, ready, go, results) -> None:
@@ -323,6 +375,7 @@ async def run(url: str, token: str, viewers: int, events: int, size: int,
         times = np.diff(at[(at >= fired[0] - 0.5) & (at <= fired[-1] + EVENT_EVERY_S)])
         gaps.append(float(times.max() * 1e3) if len(times) else float("nan"))
     arr = np.asarray(offsets)
+    sr = np.asarray([x for rec in records for x in rec["sr_offsets"]])
     first = records[0]
     at, seqs = np.asarray(first["packets"]), np.asarray(first["seqs"])
     worst = np.argsort(np.diff(at))[::-1][:5]  # anywhere in the run, the joins included
@@ -334,7 +387,8 @@ async def run(url: str, token: str, viewers: int, events: int, size: int,
           f"{[len(r['mouth']) for r in records]}, clicks {[len(r['clicks']) for r in records]},"
           f" audio packets {[len(r['packets']) for r in records]}, video frames "
           f"{[r['frames'] for r in records]}, viewer CPU s/s each "
-          f"{[round(r['cpu'], 3) for r in records]}, server voice packets "
+          f"{[round(r['cpu'], 3) for r in records]}, clicks without an arrival "
+          f"{sum(r['missed_arrivals'] for r in records)}, server voice packets "
           f"{ {k: after.get(k, 0) - before.get(k, 0) for k in after} }; first viewer, ms "
           f"after each event: mouth "
           f"{[round((m - f) * 1e3) for f, m in zip(fired, first['mouth'], strict=False)]}, "
@@ -347,6 +401,9 @@ async def run(url: str, token: str, viewers: int, events: int, size: int,
             "min_ms": float(arr.min()) if len(arr) else float("nan"),
             "max_ms": float(arr.max()) if len(arr) else float("nan"),
             "within": float(((arr >= -45) & (arr <= 125)).mean()) if len(arr) else 0.0,
+            "sr": (f"{np.median(sr):.0f} ({np.percentile(sr, 5):.0f} / "
+                   f"{np.percentile(sr, 95):.0f}), {((sr >= -45) & (sr <= 125)).mean():.0%} of "
+                   f"{len(sr)}") if len(sr) else "-",
             "mouth_lag": lag_text(mouth_lags), "click_lag": lag_text(click_lags),
             "max_gap_ms": max(gaps), "mic_gap_ms": mic_gap, "cpu": cpu,
             "overflow": after.get("overflow", 0) - before.get("overflow", 0)}
@@ -374,9 +431,10 @@ def main() -> int:
     args = parser.parse_args()
     print("| viewers | processes | mouth clock | drives/s | cap bit/s | events | paired | missed | "
           "median ms | p5 / p95 ms | min / max ms | within -45/+125 | mouth after event ms | "
-          "click after event ms | longest audio gap ms "
+          "click after event ms | on the sender reports' clock: median (p5 / p95) ms, within | "
+          "longest audio gap ms "
           "(viewers / mic) | server overflow drops | voice | server CPU s/s |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     most = max(int(v) for v in args.viewers.split(","))
     os.environ["TELESPLAT_WEBRTC_MAX_PEERS"] = str(most + 2)  # the viewers and the performer
     for cap in (int(c) for c in args.caps.split(",")):
@@ -398,7 +456,7 @@ def main() -> int:
                           f"{r['events']} | {r['paired']} | {r['missed']} | {r['median_ms']:.0f} | "
                           f"{r['p5_ms']:.0f} / {r['p95_ms']:.0f} | {r['min_ms']:.0f} / "
                           f"{r['max_ms']:.0f} | {r['within']:.0%} | {r['mouth_lag']} | "
-                          f"{r['click_lag']} | {r['max_gap_ms']:.0f} / "
+                          f"{r['click_lag']} | {r['sr']} | {r['max_gap_ms']:.0f} / "
                           f"{r['mic_gap_ms']:.0f} | {r['overflow']:.0f} | {voice} | "
                           f"{r['cpu']:.2f} |", flush=True)
             finally:
