@@ -121,6 +121,33 @@ def test_a_listener_waits_the_median_picture_lag_bounded():
     assert asyncio.run(run()) >= 0.2
 
 
+def test_a_packet_waits_for_the_frame_of_its_drive_and_never_past_the_bound():
+    drive = {"arrived": None}
+    seat = SeatVoice(Settings(voice_max_delay_s=0.5), drive_arrived=lambda: drive["arrived"])
+    watching, hearing = seat.subscribe(), seat.subscribe()  # the second follows no picture
+
+    async def run():
+        now = time.monotonic()
+        watching.follow_picture(now - 1.0, now - 0.95)  # the picture's lag: 50 ms
+        drive["arrived"] = time.monotonic()  # a new drive, whose frame is slow
+        seat.publish("p", b"\xf8\x00", 0)
+        heard = await asyncio.wait_for(hearing.next(), 1)  # no picture to wait for
+        got = asyncio.create_task(watching.next())
+        await asyncio.sleep(0.2)
+        waited = not got.done()  # past the 50 ms median: the frame has not left yet
+        watching.follow_picture(drive["arrived"], time.monotonic())  # now it has
+        released = (await asyncio.wait_for(got, 1)) is not None
+        drive["arrived"] = time.monotonic()  # a drive whose frame never leaves
+        seat.publish("p", b"\xf8\x00", 960)
+        sent = time.monotonic()
+        await asyncio.wait_for(watching.next(), 2)
+        return heard, waited, released, time.monotonic() - sent
+
+    heard, waited, released, bounded = asyncio.run(run())
+    assert heard is not None and waited and released
+    assert bounded >= 0.5 - 0.01  # voice_max_delay_s after its arrival, not forever
+
+
 def test_a_full_listener_drops_its_oldest_and_counts():
     seat = voice(voice_buffer_packets=4)
     listener = seat.subscribe()

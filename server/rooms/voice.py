@@ -7,7 +7,10 @@ queue (``voice_buffer_packets``, the oldest dropped past it). A listener release
 ``delay_s`` after it arrived: the voice waits for the picture, never the other way round.
 ``delay_s`` follows that listener's own picture lag (:meth:`Listener.follow_picture`: from a
 drive's arrival to the frame that first shows it leaving for the encoder), smoothed, at most
-``voice_max_delay_s``.
+``voice_max_delay_s``. That median is a floor: a packet also waits until the listener's picture
+shows the seat's drive of its instant (the newest drive that arrived before it, or up to
+``DRIVE_SLACK_S`` after it), so one slow render delays the voice with it instead of letting
+the voice run ahead; never past ``voice_max_delay_s`` after its arrival.
 
 Packets carry a media time in 48 kHz ticks: the publisher's RTP timestamps, unwrapped and made
 continuous across publishers (a new performer goes on where the last one stopped), so a
@@ -38,6 +41,8 @@ CLOCK_RATE = 48_000                 # Opus' RTP clock
 DISCONTINUITY_TICKS = 5 * CLOCK_RATE  # a timestamp jump past this is a new stream, not a gap
 SPEAKING_S = 0.3                    # a seat speaks while its last loud packet is this recent
 LAG_SAMPLES = 15                    # picture lags the voice delay is the median of
+DRIVE_SLACK_S = 0.02                # a drive this soon after a packet is of its instant (one
+#                                     20 ms frame: a drive and its sound leave together)
 
 
 @dataclass(frozen=True)
@@ -46,6 +51,7 @@ class VoicePacket:
     media_ts: int     # 48 kHz ticks on the seat's continuous timeline
     arrived: float    # time.monotonic() when the server got it
     t_capture: float | None = None  # its capture time on the performer's clock, when sent
+    drive_arrived: float | None = None  # the seat's newest drive's arrival when it came
 
 
 class Listener:
@@ -56,7 +62,8 @@ class Listener:
         self.max_delay_s = max_delay_s
         self.delay_s = 0.0
         self.lags: collections.deque[float] = collections.deque(maxlen=LAG_SAMPLES)
-        self._shown_arrival: float | None = None
+        self._shown_arrival: float | None = None  # None: this listener follows no picture
+        self._shown = asyncio.Event()
         self._queue: collections.deque[VoicePacket] = collections.deque()
         self._capacity = capacity
         self._ready = asyncio.Event()
@@ -80,12 +87,30 @@ class Listener:
                 self._ready.clear()
                 await self._ready.wait()
                 continue
-            wait = self._queue[0].arrived + self.delay_s - time.monotonic()
+            head, now = self._queue[0], time.monotonic()
+            deadline = head.arrived + self.max_delay_s
+            wait = min(head.arrived + self.delay_s, deadline) - now
             if wait > 0:
                 await asyncio.sleep(wait)
                 continue
+            if now < deadline and self._picture_behind(head):
+                self._shown.clear()
+                try:
+                    await asyncio.wait_for(self._shown.wait(), deadline - now)
+                except TimeoutError:
+                    pass
+                continue
             return self._queue.popleft()
         return None
+
+    def _picture_behind(self, packet: VoicePacket) -> bool:
+        """Has this listener's picture yet to show the seat's drive of ``packet``'s instant?"""
+        if self._shown_arrival is None:
+            return False
+        latest = self.voice.drive_arrived()
+        target = (latest if latest is not None and latest <= packet.arrived + DRIVE_SLACK_S
+                  else packet.drive_arrived)
+        return target is not None and self._shown_arrival < target
 
     def follow_picture(self, arrived: float | None, now: float) -> None:
         """A frame showing the seat's drive that arrived at ``arrived`` leaves now: the first
@@ -95,6 +120,7 @@ class Listener:
         if arrived is None or arrived == self._shown_arrival:
             return
         self._shown_arrival = arrived
+        self._shown.set()
         self.lags.append(now - arrived)
         self.delay_s = min(max(0.0, statistics.median(self.lags)), self.max_delay_s)
 
@@ -106,8 +132,10 @@ class Listener:
 
 class SeatVoice:
     def __init__(self, settings: Any, metrics: Any = None,
-                 on_speaking: Callable[[], None] | None = None) -> None:
+                 on_speaking: Callable[[], None] | None = None,
+                 drive_arrived: Callable[[], float | None] = lambda: None) -> None:
         self.max_packet_bytes = settings.voice_max_packet_bytes
+        self.drive_arrived = drive_arrived  # the seat's newest drive's arrival (monotonic)
         self.speaking_dbov = settings.voice_speaking_dbov
         self.on_speaking = on_speaking
         self.loud_at: float | None = None
@@ -147,7 +175,7 @@ class SeatVoice:
         outcome = self._check(payload, now)
         if outcome == "forwarded":
             packet = VoicePacket(payload, self._timeline(publisher, rtp_ts, now), now,
-                                 t_capture)
+                                 t_capture, self.drive_arrived())
             self.last_packet_at = now
             self._heard(level_dbov, now)
             for listener in list(self.listeners):
@@ -200,9 +228,11 @@ class SeatVoice:
 
 
 def seat_voice(seat: Any, settings: Any, metrics: Any = None) -> SeatVoice:
-    """The seat's voice, made on first use (telling ``seat.on_speaking`` when it speaks)."""
+    """The seat's voice, made on first use (telling ``seat.on_speaking`` when it speaks; its
+    listeners wait for the frames of ``seat.drive``)."""
     if seat.voice is None:
-        seat.voice = SeatVoice(settings, metrics, getattr(seat, "on_speaking", None))
+        seat.voice = SeatVoice(settings, metrics, getattr(seat, "on_speaking", None),
+                               lambda: seat.drive.arrived)
     return seat.voice
 
 
