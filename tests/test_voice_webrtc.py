@@ -90,6 +90,86 @@ def test_every_viewer_hears_the_performer_in_the_videos_stream(srv):
                what="the listeners gone with their peers")
 
 
+def test_the_voice_arrives_with_the_mouth_it_was_spoken_with(srv):
+    """A click and a jaw opening leave the performer together every 0.7 s (drives at 30 Hz
+    between, as a tracker sends them); at the viewer the click's packet arrives no earlier
+    than 45 ms before the frame that first shows the open mouth (ITU-R BT.1359's bound for
+    sound ahead of the picture), and no later than 125 ms after it."""
+    from protocol import Drive
+
+    room = create_room(srv)
+    perform = invite(srv, room["id"], "perform")
+    watch = invite(srv, room["id"], "watch")
+    events, jaw = 8, {"angle": 0.0}
+
+    async def run():
+        loop = asyncio.get_running_loop()
+        performer: WhepViewer | None = None
+        seq = iter(range(1, 10**6))
+
+        def drive(angle: float) -> None:
+            jaw["angle"] = angle
+            performer.send(Drive(seq=next(seq), smplx={"jaw_pose": [angle, 0.0, 0.0]}))
+
+        def clicked() -> None:
+            if len(mic.clicks) <= events:
+                drive(0.5)
+                loop.call_later(0.3, drive, 0.0)
+
+        mic = click_track(click_every=35, on_click=clicked)
+        performer = viewer(srv, room["id"], perform["token"], microphone=mic)
+        async with performer, viewer(srv, room["id"], watch["token"], voices=1) as v:
+            arrivals = {"audio": {}, "video": {}}
+            first: dict[str, int] = {}
+            for receiver in v.pc.getReceivers():
+                kind, original = receiver.track.kind, receiver._handle_rtp_packet
+
+                async def note(packet, arrival_time_ms=0, kind=kind, original=original):
+                    pts = (packet.timestamp - first.setdefault(kind, packet.timestamp)) % 2**32
+                    arrivals[kind][pts] = time.monotonic()  # aiortc's frame pts is this
+                    await original(packet, arrival_time_ms=arrival_time_ms)
+
+                receiver._handle_rtp_packet = note
+            closed = (await v.next_video_frame()).to_ndarray(format="gray").astype(int)
+
+            async def tracker():
+                while len(mic.clicks) <= events + 1:
+                    drive(jaw["angle"])
+                    await asyncio.sleep(1 / 30)
+
+            changed: list[int] = []  # pixels off the closed mouth, per frame
+
+            async def mouths():
+                edges, was_open = [], False
+                while len(mic.clicks) <= events + 1:
+                    frame = await v.next_video_frame()
+                    grey = frame.to_ndarray(format="gray").astype(int)
+                    changed.append(int((abs(grey - closed) > 25).sum()))
+                    is_open = changed[-1] > 3  # 64 px: the open mouth is 6-7 px
+                    if is_open and not was_open:
+                        edges.append(arrivals["video"][frame.pts])
+                    was_open = is_open
+                return edges
+
+            async def clicks():
+                onsets, quiet = [], True
+                while len(mic.clicks) <= events + 1:
+                    frame, _ = await v.next_audio()
+                    if peak(frame) > CLICK_LEVEL and quiet:
+                        onsets.append(arrivals["audio"][frame.pts])
+                    quiet = peak(frame) <= CLICK_LEVEL
+                return onsets
+
+            _, edges, onsets = await asyncio.gather(tracker(), mouths(), clicks())
+            return edges, onsets, changed
+
+    edges, onsets, changed = asyncio.run(run())
+    offsets = [min((c - m for c in onsets), key=abs) * 1e3 for m in edges]
+    offsets = [x for x in offsets if abs(x) < 350]  # each mouth with its own click
+    assert len(offsets) >= events - 2, (edges, onsets, changed)
+    assert all(-45 <= x <= 125 for x in offsets), offsets
+
+
 def test_garbage_and_oversized_packets_are_dropped_counted_and_never_heard(srv):
     room = create_room(srv)
     perform = invite(srv, room["id"], "perform")
