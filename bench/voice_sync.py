@@ -36,6 +36,7 @@ from pathlib import Path
 
 import httpx
 import numpy as np
+from aiortc.mediastreams import MediaStreamError
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -109,6 +110,7 @@ class Ear:
         self.packet_times: list[float] = []
         self.packet_seqs: list[int] = []  # RTP sequence numbers: a gap with none missing
         self.frames = 0
+        self.lost = False  # its peer closed during the run
         self.missed_arrivals = 0  # clicks whose packet's arrival was not seen (then: decode)
         self._open = False
         self.sr: dict[str, list[tuple[int, float]]] = {"audio": [], "video": []}  # (rtp, ntp)
@@ -174,6 +176,9 @@ class Ear:
                 frame = await asyncio.wait_for(track.recv(), 2.0)
             except TimeoutError:
                 continue
+            except MediaStreamError:  # the server closed this peer: it records no more
+                self.lost = True
+                return
             decoded = time.monotonic()
             self.frames += 1
             grey = frame.to_ndarray(format="rgb24").mean(axis=2)
@@ -194,6 +199,9 @@ class Ear:
                 frame, at = await self.viewer.next_audio(timeout=2.0)
             except TimeoutError:
                 continue
+            except MediaStreamError:
+                self.lost = True
+                return
             peak = np.abs(frame.to_ndarray()).max() / 32768
             if peak > CLICK_LEVEL and not loud:
                 arrived = self.arrivals.get(frame.pts)
@@ -248,7 +256,8 @@ async def listen_in_process(url: str, token: str, room: str, count: int, size: i
         await ear.viewer.close()
     return [{"mouth": e.mouth, "clicks": e.clicks, "packets": e.packet_times,
              "seqs": e.packet_seqs, "frames": e.frames, "cpu": cpu / count,
-             "sr_offsets": e.sr_offsets(), "missed_arrivals": e.missed_arrivals} for e in ears]
+             "sr_offsets": e.sr_offsets(), "missed_arrivals": e.missed_arrivals,
+             "lost": e.lost} for e in ears]
 
 
 def viewer_process(args: tuple, ready, go, results) -> None:
@@ -298,7 +307,7 @@ async def run(url: str, token: str, viewers: int, events: int, size: int,
 
     async def tracker(until: float) -> None:
         """A webcam performer's drives: the current jaw, ``drive_hz`` times a second."""
-        while drive_hz and time.monotonic() < until:
+        while drive_hz and time.monotonic() < until and performer.channel.readyState == "open":
             jaw(pose["jaw"])
             await asyncio.sleep(1 / drive_hz)
 
@@ -383,7 +392,7 @@ async def run(url: str, token: str, viewers: int, events: int, size: int,
           f"{[(round(at[i] - fired[0], 2), round((at[i + 1] - at[i]) * 1e3), int((seqs[i + 1] - seqs[i] - 1) % 65536)) for i in sorted(worst)]}",  # noqa: E501
           file=sys.stderr, flush=True)
     print(f"# {viewers} viewers in {processes} processes, mouth at {mouth_clock}: fired "
-          f"{len(fired)}, mouth edges "
+          f"{len(fired)}, peers lost {sum(r['lost'] for r in records)}, mouth edges "
           f"{[len(r['mouth']) for r in records]}, clicks {[len(r['clicks']) for r in records]},"
           f" audio packets {[len(r['packets']) for r in records]}, video frames "
           f"{[r['frames'] for r in records]}, viewer CPU s/s each "

@@ -103,6 +103,20 @@ registerProcessor('onset', Onset);`;
 """
 
 
+JITTER_BUFFERS = """
+const done = arguments[arguments.length - 1];
+window.telesplat.session.pc.getStats().then((stats) => {
+  const out = {};
+  stats.forEach((s) => {
+    if (s.type === 'inbound-rtp' && s.jitterBufferEmittedCount) {
+      out[s.kind] = Math.round(1000 * s.jitterBufferDelay / s.jitterBufferEmittedCount);
+    }
+  });
+  done(out);
+});
+"""
+
+
 async def perform(url: str, token: str, room: str, size: int, events: int, drive_hz: float,
                   driver, open_pixels: int) -> dict:
     seq = iter(range(1, 10**6))
@@ -137,7 +151,9 @@ async def perform(url: str, token: str, room: str, size: int, events: int, drive
             await asyncio.sleep(EVENT_EVERY_S - OPEN_S)
         await drives
         await asyncio.sleep(1.0)
-        return await asyncio.to_thread(driver.execute_script, "return window.__sync;")
+        rec = await asyncio.to_thread(driver.execute_script, "return window.__sync;")
+        rec["buffers"] = await asyncio.to_thread(driver.execute_async_script, JITTER_BUFFERS)
+        return rec
 
 
 def join_page(driver, url: str, token: str, room: str, size: int, open_pixels: int) -> None:
@@ -199,7 +215,8 @@ def main() -> int:
     arr = np.asarray(offsets(rec))
     print(f"# frames {rec['frames']}, audio blocks {rec['blocks']}, mouth edges "
           f"{len(rec['mouth'])}, clicks {len(rec['clicks'])}, audio {rec.get('context')}, "
-          f"error {rec['error']}; offsets ms {[round(x) for x in arr]}", file=sys.stderr)
+          f"error {rec['error']}, mean jitter-buffer delay ms {rec['buffers']}; "
+          f"offsets ms {[round(x) for x in arr]}", file=sys.stderr)
     print("| viewer | drives/s | events | paired | median ms | p5 / p95 ms | min / max ms | "
           "within -45/+125 |")
     print("|---|---|---|---|---|---|---|---|")
