@@ -21,6 +21,7 @@ pytest.importorskip("aiortc")
 SIZE = 64
 TIMEOUT_S = 30.0
 LISTEN_FRAMES = 150  # 3 s of 20 ms frames: clicks every 200 ms
+NTP_TO_UNIX_S = 2_208_988_800  # 1900 -> 1970
 
 
 @pytest.fixture(scope="module")
@@ -250,3 +251,44 @@ def test_a_seat_without_a_voice_sends_nothing(srv):
     assert sent == [0]
     audio_in = [s for s in stats.values() if s.type == "inbound-rtp" and s.kind == "audio"]
     assert all(s.packetsReceived == 0 for s in audio_in)
+
+
+def test_both_tracks_sender_reports_are_on_one_clock(srv):
+    """The audio and the video track's RTCP sender reports carry NTP times of one clock (the
+    server's wall clock at sending, aiortc's choice), the clock a browser lines the two up
+    by: each report's time is within a second of this machine's wall clock when it arrives,
+    and the two tracks' reports advance together."""
+    from aiortc.rtp import RtcpSrPacket
+
+    room = create_room(srv)
+    perform = invite(srv, room["id"], "perform")
+    watch = invite(srv, room["id"], "watch")
+
+    async def run():
+        mic = click_track(click_every=10)
+        async with viewer(srv, room["id"], perform["token"], microphone=mic), \
+                viewer(srv, room["id"], watch["token"], voices=1) as v:
+            reports: dict[str, list[tuple[float, float]]] = {"audio": [], "video": []}
+            for receiver in v.pc.getReceivers():
+                kind, original = receiver.track.kind, receiver._handle_rtcp_packet
+
+                async def note(packet, kind=kind, original=original):
+                    if isinstance(packet, RtcpSrPacket):  # (report's NTP as unix, arrival)
+                        ntp = packet.sender_info.ntp_timestamp / 2**32 - NTP_TO_UNIX_S
+                        reports[kind].append((ntp, time.time()))
+                    await original(packet)
+
+                receiver._handle_rtcp_packet = note
+            deadline = time.monotonic() + TIMEOUT_S  # reports come every 0.5-1.5 s
+            while min(len(r) for r in reports.values()) < 3 and time.monotonic() < deadline:
+                await v.next_audio()
+            return reports
+
+    reports = asyncio.run(run())
+    for kind, seen in reports.items():
+        assert len(seen) >= 3, (kind, seen)
+        assert all(abs(ntp - arrived) < 1.0 for ntp, arrived in seen), (kind, seen)
+    span = {kind: seen[-1][0] - seen[0][0] for kind, seen in reports.items()}
+    arrived = {kind: seen[-1][1] - seen[0][1] for kind, seen in reports.items()}
+    for kind in span:  # each advances as the wall clock does
+        assert abs(span[kind] - arrived[kind]) < 0.5, (span, arrived)
