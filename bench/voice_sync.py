@@ -2,23 +2,30 @@
 
 Starts its own server (bench/stream.py's start_server). A performer (aiortc, WHEP with
 role=perform and a microphone track) opens the jaw at each event and, in the same instant, puts
-a 5 ms click in its next 20 ms audio frame; 300 ms later the jaw closes. ``--viewers`` aiortc
-WHEP viewers (one recvonly audio line each, video released at its RTP marker as a browser
-does) record, for every event:
+a 5 ms click in its next 20 ms audio frame; 300 ms later the jaw closes; ``--drive-hz`` drives
+the current jaw between (a webcam tracker's rate; 0: drives at the jaw's edges only).
+``--viewers`` aiortc WHEP viewers (one recvonly audio line each, video released at its RTP
+marker as a browser does), spread over ``--processes`` worker processes (0: in the performer's
+process), record for every event, on time.monotonic() (one clock for every process):
 
-- the mouth opening: the decode time of the first frame in which more than ``--open-pixels``
-  pixels differ from the closed-mouth frame by more than 25 grey levels;
-- the click onset: the arrival time of the RTP packet whose decoded frame holds the click
-  (arrival, not aiortc's jitter-buffer release, which adds ~4 packets a browser would not);
+- the mouth opening: the arrival of the last RTP packet of the first frame in which more than
+  ``--open-pixels`` pixels differ from the closed-mouth frame by more than 25 grey levels;
+- the click onset: the arrival of the RTP packet whose decoded frame holds the click
+  (``--mouth-clock decode``: both at their decode instead; aiortc's audio jitter buffer holds
+  a click ~90 ms that a browser's would not);
 - offset = click - mouth (ms): positive when the voice is late. Targets (ITU-R BT.1359):
-  |median| <= 20 ms, every event within -45 / +125 ms;
-- the longest gap between audio packets each viewer received (target <= 60 ms at 16 viewers).
+  |median| <= 20 ms, every event within -45 / +125 ms; also the offset of the same two RTP
+  timestamps mapped through each track's last RTCP sender report (what a receiver syncing by
+  the reports plays);
+- the longest gap between audio packets each viewer received over the events' span (target
+  <= 60 ms at 16 viewers), beside the performer's own longest gap at its source;
+- the server's voice drops (overflow of listener buffers), its CPU and each viewer's.
 
-Each line of the table is one run: (viewers, bit-rate cap). The cap is the server's
-``webrtc_max_bitrate`` (TELESPLAT_WEBRTC_MAX_BITRATE), on the video encoder.
+Each line of the table is one run: (viewers, processes, clock, drives/s, voice) under a cap,
+the server's ``webrtc_max_bitrate`` (TELESPLAT_WEBRTC_MAX_BITRATE), on the video encoder.
 
     nice -n 10 .venv/bin/python bench/voice_sync.py [--events 50] [--viewers 1,16]
-        [--caps 0,500000] [--size 128]
+        [--caps 0,500000] [--processes 4] [--drive-hz 0,30] [--mouth-clock arrival,decode]
 """
 
 from __future__ import annotations
