@@ -2,23 +2,30 @@
 
 Starts its own server (bench/stream.py's start_server). A performer (aiortc, WHEP with
 role=perform and a microphone track) opens the jaw at each event and, in the same instant, puts
-a 5 ms click in its next 20 ms audio frame; 300 ms later the jaw closes. ``--viewers`` aiortc
-WHEP viewers (one recvonly audio line each, video released at its RTP marker as a browser
-does) record, for every event:
+a 5 ms click in its next 20 ms audio frame; 300 ms later the jaw closes; ``--drive-hz`` drives
+the current jaw between (a webcam tracker's rate; 0: drives at the jaw's edges only).
+``--viewers`` aiortc WHEP viewers (one recvonly audio line each, video released at its RTP
+marker as a browser does), spread over ``--processes`` worker processes (0: in the performer's
+process), record for every event, on time.monotonic() (one clock for every process):
 
-- the mouth opening: the decode time of the first frame in which more than ``--open-pixels``
-  pixels differ from the closed-mouth frame by more than 25 grey levels;
-- the click onset: the arrival time of the RTP packet whose decoded frame holds the click
-  (arrival, not aiortc's jitter-buffer release, which adds ~4 packets a browser would not);
+- the mouth opening: the arrival of the last RTP packet of the first frame in which more than
+  ``--open-pixels`` pixels differ from the closed-mouth frame by more than 25 grey levels;
+- the click onset: the arrival of the RTP packet whose decoded frame holds the click
+  (``--mouth-clock decode``: both at their decode instead; aiortc's audio jitter buffer holds
+  a click ~90 ms that a browser's would not);
 - offset = click - mouth (ms): positive when the voice is late. Targets (ITU-R BT.1359):
-  |median| <= 20 ms, every event within -45 / +125 ms;
-- the longest gap between audio packets each viewer received (target <= 60 ms at 16 viewers).
+  |median| <= 20 ms, every event within -45 / +125 ms; also the offset of the same two RTP
+  timestamps mapped through each track's last RTCP sender report (what a receiver syncing by
+  the reports plays);
+- the longest gap between audio packets each viewer received over the events' span (target
+  <= 60 ms at 16 viewers), beside the performer's own longest gap at its source;
+- the server's voice drops (overflow of listener buffers), its CPU and each viewer's.
 
-Each line of the table is one run: (viewers, bit-rate cap). The cap is the server's
-``webrtc_max_bitrate`` (TELESPLAT_WEBRTC_MAX_BITRATE), on the video encoder.
+Each line of the table is one run: (viewers, processes, clock, drives/s, voice) under a cap,
+the server's ``webrtc_max_bitrate`` (TELESPLAT_WEBRTC_MAX_BITRATE), on the video encoder.
 
     nice -n 10 .venv/bin/python bench/voice_sync.py [--events 50] [--viewers 1,16]
-        [--caps 0,500000] [--size 128]
+        [--caps 0,500000] [--processes 4] [--drive-hz 0,30] [--mouth-clock arrival,decode]
 """
 
 from __future__ import annotations
@@ -26,6 +33,8 @@ from __future__ import annotations
 import argparse
 import asyncio
 import fractions
+import itertools
+import multiprocessing
 import os
 import sys
 import tempfile
@@ -34,6 +43,7 @@ from pathlib import Path
 
 import httpx
 import numpy as np
+from aiortc.mediastreams import MediaStreamError
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -53,9 +63,10 @@ JAW_OPEN = 0.5
 CLICK_LEVEL = 0.3
 
 
-def click_microphone(on_click):
+def click_microphone(on_click, sent_at: list[float]):
     """An aiortc audio track in real time; ``fire()`` puts a click in the next frame and calls
-    ``on_click()`` as that frame is handed to the encoder (one instant for voice and jaw)."""
+    ``on_click()`` as that frame is handed to the encoder (one instant for voice and jaw);
+    ``sent_at`` gets the time each frame was handed over (the source's own gaps)."""
     import av
     from aiortc import MediaStreamTrack
 
@@ -84,51 +95,108 @@ def click_microphone(on_click):
             frame.sample_rate, frame.pts = RATE, self.sent * FRAME
             frame.time_base = fractions.Fraction(1, RATE)
             self.sent += 1
+            sent_at.append(time.monotonic())
             return frame
 
     return Mic()
 
 
 class Ear:
-    """One viewer's record: mouth-open edges and click onsets (time.monotonic())."""
+    """One viewer's record: mouth-open edges and click onsets (time.monotonic(), one clock for
+    every process of the machine)."""
 
-    def __init__(self, viewer: WhepViewer, open_pixels: int) -> None:
-        self.viewer, self.open_pixels = viewer, open_pixels
+    def __init__(self, viewer: WhepViewer, open_pixels: int, mouth_clock: str) -> None:
+        self.viewer, self.open_pixels, self.mouth_clock = viewer, open_pixels, mouth_clock
         self.closed: np.ndarray | None = None
         self.mouth: list[float] = []
         self.clicks: list[float] = []
-        self.arrivals: dict[int, float] = {}  # RTP timestamp - first -> arrival
+        # aiortc's frames carry their RTP timestamp less the track's first one as pts
+        self.first_ts: dict[str, int] = {}
+        self.arrivals: dict[int, float] = {}  # audio pts -> arrival
+        self.video_arrivals: dict[int, float] = {}  # video pts -> its last packet's arrival
         self.packet_times: list[float] = []
+        self.packet_seqs: list[int] = []  # RTP sequence numbers: a gap with none missing
+        self.frames = 0
+        self.lost = False  # its peer closed during the run
+        self.missed_arrivals = 0  # clicks whose packet's arrival was not seen (then: decode)
         self._open = False
-        self._first_ts: int | None = None
+        self.sr: dict[str, list[tuple[int, float]]] = {"audio": [], "video": []}  # (rtp, ntp)
+        self.click_ts: list[int] = []   # RTP timestamps of the clicks and mouth edges: what
+        self.mouth_ts: list[int] = []   # the sender reports map to one clock, as a browser does
 
-    def hook_audio(self) -> None:
-        receiver = next(r for r in self.viewer.pc.getReceivers() if r.track.kind == "audio")
-        original = receiver._handle_rtp_packet
+    def hook(self) -> None:
+        """Note each RTP packet's arrival before aiortc handles it."""
+        for receiver in self.viewer.pc.getReceivers():
+            original = receiver._handle_rtp_packet
+            if receiver.track.kind == "audio":
+                async def handle(packet, arrival_time_ms: int = 0, original=original):
+                    now = time.monotonic()
+                    self.arrivals[self.pts("audio", packet.timestamp)] = now
+                    self.packet_times.append(now)
+                    self.packet_seqs.append(packet.sequence_number)
+                    await original(packet, arrival_time_ms=arrival_time_ms)
+            else:
+                async def handle(packet, arrival_time_ms: int = 0, original=original):
+                    self.video_arrivals[self.pts("video", packet.timestamp)] = time.monotonic()
+                    if len(self.video_arrivals) > 4096:  # bounded: the oldest go
+                        self.video_arrivals.pop(next(iter(self.video_arrivals)))
+                    await original(packet, arrival_time_ms=arrival_time_ms)
+            receiver._handle_rtp_packet = handle
+            self._hook_reports(receiver)
 
-        async def handle(packet, arrival_time_ms: int = 0):
-            now = time.monotonic()
-            if self._first_ts is None:
-                self._first_ts = packet.timestamp
-            self.arrivals[(packet.timestamp - self._first_ts) % 2**32] = now
-            self.packet_times.append(now)
-            await original(packet, arrival_time_ms=arrival_time_ms)
+    def pts(self, kind: str, rtp_ts: int) -> int:
+        return (rtp_ts - self.first_ts.setdefault(kind, rtp_ts)) % 2**32
 
-        receiver._handle_rtp_packet = handle
+    def _hook_reports(self, receiver) -> None:
+        from aiortc.rtp import RtcpSrPacket
+
+        original, kind = receiver._handle_rtcp_packet, receiver.track.kind
+
+        async def handle(packet):
+            if isinstance(packet, RtcpSrPacket):
+                info = packet.sender_info
+                if kind in self.first_ts:
+                    self.sr[kind].append((self.pts(kind, info.rtp_timestamp),
+                                          info.ntp_timestamp / 2**32))
+            await original(packet)
+
+        receiver._handle_rtcp_packet = handle
+
+    def sr_offsets(self) -> list[float]:
+        """Click minus mouth (ms) on the sender reports' clock, each click paired with the
+        mouth edge before it within an event interval: the offset a browser that syncs the
+        tracks by their reports plays them at."""
+        mouths = [on_report_clock(ts, self.sr["video"], 90_000) for ts in self.mouth_ts]
+        out = []
+        for ts in self.click_ts:
+            click = on_report_clock(ts, self.sr["audio"], RATE)
+            near = [m for m in mouths if m is not None and click is not None
+                    and abs(click - m) < EVENT_EVERY_S / 2]
+            if near:
+                out.append((click - near[0]) * 1e3)
+        return out
 
     async def watch_video(self, end: float) -> None:
+        track = await self.viewer._track  # the raw av.VideoFrame: its pts is the RTP timestamp
         while time.monotonic() < end:
             try:
-                rgb, at = await self.viewer.next_frame(timeout=2.0)
+                frame = await asyncio.wait_for(track.recv(), 2.0)
             except TimeoutError:
                 continue
-            grey = rgb.mean(axis=2)
+            except MediaStreamError:  # the server closed this peer: it records no more
+                self.lost = True
+                return
+            decoded = time.monotonic()
+            self.frames += 1
+            grey = frame.to_ndarray(format="rgb24").mean(axis=2)
             if self.closed is None:
                 self.closed = grey
                 continue
             is_open = int((np.abs(grey - self.closed) > 25).sum()) > self.open_pixels
             if is_open and not self._open:
-                self.mouth.append(at)
+                self.mouth.append(decoded if self.mouth_clock == "decode"
+                                  else self.video_arrivals.get(frame.pts, decoded))
+                self.mouth_ts.append(frame.pts)
             self._open = is_open
 
     async def listen(self, end: float) -> None:
@@ -138,10 +206,27 @@ class Ear:
                 frame, at = await self.viewer.next_audio(timeout=2.0)
             except TimeoutError:
                 continue
+            except MediaStreamError:
+                self.lost = True
+                return
             peak = np.abs(frame.to_ndarray()).max() / 32768
             if peak > CLICK_LEVEL and not loud:
-                self.clicks.append(self.arrivals.get(frame.pts, at))
+                arrived = self.arrivals.get(frame.pts)
+                self.missed_arrivals += arrived is None
+                self.clicks.append(at if self.mouth_clock == "decode" or arrived is None
+                                   else arrived)
+                self.click_ts.append(frame.pts)
             loud = peak > CLICK_LEVEL
+
+
+def on_report_clock(rtp_ts: int, reports: list[tuple[int, float]], rate: int) -> float | None:
+    """``rtp_ts`` on the sender's report clock (NTP seconds), by the report sent last before
+    it, as a receiver maps it to sync tracks (RFC 3550 6.4.1)."""
+    if not reports:
+        return None
+    before = [r for r in reports if (rtp_ts - r[0]) % 2**32 < 2**31] or reports[:1]
+    rtp, ntp = before[-1]
+    return ntp + (((rtp_ts - rtp + 2**31) % 2**32) - 2**31) / rate
 
 
 def pair(events: list[float], later: list[float], window: float = EVENT_EVERY_S
@@ -154,40 +239,123 @@ def pair(events: list[float], later: list[float], window: float = EVENT_EVERY_S
     return out
 
 
+async def listen_in_process(url: str, token: str, room: str, count: int, size: int,
+                            open_pixels: int, mouth_clock: str, voice: bool, ready, go
+                            ) -> list[dict]:
+    """``count`` viewers in this process: joined, first frame seen, then ``ready`` gets the
+    count; recording until the end time ``go`` gives."""
+    ears = [Ear(WhepViewer(url, room, token, width=size, height=size, role="watch",
+                           voices=1, timeout_s=60), open_pixels, mouth_clock)
+            for _ in range(count)]
+    for ear in ears:
+        await ear.viewer.start()
+        release_at_marker(ear.viewer)
+        ear.hook()
+    await asyncio.gather(*(e.viewer.next_frame() for e in ears))
+    ready.put(count)
+    end = await asyncio.to_thread(go.get, True, 600)
+    cpu0, t0 = time.process_time(), time.monotonic()
+    await asyncio.gather(*(t for e in ears
+                           for t in (e.watch_video(end), e.listen(end) if voice
+                                     else asyncio.sleep(0))))
+    cpu = (time.process_time() - cpu0) / (time.monotonic() - t0)  # this process, all threads
+    for ear in ears:
+        await ear.viewer.close()
+    return [{"mouth": e.mouth, "clicks": e.clicks, "packets": e.packet_times,
+             "seqs": e.packet_seqs, "frames": e.frames, "cpu": cpu / count,
+             "sr_offsets": e.sr_offsets(), "missed_arrivals": e.missed_arrivals,
+             "lost": e.lost} for e in ears]
+
+
+def viewer_process(args: tuple, ready, go, results) -> None:
+    try:
+        results.put(asyncio.run(listen_in_process(*args, ready, go)))
+    except BaseException as exc:  # the parent waits for a result: say what went wrong
+        ready.put(0)
+        results.put(repr(exc))
+        raise
+
+
+def lag_text(lags: list[float]) -> str:
+    """"median (p5-p95)" in ms of the times from the events."""
+    if not lags:
+        return "-"
+    p5, p50, p95 = np.percentile(lags, [5, 50, 95])
+    return f"{p50:.0f} ({p5:.0f}-{p95:.0f})"
+
+
+def server_voice_counts(url: str, token: str) -> dict[str, float]:
+    text = httpx.get(f"{url}/metrics", headers={"Authorization": f"Bearer {token}"},
+                     timeout=30).text
+    out = {}
+    for line in text.splitlines():
+        if line.startswith("telesplat_voice_packets_total{"):
+            label = line.split('outcome="')[1].split('"')[0]
+            out[label] = float(line.rsplit(" ", 1)[1])
+    return out
+
+
 async def run(url: str, token: str, viewers: int, events: int, size: int,
-              open_pixels: int, pid: int, voice: bool = True) -> dict:
+              open_pixels: int, pid: int, voice: bool = True, processes: int = 4,
+              mouth_clock: str = "arrival", drive_hz: float = 30.0) -> dict:
     async with httpx.AsyncClient(base_url=url, timeout=30) as http:
         room = (await http.post("/v1/rooms", headers={"Authorization": f"Bearer {token}"},
                                 json={"seats": [{"avatar": "demo"}]})).json()["id"]
     fired: list[float] = []
     seq = iter(range(1, 10**6))
     performer: WhepViewer | None = None
+    sent_at: list[float] = []
+    pose = {"jaw": 0.0}
 
     def jaw(angle: float) -> None:
+        pose["jaw"] = angle
         performer.send(Drive(seq=next(seq), smplx={"jaw_pose": [angle, 0.0, 0.0]},
                              t_capture=time.monotonic()))
+
+    async def tracker(until: float) -> None:
+        """A webcam performer's drives: the current jaw, ``drive_hz`` times a second."""
+        while drive_hz and time.monotonic() < until and performer.channel.readyState == "open":
+            jaw(pose["jaw"])
+            await asyncio.sleep(1 / drive_hz)
 
     def clicked() -> None:
         fired.append(time.monotonic())
         jaw(JAW_OPEN)
 
-    mic = click_microphone(clicked)
+    mic = click_microphone(clicked, sent_at)
     performer = WhepViewer(url, room, token, width=size, height=size, role="perform", seat=0,
                            microphone=mic if voice else None, timeout_s=60)
-    ears = [Ear(WhepViewer(url, room, token, width=size, height=size, role="watch",
-                           voices=1, timeout_s=60), open_pixels) for _ in range(viewers)]
+    ctx = multiprocessing.get_context("spawn")
+    ready, results = ctx.Queue(), ctx.Queue()
+    counts = [viewers // max(1, processes) + (i < viewers % max(1, processes))
+              for i in range(max(1, processes))]
+    counts = [c for c in counts if c]
+    gos = [ctx.Queue() for _ in counts]
     async with performer:
         await performer.wait_open()
-        for ear in ears:
-            await ear.viewer.start()
-            release_at_marker(ear.viewer)
-            ear.hook_audio()
-        await asyncio.gather(*(e.viewer.next_frame() for e in ears))
+        if processes == 0:  # the viewers in this process, beside the performer (as before)
+            here = asyncio.create_task(listen_in_process(
+                url, token, room, viewers, size, open_pixels, mouth_clock, voice, ready,
+                gos[0]))
+            here.add_done_callback(lambda t: results.put(t.result()))
+            workers = [here]
+        else:
+            workers = [ctx.Process(target=viewer_process, daemon=True, args=(
+                (url, token, room, c, size, open_pixels, mouth_clock, voice), ready, go,
+                results)) for c, go in zip(counts, gos, strict=True)]
+            for w in workers:
+                w.start()
+        joined = [await asyncio.to_thread(ready.get, True, 300) for _ in workers]
+        if sum(joined) != viewers:
+            raise RuntimeError(f"viewers joined {joined} of {counts}: {results.get(True, 5)}")
+        before = server_voice_counts(url, token)
+        end = time.monotonic() + 2.0 + 3.0 + events * EVENT_EVERY_S
+        for go in gos:
+            go.put(end)
+        drives = asyncio.create_task(tracker(end - 3.0))
         await asyncio.sleep(2.0)  # the closed-mouth reference settles
-        end = time.monotonic() + 3.0 + events * EVENT_EVERY_S
-        tasks = [asyncio.create_task(t) for e in ears
-                 for t in (e.watch_video(end), e.listen(end) if voice else asyncio.sleep(0))]
         cpu0, t0 = cpu_seconds(pid), time.monotonic()
+        sent_from = len(sent_at)
         for _ in range(events):
             if voice:
                 mic.fire()
@@ -196,25 +364,51 @@ async def run(url: str, token: str, viewers: int, events: int, size: int,
             await asyncio.sleep(OPEN_S)
             jaw(0.0)
             await asyncio.sleep(EVENT_EVERY_S - OPEN_S)
-        await asyncio.gather(*tasks)
         cpu = (cpu_seconds(pid) - cpu0) / (time.monotonic() - t0)
-        for ear in ears:
-            await ear.viewer.close()
-    offsets, missed, gaps = [], 0, []
-    for ear in ears:
-        for mouth, click in zip(pair(fired, ear.mouth), pair(fired, ear.clicks), strict=True):
+        await drives
+        mic_gap = float(np.diff(sent_at[sent_from:]).max() * 1e3) if voice else float("nan")
+        records = []
+        for _ in workers:
+            got = await asyncio.to_thread(results.get, True, 300)
+            if isinstance(got, str):
+                raise RuntimeError(got)
+            records += got
+        for w in workers:
+            if processes:
+                w.join(30)
+        after = server_voice_counts(url, token)
+    offsets, missed, gaps, mouth_lags, click_lags = [], 0, [], [], []
+    for rec in records:
+        for f, mouth, click in zip(fired, pair(fired, rec["mouth"]), pair(fired, rec["clicks"]),
+                                   strict=True):
             if mouth is None or click is None:
                 missed += 1
             else:
                 offsets.append((click - mouth) * 1e3)
-        times = np.diff(ear.packet_times[len(ear.packet_times) // 10:])
+                mouth_lags.append((mouth - f) * 1e3)
+                click_lags.append((click - f) * 1e3)
+        at = np.asarray(rec["packets"])  # the events' span: not the joins' and leaves' stalls
+        times = np.diff(at[(at >= fired[0] - 0.5) & (at <= fired[-1] + EVENT_EVERY_S)])
         gaps.append(float(times.max() * 1e3) if len(times) else float("nan"))
     arr = np.asarray(offsets)
-    print(f"# {viewers} viewers: fired {len(fired)}, mouth edges {[len(e.mouth) for e in ears]},"
-          f" clicks {[len(e.clicks) for e in ears]}, audio packets "
-          f"{[len(e.packet_times) for e in ears]}; first ear, ms after each event: mouth "
-          f"{[round((m - f) * 1e3) for f, m in zip(fired, ears[0].mouth, strict=False)]}, "
-          f"click {[round((c - f) * 1e3) for f, c in zip(fired, ears[0].clicks, strict=False)]}",
+    sr = np.asarray([x for rec in records for x in rec["sr_offsets"]])
+    first = records[0]
+    at, seqs = np.asarray(first["packets"]), np.asarray(first["seqs"])
+    worst = np.argsort(np.diff(at))[::-1][:5]  # anywhere in the run, the joins included
+    print("# first viewer's longest audio gaps: (s after the first event, ms, packets missing) "
+          f"{[(round(at[i] - fired[0], 2), round((at[i + 1] - at[i]) * 1e3), int((seqs[i + 1] - seqs[i] - 1) % 65536)) for i in sorted(worst)]}",  # noqa: E501
+          file=sys.stderr, flush=True)
+    print(f"# {viewers} viewers in {processes} processes, mouth at {mouth_clock}: fired "
+          f"{len(fired)}, peers lost {sum(r['lost'] for r in records)}, mouth edges "
+          f"{[len(r['mouth']) for r in records]}, clicks {[len(r['clicks']) for r in records]},"
+          f" audio packets {[len(r['packets']) for r in records]}, video frames "
+          f"{[r['frames'] for r in records]}, viewer CPU s/s each "
+          f"{[round(r['cpu'], 3) for r in records]}, clicks without an arrival "
+          f"{sum(r['missed_arrivals'] for r in records)}, server voice packets "
+          f"{ {k: after.get(k, 0) - before.get(k, 0) for k in after} }; first viewer, ms "
+          f"after each event: mouth "
+          f"{[round((m - f) * 1e3) for f, m in zip(fired, first['mouth'], strict=False)]}, "
+          f"click {[round((c - f) * 1e3) for f, c in zip(fired, first['clicks'], strict=False)]}",
           file=sys.stderr, flush=True)
     return {"viewers": viewers, "events": len(fired), "paired": len(offsets), "missed": missed,
             "median_ms": float(np.median(arr)) if len(arr) else float("nan"),
@@ -223,7 +417,12 @@ async def run(url: str, token: str, viewers: int, events: int, size: int,
             "min_ms": float(arr.min()) if len(arr) else float("nan"),
             "max_ms": float(arr.max()) if len(arr) else float("nan"),
             "within": float(((arr >= -45) & (arr <= 125)).mean()) if len(arr) else 0.0,
-            "max_gap_ms": max(gaps), "cpu": cpu}
+            "sr": (f"{np.median(sr):.0f} ({np.percentile(sr, 5):.0f} / "
+                   f"{np.percentile(sr, 95):.0f}), {((sr >= -45) & (sr <= 125)).mean():.0%} of "
+                   f"{len(sr)}") if len(sr) else "-",
+            "mouth_lag": lag_text(mouth_lags), "click_lag": lag_text(click_lags),
+            "max_gap_ms": max(gaps), "mic_gap_ms": mic_gap, "cpu": cpu,
+            "overflow": after.get("overflow", 0) - before.get("overflow", 0)}
 
 
 def main() -> int:
@@ -239,10 +438,19 @@ def main() -> int:
     parser.add_argument("--voice", default="on", help="on, off or on,off: runs with and "
                                                       "without the performer's microphone "
                                                       "(the server CPU it costs)")
+    parser.add_argument("--processes", default="4", help="viewer processes per run, e.g. 0,4 "
+                                                         "(0: in the performer's process)")
+    parser.add_argument("--drive-hz", default="30", help="drives a second between events "
+                        "(a webcam performer's rate; 0: only at the jaw's edges), e.g. 0,30")
+    parser.add_argument("--mouth-clock", default="arrival", help="arrival (the frame's last "
+                        "RTP packet, as the click's), decode, or arrival,decode")
     args = parser.parse_args()
-    print("| viewers | cap bit/s | events | paired | missed | median ms | p5 / p95 ms | "
-          "min / max ms | within -45/+125 | longest audio gap ms | voice | server CPU s/s |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("| viewers | processes | mouth clock | drives/s | cap bit/s | events | paired | missed | "
+          "median ms | p5 / p95 ms | min / max ms | within -45/+125 | mouth after event ms | "
+          "click after event ms | on the sender reports' clock: median (p5 / p95) ms, within | "
+          "longest audio gap ms "
+          "(viewers / mic) | server overflow drops | voice | server CPU s/s |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     most = max(int(v) for v in args.viewers.split(","))
     os.environ["TELESPLAT_WEBRTC_MAX_PEERS"] = str(most + 2)  # the viewers and the performer
     for cap in (int(c) for c in args.caps.split(",")):
@@ -252,15 +460,21 @@ def main() -> int:
         with tempfile.TemporaryDirectory() as tmp:
             proc, url, token = start_server(Path(tmp), 1, 64, args.avatar)
             try:
-                for n in (int(v) for v in args.viewers.split(",")):
-                    for voice in args.voice.split(","):
-                        r = asyncio.run(run(url, token, n, args.events, args.size,
-                                            args.open_pixels, proc.pid, voice == "on"))
-                        print(f"| {n} | {cap or 'default'} | {r['events']} | {r['paired']} | "
-                              f"{r['missed']} | {r['median_ms']:.0f} | {r['p5_ms']:.0f} / "
-                              f"{r['p95_ms']:.0f} | {r['min_ms']:.0f} / {r['max_ms']:.0f} | "
-                              f"{r['within']:.0%} | {r['max_gap_ms']:.0f} | {voice} | "
-                              f"{r['cpu']:.2f} |", flush=True)
+                for n, procs, clock, hz, voice in itertools.product(
+                        [int(v) for v in args.viewers.split(",")],
+                        [int(p) for p in args.processes.split(",")],
+                        args.mouth_clock.split(","), [float(h) for h in args.drive_hz.split(",")],
+                        args.voice.split(",")):
+                    r = asyncio.run(run(url, token, n, args.events, args.size,
+                                        args.open_pixels, proc.pid, voice == "on", procs,
+                                        clock, hz))
+                    print(f"| {n} | {procs} | {clock} | {hz:g} | {cap or 'default'} | "
+                          f"{r['events']} | {r['paired']} | {r['missed']} | {r['median_ms']:.0f} | "
+                          f"{r['p5_ms']:.0f} / {r['p95_ms']:.0f} | {r['min_ms']:.0f} / "
+                          f"{r['max_ms']:.0f} | {r['within']:.0%} | {r['mouth_lag']} | "
+                          f"{r['click_lag']} | {r['sr']} | {r['max_gap_ms']:.0f} / "
+                          f"{r['mic_gap_ms']:.0f} | {r['overflow']:.0f} | {voice} | "
+                          f"{r['cpu']:.2f} |", flush=True)
             finally:
                 stop_server(proc)
     return 0

@@ -387,10 +387,13 @@ class StreamClient:
                                               context={"limits": self.limits}))
         return seq
 
-    async def voice(self, data: bytes, t_capture: float | None = None) -> None:
+    async def voice(self, data: bytes, t_capture: float | None = None,
+                    level_dbov: float | None = None) -> None:
         """One Opus packet of this performer's voice (``t_capture``: its first sample's
-        capture time on the clock the drives' t_capture use)."""
-        await self._send(Voice(seq=self._voice_seq, data=data, t_capture=t_capture))
+        capture time on the clock the drives' t_capture use; ``level_dbov``: its loudness,
+        RFC 6464's dBov, -127..0, what presence's ``speaking`` follows)."""
+        await self._send(Voice(seq=self._voice_seq, data=data, t_capture=t_capture,
+                               level_dbov=level_dbov))
         self._voice_seq += 1
 
     async def ping(self, timeout: float = 5.0) -> float:

@@ -159,6 +159,13 @@ class WhepViewer:
         frame = await asyncio.wait_for(track.recv(), timeout)
         return frame.to_ndarray(format="rgb24"), time.monotonic()
 
+    async def next_video_frame(self, timeout: float | None = None) -> Any:
+        """The next decoded frame as aiortc gives it: an av.VideoFrame whose ``pts`` is its
+        RTP timestamp less the track's first (90 kHz)."""
+        timeout = timeout or self.timeout_s
+        track = await asyncio.wait_for(asyncio.shield(self._track), timeout)
+        return await asyncio.wait_for(track.recv(), timeout)
+
     async def next_audio(self, seat: int = 0, timeout: float | None = None
                          ) -> tuple[Any, float]:
         """The next decoded audio frame of seat ``seat``'s voice: (av.AudioFrame,

@@ -33,9 +33,10 @@ from .names import display_name
 from .params import validate_family
 
 PROTOCOL_VERSION = 1
-PROTOCOL_MINOR = 2  # 1: rooms (hello.role/seat, welcome.room/minor, presence)
+PROTOCOL_MINOR = 3  # 1: rooms (hello.role/seat, welcome.room/minor, presence)
 #                     2: hello.name, avatar.expression_names, tracked, voice, t_capture,
 #                        avatar (a seat's avatar replaced in place)
+#                     3: presence seats' speaking, voice.level_dbov
 MAX_SEATS = 16      # seat indices on the wire; server settings bound a room's seats further
 MAX_SEQ = 2**53 - 1  # exact in a JavaScript number
 MAX_EXPRESSION_NAMES = 100  # as many as an expression vector may hold (params.FAMILIES)
@@ -345,10 +346,12 @@ class SeatPresence(_Message):
     avatar: str
     performer: str | None = None  # the performer's client name; None: the seat is free
     holding: bool = False         # performer gone: the last pose held, then easing to rest
+    speaking: bool = False        # its voice is loud now (sent again when that changes)
 
 
 class Presence(_Message):
-    """Who is in a room: sent after ``welcome`` and to everyone on each join and leave."""
+    """Who is in a room: sent after ``welcome``, to everyone on each join and leave, and when
+    who speaks changes (at most once per ``voice_presence_interval_s``)."""
 
     type: Literal["presence"] = "presence"
     room: str
@@ -441,6 +444,7 @@ class Voice(_Message):
     data: Annotated[bytes, Field(min_length=1, max_length=MAX_VOICE_BYTES)]
     t_capture: CaptureTime | None = None   # its first sample's capture time
     seat: SeatIndex | None = None          # server -> client: whose voice
+    level_dbov: Annotated[float, Field(ge=-127, le=0)] | None = None  # RFC 6464's audio level
 
 
 ClientMessage = Annotated[Hello | Drive | View | Request | Image | Ping | Voice,

@@ -410,6 +410,14 @@ class Settings(BaseModel):
     voice_buffer_packets: int = Field(
         64, ge=4, le=4096, description="Opus packets one listener may have waiting; past it "
                                        "the oldest is dropped and counted.")
+    voice_speaking_dbov: float = Field(
+        -50.0, ge=-127.0, le=0.0, description="A seat speaks while its packets' audio level "
+                                              "(RFC 6464 dBov, as the sender measured it) "
+                                              "is at least this; packets without a level "
+                                              "count as speech.")
+    voice_presence_interval_s: float = Field(
+        0.25, ge=0.05, le=10.0, description="Shortest time between two presence updates a "
+                                            "room sends because who speaks changed.")
     gaussian_ranges: GaussianRanges = Field(
         default_factory=GaussianRanges,
         description="Allowed values of an avatar's Gaussians (count, log-scales, local means, "

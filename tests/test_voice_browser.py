@@ -68,6 +68,9 @@ def test_a_performer_page_speaks_and_a_viewer_page_hears_it(server, room):  # no
                                  "v.packets > 50 && v.speaking)", LOUD_S, "seat 0 speaking")
         assert heard["volume"] == 1 and heard["muted"] is False
         assert "speaking: seat 0" in viewer.find_element("id", "speaking").text
+        # Presence says so too (the server's flag, from the level Chromium puts in each packet).
+        says = "document.getElementById('presence').textContent.includes('performing, speaking')"
+        wait_for(viewer, says, LOUD_S, "presence: seat 0 speaking")
         forwarded = voice_counts(server, room["id"]).get("forwarded", 0)
         assert forwarded > 50
         assert not {"garbage", "too_large", "rate"} & set(voice_counts(server, room["id"]))
@@ -91,6 +94,7 @@ def test_a_performer_page_speaks_and_a_viewer_page_hears_it(server, room):  # no
             levels.append(viewer.execute_script(
                 "return window.telesplat.voices.find(v => v.seat === 0).level"))
         assert max(levels) <= 0.02, levels
+        assert not viewer.execute_script(f"return {says}")  # silence is not speech
         # A viewer page never offers a microphone: nothing but the performer was forwarded.
         assert viewer.execute_script("return document.getElementById('mic').checked") is False
     finally:

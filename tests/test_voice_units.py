@@ -121,6 +121,33 @@ def test_a_listener_waits_the_median_picture_lag_bounded():
     assert asyncio.run(run()) >= 0.2
 
 
+def test_a_packet_waits_for_the_frame_of_its_drive_and_never_past_the_bound():
+    drive = {"arrived": None}
+    seat = SeatVoice(Settings(voice_max_delay_s=0.5), drive_arrived=lambda: drive["arrived"])
+    watching, hearing = seat.subscribe(), seat.subscribe()  # the second follows no picture
+
+    async def run():
+        now = time.monotonic()
+        watching.follow_picture(now - 1.0, now - 0.95)  # the picture's lag: 50 ms
+        drive["arrived"] = time.monotonic()  # a new drive, whose frame is slow
+        seat.publish("p", b"\xf8\x00", 0)
+        heard = await asyncio.wait_for(hearing.next(), 1)  # no picture to wait for
+        got = asyncio.create_task(watching.next())
+        await asyncio.sleep(0.2)
+        waited = not got.done()  # past the 50 ms median: the frame has not left yet
+        watching.follow_picture(drive["arrived"], time.monotonic())  # now it has
+        released = (await asyncio.wait_for(got, 1)) is not None
+        drive["arrived"] = time.monotonic()  # a drive whose frame never leaves
+        seat.publish("p", b"\xf8\x00", 960)
+        sent = time.monotonic()
+        await asyncio.wait_for(watching.next(), 2)
+        return heard, waited, released, time.monotonic() - sent
+
+    heard, waited, released, bounded = asyncio.run(run())
+    assert heard is not None and waited and released
+    assert bounded >= 0.5 - 0.01  # voice_max_delay_s after its arrival, not forever
+
+
 def test_a_full_listener_drops_its_oldest_and_counts():
     seat = voice(voice_buffer_packets=4)
     listener = seat.subscribe()
@@ -130,3 +157,43 @@ def test_a_full_listener_drops_its_oldest_and_counts():
     assert seat.counts["overflow"] == 6 and listener.overflowed == 6
     listener.close()
     assert not seat.listeners
+
+
+def test_speaking_presence_is_sent_at_most_once_per_interval():
+    from server.rooms.live import LiveRoom
+    from server.rooms.registry import Room, SeatSpec
+    from server.rooms.voice import seat_voice
+
+    settings = Settings(voice_presence_interval_s=0.5)
+    packet = libopus_packets(20, 32000, 1)[0]
+
+    class Listening:  # a participant as presence sees one: its role and control queue
+        role = "watch"
+
+        def __init__(self) -> None:
+            self.sent: list[tuple[float, object]] = []
+
+        def send_control(self, message) -> None:
+            self.sent.append((time.monotonic(), message))
+
+    async def run() -> list:
+        room = Room("r", "r", "owner", [SeatSpec(0, "demo")], time.time())
+        live = LiveRoom(room, None, settings)
+        who = Listening()
+        live.participants.append(who)
+        voice = seat_voice(live.seats[0], settings)
+        for i in range(8):  # loud, then 0.35 s quiet (past SPEAKING_S): it flips each time
+            voice.publish(voice, packet, i * 960 * 20, level_dbov=-10.0)
+            await asyncio.sleep(0.35)
+        voice.publish(voice, packet, 10**6, level_dbov=-100.0)  # a quiet packet: no flip
+        for _ in range(100):  # the end of speech is announced within SPEAKING_S + interval
+            if not (live.speaking()[0] or live._announced[0]):
+                break
+            await asyncio.sleep(0.05)
+        return who.sent
+
+    sent = asyncio.run(run())
+    times = [t for t, _ in sent]
+    assert len(sent) >= 2 and sent[0][1].seats[0].speaking and not sent[-1][1].seats[0].speaking
+    assert min(np.diff(times)) >= 0.5  # 16 flips of the voice, no update closer than that
+    assert len(sent) < 16

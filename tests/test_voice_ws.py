@@ -116,3 +116,33 @@ def test_cli_watch_voice_records_a_wav_and_capture_times(srv, tmp_path):
     assert np.abs(samples).max() > 1000   # the noise, not silence
     frames = [json.loads(x) for x in (out / "frames.jsonl").read_text().splitlines()]
     assert any(f["t_capture"] is not None and f["t_capture"] >= 11.0 for f in frames)
+
+
+def test_presence_says_who_speaks_from_the_packets_level_and_not_per_packet(srv):
+    room = create_room(srv)
+    perform = invite(srv, room["id"], "perform")
+    watch = invite(srv, room["id"], "watch")
+    opus = libopus_packets(20, 32000, 25)
+
+    async def speak(performer, level_dbov: float) -> None:
+        for i, packet in enumerate(opus):  # half a second, paced as a microphone
+            await performer.send(encode(Voice(seq=i, data=packet, level_dbov=level_dbov)))
+            await asyncio.sleep(0.02)
+
+    async def run():
+        async with join(srv, room["id"], perform["token"]) as performer, \
+                join(srv, room["id"], watch["token"]) as viewer:
+            await recv_until(viewer, is_type("presence"))  # its own join
+            await speak(performer, -90.0)  # quiet packets: forwarded, nobody speaks
+            await speak(performer, -20.0)
+            await speak(performer, -90.0)
+            presences = []
+            while not presences or presences[-1].seats[0].speaking:  # bounded by recv_until
+                presences.append(await recv_until(viewer, is_type("presence")))
+            counts = dict(live(srv, room["id"]).seats[0].voice.counts)
+            return presences, counts
+
+    presences, counts = asyncio.run(run())
+    # one update each way, not one per packet; none while the packets were quiet
+    assert [p.seats[0].speaking for p in presences] == [True, False]
+    assert counts == {"forwarded": 75}

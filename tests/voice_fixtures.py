@@ -20,7 +20,8 @@ CLICK_SAMPLES = 240  # 5 ms
 CLICK_LEVEL = 0.3    # a decoded frame louder than this (peak, in [0, 1]) holds a click
 
 
-def click_track(click_every: int = 10):
+def click_track(click_every: int = 10, on_click=None):
+    """``on_click()``: called as each click frame is handed to the encoder."""
     from aiortc import MediaStreamTrack
 
     class ClickTrack(MediaStreamTrack):
@@ -43,6 +44,8 @@ def click_track(click_every: int = 10):
             if self.sent % click_every == click_every - 1:
                 samples[0, :CLICK_SAMPLES] = 30000
                 self.clicks.append(time.monotonic())
+                if on_click is not None:
+                    on_click()
             frame = av.AudioFrame.from_ndarray(samples, format="s16", layout="mono")
             frame.sample_rate = RATE
             frame.pts = self.sent * FRAME_SAMPLES

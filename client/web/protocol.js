@@ -8,7 +8,7 @@ import { decode as unpackMsgpack, encode as packMsgpack } from "./vendor/msgpack
 
 export const PROTOCOL_VERSION = Object.freeze(1);
 
-export const PROTOCOL_MINOR = Object.freeze(2);
+export const PROTOCOL_MINOR = Object.freeze(3);
 
 export const MAX_SEQ = Object.freeze(9007199254740991);
 
@@ -1241,7 +1241,7 @@ export const SCHEMA_DEFS = Object.freeze({
   },
   "Presence": {
     "additionalProperties": false,
-    "description": "Who is in a room: sent after ``welcome`` and to everyone on each join and leave.",
+    "description": "Who is in a room: sent after ``welcome``, to everyone on each join and leave, and when\nwho speaks changes (at most once per ``voice_presence_interval_s``).",
     "properties": {
       "event": {
         "default": "update",
@@ -1541,6 +1541,11 @@ export const SCHEMA_DEFS = Object.freeze({
         ],
         "default": null,
         "title": "Performer"
+      },
+      "speaking": {
+        "default": false,
+        "title": "Speaking",
+        "type": "boolean"
       }
     },
     "required": [
@@ -1714,6 +1719,20 @@ export const SCHEMA_DEFS = Object.freeze({
         "minLength": 1,
         "title": "Data",
         "type": "string"
+      },
+      "level_dbov": {
+        "anyOf": [
+          {
+            "maximum": 0,
+            "minimum": -127,
+            "type": "number"
+          },
+          {
+            "type": "null"
+          }
+        ],
+        "default": null,
+        "title": "Level Dbov"
       },
       "seat": {
         "anyOf": [

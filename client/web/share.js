@@ -51,11 +51,12 @@ export function presenceNote(presence) {
   return presence.event === "join" ? `${presence.who} joined (${as})` : `${presence.who} left`;
 }
 
-/** "seat 0 (demo): Ann performing · 2 watching" from a presence message. */
+/** "seat 0 (demo): Ann performing, speaking · 2 watching" from a presence message. */
 export function presenceText(presence) {
   if (!presence) return "";
   const seats = presence.seats.map((seat) => {
-    const who = seat.performer ? `${seat.performer} performing`
+    const speaking = seat.speaking ? ", speaking" : "";
+    const who = seat.performer ? `${seat.performer} performing${speaking}`
       : seat.holding ? "performer gone, holding the pose" : "free";
     return `seat ${seat.index} (${seat.avatar}): ${who}`;
   });

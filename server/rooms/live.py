@@ -50,6 +50,7 @@ class Seat:
     holding: bool = False
     release: asyncio.Task | None = None  # hold, then ease to rest
     voice: SeatVoice | None = None  # its performer's voice (server/rooms/voice.py), on first use
+    on_speaking: Callable[[], None] | None = None  # its voice started speaking
 
     @property
     def index(self) -> int:
@@ -67,10 +68,13 @@ class LiveRoom:
         self.room = room
         self.scene = scene
         self.settings = settings
-        self.seats = [Seat(spec) for spec in room.seats]
+        self.seats = [Seat(spec, on_speaking=self._speaking_started) for spec in room.seats]
         self.participants: list[Session] = []
         self.closed = False
         self._closing: set[asyncio.Task] = set()
+        self._speaking_task: asyncio.Task | None = None
+        self._announced: tuple[bool, ...] = (False,) * len(self.seats)
+        self._announced_at = -float("inf")
 
     # -- seats ----------------------------------------------------------------------------------
 
@@ -160,11 +164,39 @@ class LiveRoom:
     def presence(self, event: str = "update", who: Session | None = None) -> Presence:
         seats = [SeatPresence(index=s.index, avatar=s.spec.avatar,
                               performer=None if s.performer is None else s.performer.name,
-                              holding=s.holding) for s in self.seats]
+                              holding=s.holding,
+                              speaking=s.voice is not None and s.voice.speaking)
+                 for s in self.seats]
         return Presence(room=self.room.id, seats=seats,
                         viewers=sum(p.role == "watch" for p in self.participants),
                         event=event, who=None if who is None else who.name,
                         role=None if who is None else who.role)
+
+    def speaking(self) -> tuple[bool, ...]:
+        return tuple(s.voice is not None and s.voice.speaking for s in self.seats)
+
+    def _speaking_started(self) -> None:
+        """A seat's voice began speaking: presence follows it until nobody speaks (a task
+        only while someone speaks; a silent room wakes nobody)."""
+        if self.room.private or self.closed:
+            return
+        if self._speaking_task is None or self._speaking_task.done():
+            self._speaking_task = asyncio.get_running_loop().create_task(
+                self._follow_speaking(), name=f"room {self.room.id} speaking")
+
+    async def _follow_speaking(self) -> None:
+        interval = self.settings.voice_presence_interval_s
+        while not self.closed:
+            wait = self._announced_at + interval - time.monotonic()
+            if wait > 0:  # the bound on presence updates, across restarts of this task
+                await asyncio.sleep(wait)
+            now = self.speaking()
+            if now != self._announced:
+                self._announced, self._announced_at = now, time.monotonic()
+                self.broadcast(self.presence("update"))
+            if not any(now):
+                return
+            await asyncio.sleep(interval)
 
     def broadcast(self, message: Presence) -> None:
         if self.room.private:
@@ -211,6 +243,8 @@ class LiveRoom:
     def close(self, message: str) -> None:
         """The room is gone: everyone gets error ``gone`` and close code 4410."""
         self.closed = True
+        if self._speaking_task is not None:
+            self._speaking_task.cancel()
         for seat in self.seats:
             if seat.release is not None:
                 seat.release.cancel()

@@ -7,12 +7,21 @@ queue (``voice_buffer_packets``, the oldest dropped past it). A listener release
 ``delay_s`` after it arrived: the voice waits for the picture, never the other way round.
 ``delay_s`` follows that listener's own picture lag (:meth:`Listener.follow_picture`: from a
 drive's arrival to the frame that first shows it leaving for the encoder), smoothed, at most
-``voice_max_delay_s``.
+``voice_max_delay_s``. That median is a floor: a packet also waits until the listener's picture
+shows the seat's drive of its instant (the newest drive that arrived before it, or up to
+``DRIVE_SLACK_S`` after it), so one slow render delays the voice with it instead of letting
+the voice run ahead; never past ``voice_max_delay_s`` after its arrival.
 
 Packets carry a media time in 48 kHz ticks: the publisher's RTP timestamps, unwrapped and made
 continuous across publishers (a new performer goes on where the last one stopped), so a
 listener's outgoing timestamps never jump back. A seat nobody publishes to sends nothing and
 wakes nobody.
+
+A seat speaks while a packet louder than ``voice_speaking_dbov`` came in the last
+``SPEAKING_S`` (the level the sender put in the packet: RTP's RFC 6464 extension, or a
+``voice`` message's ``level_dbov``; a packet without one counts as speech). The moment a seat
+starts speaking it calls ``on_speaking`` (the room's presence, server/rooms/live.py), which
+polls for the end.
 """
 
 from __future__ import annotations
@@ -21,6 +30,7 @@ import asyncio
 import collections
 import statistics
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -29,8 +39,10 @@ from protocol.opus import OpusPacketError, packet_duration_ms
 
 CLOCK_RATE = 48_000                 # Opus' RTP clock
 DISCONTINUITY_TICKS = 5 * CLOCK_RATE  # a timestamp jump past this is a new stream, not a gap
-SPEAKING_S = 0.3                    # a seat speaks while its last packet is this recent
+SPEAKING_S = 0.3                    # a seat speaks while its last loud packet is this recent
 LAG_SAMPLES = 15                    # picture lags the voice delay is the median of
+DRIVE_SLACK_S = 0.02                # a drive this soon after a packet is of its instant (one
+#                                     20 ms frame: a drive and its sound leave together)
 
 
 @dataclass(frozen=True)
@@ -39,6 +51,7 @@ class VoicePacket:
     media_ts: int     # 48 kHz ticks on the seat's continuous timeline
     arrived: float    # time.monotonic() when the server got it
     t_capture: float | None = None  # its capture time on the performer's clock, when sent
+    drive_arrived: float | None = None  # the seat's newest drive's arrival when it came
 
 
 class Listener:
@@ -49,7 +62,8 @@ class Listener:
         self.max_delay_s = max_delay_s
         self.delay_s = 0.0
         self.lags: collections.deque[float] = collections.deque(maxlen=LAG_SAMPLES)
-        self._shown_arrival: float | None = None
+        self._shown_arrival: float | None = None  # None: this listener follows no picture
+        self._shown = asyncio.Event()
         self._queue: collections.deque[VoicePacket] = collections.deque()
         self._capacity = capacity
         self._ready = asyncio.Event()
@@ -73,12 +87,30 @@ class Listener:
                 self._ready.clear()
                 await self._ready.wait()
                 continue
-            wait = self._queue[0].arrived + self.delay_s - time.monotonic()
+            head, now = self._queue[0], time.monotonic()
+            deadline = head.arrived + self.max_delay_s
+            wait = min(head.arrived + self.delay_s, deadline) - now
             if wait > 0:
                 await asyncio.sleep(wait)
                 continue
+            if now < deadline and self._picture_behind(head):
+                self._shown.clear()
+                try:
+                    await asyncio.wait_for(self._shown.wait(), deadline - now)
+                except TimeoutError:
+                    pass
+                continue
             return self._queue.popleft()
         return None
+
+    def _picture_behind(self, packet: VoicePacket) -> bool:
+        """Has this listener's picture yet to show the seat's drive of ``packet``'s instant?"""
+        if self._shown_arrival is None:
+            return False
+        latest = self.voice.drive_arrived()
+        target = (latest if latest is not None and latest <= packet.arrived + DRIVE_SLACK_S
+                  else packet.drive_arrived)
+        return target is not None and self._shown_arrival < target
 
     def follow_picture(self, arrived: float | None, now: float) -> None:
         """A frame showing the seat's drive that arrived at ``arrived`` leaves now: the first
@@ -88,6 +120,7 @@ class Listener:
         if arrived is None or arrived == self._shown_arrival:
             return
         self._shown_arrival = arrived
+        self._shown.set()
         self.lags.append(now - arrived)
         self.delay_s = min(max(0.0, statistics.median(self.lags)), self.max_delay_s)
 
@@ -98,8 +131,14 @@ class Listener:
 
 
 class SeatVoice:
-    def __init__(self, settings: Any, metrics: Any = None) -> None:
+    def __init__(self, settings: Any, metrics: Any = None,
+                 on_speaking: Callable[[], None] | None = None,
+                 drive_arrived: Callable[[], float | None] = lambda: None) -> None:
         self.max_packet_bytes = settings.voice_max_packet_bytes
+        self.drive_arrived = drive_arrived  # the seat's newest drive's arrival (monotonic)
+        self.speaking_dbov = settings.voice_speaking_dbov
+        self.on_speaking = on_speaking
+        self.loud_at: float | None = None
         self.max_bytes_per_s = settings.voice_max_bitrate / 8
         self.max_delay_s = settings.voice_max_delay_s
         self.buffer_packets = settings.voice_buffer_packets
@@ -115,20 +154,30 @@ class SeatVoice:
 
     @property
     def speaking(self) -> bool:
-        return (self.last_packet_at is not None
-                and time.monotonic() - self.last_packet_at < SPEAKING_S)
+        return self.loud_at is not None and time.monotonic() - self.loud_at < SPEAKING_S
+
+    def _heard(self, level_dbov: float | None, now: float) -> None:
+        if level_dbov is not None and level_dbov < self.speaking_dbov:
+            return
+        was = self.speaking
+        self.loud_at = now
+        if not was and self.on_speaking is not None:
+            self.on_speaking()
 
     # -- publishing ---------------------------------------------------------------------------
 
     def publish(self, publisher: object, payload: bytes, rtp_ts: int,
-                now: float | None = None, t_capture: float | None = None) -> str:
-        """Check ``payload`` and fan it out; the outcome (a voice_packets label)."""
+                now: float | None = None, t_capture: float | None = None,
+                level_dbov: float | None = None) -> str:
+        """Check ``payload`` and fan it out; the outcome (a voice_packets label).
+        ``level_dbov``: its audio level as the sender measured it (None: not given)."""
         now = time.monotonic() if now is None else now
         outcome = self._check(payload, now)
         if outcome == "forwarded":
             packet = VoicePacket(payload, self._timeline(publisher, rtp_ts, now), now,
-                                 t_capture)
+                                 t_capture, self.drive_arrived())
             self.last_packet_at = now
+            self._heard(level_dbov, now)
             for listener in list(self.listeners):
                 if not listener.put(packet):
                     self._count("overflow")
@@ -179,9 +228,11 @@ class SeatVoice:
 
 
 def seat_voice(seat: Any, settings: Any, metrics: Any = None) -> SeatVoice:
-    """The seat's voice, made on first use."""
+    """The seat's voice, made on first use (telling ``seat.on_speaking`` when it speaks; its
+    listeners wait for the frames of ``seat.drive``)."""
     if seat.voice is None:
-        seat.voice = SeatVoice(settings, metrics)
+        seat.voice = SeatVoice(settings, metrics, getattr(seat, "on_speaking", None),
+                               lambda: seat.drive.arrived)
     return seat.voice
 
 
@@ -192,7 +243,8 @@ def publish_message(seat: Any, performer: Any, message: Voice, settings: Any,
     now = time.monotonic()
     at = message.t_capture if message.t_capture is not None else now
     return seat_voice(seat, settings, metrics).publish(
-        performer, message.data, round(at * CLOCK_RATE) % 2**32, now, message.t_capture)
+        performer, message.data, round(at * CLOCK_RATE) % 2**32, now, message.t_capture,
+        message.level_dbov)
 
 
 async def relay_voices(session: Any, live: Any, settings: Any, metrics: Any = None) -> None:

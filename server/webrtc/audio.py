@@ -71,7 +71,9 @@ def publish_voice(receiver: Any, voice: SeatVoice, publisher: object,
         if packet.payload_type != payload_type:
             voice.counts["garbage"] += 1  # not the negotiated Opus (aiortc would drop it too)
             return
-        voice.publish(publisher, packet.payload, packet.timestamp)
+        level = packet.extensions.audio_level  # RFC 6464: (voice activity, -dBov) when sent
+        voice.publish(publisher, packet.payload, packet.timestamp,
+                      level_dbov=None if level is None else -float(level[1]))
 
     setattr(receiver, RTP_HANDLER, handle)
 
