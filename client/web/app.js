@@ -26,6 +26,7 @@ import { ViewControl, fitToViewport } from "./view.js";
 import { chosenBackground, showBackground, wireViewBar } from "./viewbar.js";
 import { Webcam, trackedText } from "./webcam.js";
 import { RoomVoices, openMicrophone } from "./voice.js";
+import { WsMicrophone, WsVoices, voiceUnsupported } from "./voice_ws.js";
 import {
   WhepSession, chooseTransport, deleteRoom, onVideoFrame, serverHealth, worthFallingBack,
 } from "./webrtc.js";
@@ -99,6 +100,7 @@ async function drawPending() {
       ctx.drawImage(bitmap, 0, 0);
       bitmap.close();
       state.framesShown += 1;
+      wsVoices.picture(frame.t_capture, performance.now());  // the picture's delay, for the voice
     }
   } catch (err) {
     notify(`could not show a frame: ${err}`, "error");
@@ -130,6 +132,9 @@ state.saved = [];  // what snapshots and recordings saved: {kind, blob, url, nam
 capture.onSaved = (saved) => state.saved.push(saved);
 const webcam = new Webcam((bytes) => { state.stats.input(); state.session?.image(bytes); });
 const voices = new RoomVoices($("voices"));
+const wsVoices = new WsVoices($("voices"));  // the WebSocket's voices (voice_ws.js)
+let wsMic = null;  // the WebSocket performer's microphone, while on
+state.wsVoices = wsVoices;
 state.voices = [];  // the seats heard: [{seat, level, packets, speaking, volume, muted}]
 state.orbit = orbit;
 state.player = player;
@@ -193,6 +198,33 @@ async function voiceMedia(target) {
   return (pc) => voices.attach(pc, mic);
 }
 
+/** Over the WebSocket a performer in a room speaks with WebCodecs (voice_ws.js) while #mic
+ *  is ticked; no reconnection needed. Says so when the browser cannot. */
+async function wsMicrophone(session) {
+  wsMic?.stop();
+  wsMic = null;
+  if (!$("mic").checked || state.room?.role !== "perform" || session !== state.session) return;
+  const missing = voiceUnsupported();
+  if (missing) {
+    $("mic").checked = false;
+    $("mic-status").textContent = `no voice over the WebSocket: ${missing}`;
+    return;
+  }
+  const mic = new WsMicrophone((data, tCapture, level) => session.voice(data, tCapture, level));
+  mic.setMuted(voices.micMuted);
+  try {
+    await mic.start(await openMicrophone());
+  } catch (err) {
+    mic.stop();
+    $("mic").checked = false;
+    $("mic-status").textContent = `microphone unavailable: ${err.message}`;
+    return;
+  }
+  if (session !== state.session) return mic.stop();  // the page moved on meanwhile
+  wsMic = state.wsMic = mic;
+  $("mic-status").textContent = "speaking";
+}
+
 // ---- WebRTC: the private room of a solo page, the video's frames -------------------------
 
 function forgetPrivateRoom({ keepalive = false } = {}) {
@@ -231,6 +263,11 @@ function fallBack(err, target) {
 
 async function pollRtcStats() {
   const session = state.session;
+  if (session && !session.poll && state.room) {  // the WebSocket: voices decoded here
+    state.voices = wsVoices.poll();
+    $("speaking").textContent = wsVoices.speakingText();
+    return;
+  }
   if (!session?.poll || session.closed) return;
   state.voices = await voices.poll();
   $("speaking").textContent = voices.speakingText();
@@ -288,6 +325,9 @@ async function connect(target, { retrying = false } = {}) {
   const previous = state.session;
   state.session = null;
   previous?.close();
+  wsMic?.stop();
+  wsMic = null;
+  wsVoices.stop();
   player.stop();
   const inRoom = typeof target !== "string";
   state.avatar = inRoom ? null : target;
@@ -297,7 +337,8 @@ async function connect(target, { retrying = false } = {}) {
   let session;
   try {
     session = state.transport === "webrtc" ? await whepSession(target)
-      : new Session(streamUrl(target), token, inRoom ? target : {}, myName);
+      : new Session(streamUrl(target), token,
+        inRoom ? { ...target, voice: !voiceUnsupported() } : {}, myName);
   } catch (err) {
     if (retrying && sessionEnded(target, { failure: err })) return;
     if (!fallBack(err, target)) $("status").textContent = `could not connect: ${err.message}`;
@@ -310,6 +351,7 @@ async function connect(target, { retrying = false } = {}) {
   session.addEventListener("presence", (e) => showPresence(e.detail));
   session.addEventListener("avatar", (e) => showReplacedAvatar(e.detail.avatar));
   session.addEventListener("frame", (e) => showFrame(e.detail));
+  session.addEventListener("voice", (e) => wsVoices.packet(e.detail));
   session.addEventListener("servererror", (e) => {
     if (!e.detail.answers) lastError = e.detail.code;
     onServerError(e.detail);
@@ -347,6 +389,13 @@ async function connect(target, { retrying = false } = {}) {
     }
     session.view(orbit.current(), false);
     session.ping();
+    if (state.transport !== "webrtc" && !solo) {
+      wsVoices.pictureSeat = state.room.seat ?? target.seat ?? 0;  // whose t_capture frames carry
+      const missing = voiceUnsupported();
+      if (missing) $("mic-status").textContent = `no voice over the WebSocket: ${missing}`;
+      $("voices").textContent = missing ? `voices cannot play here: ${missing}` : "";
+      wsMicrophone(session);
+    }
     rejoin = solo ? target : {
       room: state.room.id, role: state.room.role,
       seat: state.room.role === "perform" ? state.room.seat : target.seat,
@@ -495,10 +544,13 @@ function wire() {
   $("mic").checked = params.get("mic") === "1";
   $("mic").addEventListener("change", () => {  // WHEP cannot renegotiate: join again
     if (!$("mic").checked) $("mic-status").textContent = "off";
-    if (state.room) connect({ room: state.room.id, role: state.room.role, seat: state.room.seat });
+    if (state.transport !== "webrtc") wsMicrophone(state.session);  // the WebSocket can
+    else if (state.room) connect({ room: state.room.id, role: state.room.role, seat: state.room.seat });
   });
+  document.addEventListener("pointerdown", () => wsVoices.resume());  // autoplay rules
   $("mic-mute").addEventListener("click", () => {
     voices.setMicMuted(!voices.micMuted);
+    wsMic?.setMuted(voices.micMuted);
     $("mic-mute").textContent = voices.micMuted ? "Unmute" : "Mute";
   });
   setInterval(() => renderStats($("stats"), state.stats.summary()), 250);

@@ -30,6 +30,12 @@ export function takeToken(win) {
   return token || null;
 }
 
+/** Now on the page's capture clock: seconds of performance.now() (since performance.timeOrigin),
+ *  the clock of every drive's and voice packet's t_capture. */
+export function captureTime() {
+  return performance.now() / 1000;
+}
+
 /** What both transports share: seq numbers and send times, the incoming messages as events,
  *  and the send methods. A subclass gives `_send(message, options)` and `open`. */
 export class MessageSession extends EventTarget {
@@ -98,10 +104,20 @@ export class MessageSession extends EventTarget {
     return this.seq;
   }
 
-  /** Partial parameters: {smplx: {jaw_pose: Float32Array}, ...}; returns the seq or null. */
+  /** Partial parameters: {smplx: {jaw_pose: Float32Array}, ...}; returns the seq or null.
+   *  Stamped with its capture time (captureTime()): frames showing it carry it back. */
   drive(families, reset = false) {
     const seq = this._stamp();
-    return this._send({ type: "drive", seq, reset, ...families }, { validate: true }) ? seq : null;
+    const message = { type: "drive", seq, reset, t_capture: captureTime(), ...families };
+    return this._send(message, { validate: true }) ? seq : null;
+  }
+
+  /** One Opus packet of this performer's voice (voice_ws.js), captured at `tCapture`. */
+  voice(data, tCapture, levelDbov = null) {
+    this.voiceSeq = (this.voiceSeq ?? -1) + 1;
+    const message = { type: "voice", seq: this.voiceSeq, data, t_capture: tCapture };
+    if (levelDbov !== null) message.level_dbov = levelDbov;
+    return this._send(message);
   }
 
   view(orbit, moving = false) {
@@ -124,7 +140,8 @@ export class MessageSession extends EventTarget {
 
 export class Session extends MessageSession {
   /** `token` goes in the first message, the hello, which the server reads before anything;
-   *  `join` ({role, seat}) too, in a room; `name`: the display name others see. */
+   *  `join` ({role, seat, voice}) too, in a room (voice: hear the other seats' `voice`
+   *  messages); `name`: the display name others see. */
   constructor(url, token = null, join = {}, name = null) {
     super();
     this.url = url;
@@ -139,6 +156,7 @@ export class Session extends MessageSession {
       if (token) hello.token = token;
       if (join.role) hello.role = join.role;
       if (Number.isInteger(join.seat)) hello.seat = join.seat;
+      if (join.voice) hello.voice = true;
       if (name) hello.name = name;
       this._send(hello);
     });

@@ -13,6 +13,26 @@ export function openMicrophone() {
   return navigator.mediaDevices.getUserMedia({ audio: true, video: false });
 }
 
+/** A row in `panel` for seat `index`: its label (returned), a volume slider and a mute box
+ *  calling `on.volume(0..1)` and `on.mute(bool)`; `extra`: an element to add (its <audio>). */
+export function seatControls(panel, index, on, extra = null) {
+  const row = document.createElement("div");
+  row.className = "voice";
+  const volume = Object.assign(document.createElement("input"), {
+    type: "range", min: "0", max: "1", step: "0.05", value: "1", title: `seat ${index} volume`,
+  });
+  volume.addEventListener("input", () => on.volume(Number(volume.value)));
+  const mute = Object.assign(document.createElement("input"), { type: "checkbox" });
+  mute.addEventListener("change", () => on.mute(mute.checked));
+  const label = document.createElement("span");
+  label.textContent = `seat ${index}`;
+  const muteLabel = document.createElement("label");
+  muteLabel.append(mute, " mute");
+  row.append(label, volume, muteLabel, ...(extra ? [extra] : []));
+  panel.append(row);
+  return label;
+}
+
 export class RoomVoices {
   /** `panel`: the element that lists the seats heard. */
   constructor(panel) {
@@ -42,23 +62,13 @@ export class RoomVoices {
   _heard(event) {
     const index = this.lines.findIndex((t) => t.receiver === event.receiver);
     if (index < 0) return;
-    const row = document.createElement("div");
-    row.className = "voice";
     const audio = document.createElement("audio");
     audio.autoplay = true;
     audio.srcObject = new MediaStream([event.track]);
-    const volume = Object.assign(document.createElement("input"), {
-      type: "range", min: "0", max: "1", step: "0.05", value: "1", title: `seat ${index} volume`,
-    });
-    volume.addEventListener("input", () => { audio.volume = Number(volume.value); });
-    const mute = Object.assign(document.createElement("input"), { type: "checkbox" });
-    mute.addEventListener("change", () => { audio.muted = mute.checked; });
-    const label = document.createElement("span");
-    label.textContent = `seat ${index}`;
-    const muteLabel = document.createElement("label");
-    muteLabel.append(mute, " mute");
-    row.append(label, volume, muteLabel, audio);
-    this.panel.append(row);
+    const label = seatControls(this.panel, index, {
+      volume: (v) => { audio.volume = v; },
+      mute: (m) => { audio.muted = m; },
+    }, audio);
     this.seats.set(index, { audio, receiver: event.receiver, label, speaking: false, level: 0 });
     audio.play().catch(() => { /* autoplay refused until a click: the page says so */ });
   }

@@ -1,0 +1,113 @@
+"""The page's voice over the WebSocket (issue 30, for clients without WebRTC) in real headless
+Chromium against a real server: a performer page (?transport=ws) encodes its fake microphone
+(Chromium's beeps) to Opus with WebCodecs and sends `voice` messages stamped with their
+capture time; a viewer page (?transport=ws) decodes them (AudioDecoder), plays them in an
+AudioContext at their capture time plus the picture's delay, with its own volume and mute;
+the performer's Mute silences it."""
+
+from __future__ import annotations
+
+import statistics
+import time
+
+import numpy as np
+
+from tests.server_fixtures import server_fixture  # noqa: F401 (`server`)
+from tests.test_client_browser import server_log, wait_for  # noqa: F401 (a fixture)
+from tests.test_voice_browser import LOUD_S, room, voice_counts, with_microphone  # noqa: F401
+from tests.test_webrtc_browser import browser_test, make_webrtc_chromium
+
+WARM_UP_S = 2.0      # the first drives' frames, before the viewer has measured the picture
+EARLY_MS, LATE_MS = -45.0, 125.0  # ITU-R BT.1359: detectable when audio is earlier / later
+DRIVE_EVERY_MS = 100  # the performer's page drives the jaw this often
+
+# Every 100 ms a drive of the jaw, stamped by the page (session.js) with its capture time.
+DRIVE_JAW = f"""
+let open = 0;
+window.jawTimer = setInterval(() => {{
+  open = 0.3 - open;
+  window.telesplat.session?.drive({{smplx: {{jaw_pose: new Float32Array([open, 0, 0])}}}});
+}}, {DRIVE_EVERY_MS});
+"""
+
+
+def join_ws(driver, server, link: str, mic: bool = False) -> None:
+    extra = "transport=ws&" + ("mic=1&" if mic else "")
+    driver.get(f"{server.url}{link.replace('?room=', f'?{extra}room=')}")
+    wait_for(driver, "window.telesplat?.transport === 'ws' && window.telesplat.room", 60,
+             "the WebSocket session's welcome")
+    wait_for(driver, "window.telesplat.framesShown > 0", 90, "a frame on the canvas")
+
+
+def sync_errors_ms(log: dict) -> list[float]:
+    """For each frame that first showed a drive (captured at t): when the voice captured at t
+    plays (interpolated within its packet) minus when that frame showed; + is voice late."""
+    packets = sorted((t, at) for _, t, at in log["packets"] if t is not None)
+    starts = np.array([t for t, _ in packets])
+    errors = []
+    for t, shown in log["frames"]:
+        i = int(np.searchsorted(starts, t, side="right")) - 1
+        if i < 0 or t - starts[i] > 0.02:  # no packet covers t (before the voice, or a gap)
+            continue
+        errors.append(packets[i][1] + (t - starts[i]) * 1000 - shown)
+    return errors
+
+
+@browser_test
+def test_a_websocket_performer_speaks_and_a_websocket_viewer_hears_in_sync(server, room):  # noqa: F811
+    room, links = room
+    performer = with_microphone()
+    viewer = make_webrtc_chromium()
+    try:
+        join_ws(performer, server, links["perform"], mic=True)
+        assert performer.execute_script("return window.telesplat.room.role") == "perform"
+        wait_for(performer, "document.getElementById('mic-status').textContent === 'speaking'",
+                 30, "the microphone on")
+        join_ws(viewer, server, links["watch"])
+        performer.execute_script(DRIVE_JAW)
+        # The viewer decodes seat 0's packets and a beep is loud in them.
+        heard = wait_for(viewer, "(window.telesplat.voices || []).find(v => v.seat === 0 && "
+                                 "v.played > 100 && v.peak > 0.05)", LOUD_S, "seat 0 heard")
+        assert heard["errors"] == 0 and heard["dropped"] == 0
+        assert heard["volume"] == 1 and heard["muted"] is False
+        counts = voice_counts(server, room["id"])
+        assert counts.get("forwarded", 0) > 100
+        assert not {"garbage", "too_large", "rate"} & set(counts)
+        # Presence says who speaks (the level_dbov the page put in each message).
+        says = "document.getElementById('presence').textContent.includes('performing, speaking')"
+        wait_for(viewer, says, LOUD_S, "presence: seat 0 speaking")
+        # Lips and voice: the sound captured with a drive plays when that drive's frame shows.
+        time.sleep(3.0)  # a few seconds of drives past the warm-up
+        log = viewer.execute_script("return window.telesplat.wsVoices.log")
+        first = min(shown for _, shown in log["frames"])
+        log["frames"] = [f for f in log["frames"] if f[1] > first + WARM_UP_S * 1000]
+        errors = sync_errors_ms(log)
+        assert len(errors) >= 15, errors
+        within = [EARLY_MS <= e <= LATE_MS for e in errors]
+        assert EARLY_MS <= statistics.median(errors) <= LATE_MS, errors
+        assert sum(within) >= 0.8 * len(errors), errors
+        # The viewer's own volume and mute act on its seat's gain only.
+        viewer.execute_script("""
+            const [volume, mute] = document.querySelectorAll('#voices .voice input');
+            volume.value = '0.25'; volume.dispatchEvent(new Event('input'));
+            mute.click();""")
+        wait_for(viewer, "(window.telesplat.voices || []).find(v => v.seat === 0 && v.muted && "
+                         "v.volume === 0.25)", 10, "the viewer's mute")
+        # The performer mutes: packets go on (silence), no beep reaches the viewer.
+        performer.find_element("id", "mic-mute").click()
+        assert performer.find_element("id", "mic-mute").text == "Unmute"
+        wait_for(viewer, "(window.telesplat.voices.find(v => v.seat === 0) || {}).level < 0.005",
+                 10, "the muted performer's silence")
+        played = viewer.execute_script(
+            "return window.telesplat.voices.find(v => v.seat === 0).played")
+        levels = []
+        for _ in range(5):  # bounded: several beeps' worth of one-second polls
+            time.sleep(1.0)
+            levels.append(viewer.execute_script(
+                "return window.telesplat.voices.find(v => v.seat === 0)"))
+        assert max(v["level"] for v in levels) < 0.005, levels
+        assert levels[-1]["played"] > played + 100  # silence still arrives
+        assert not viewer.execute_script(f"return {says}")  # silence is not speech
+    finally:
+        performer.quit()
+        viewer.quit()
