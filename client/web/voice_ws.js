@@ -18,6 +18,8 @@ export const RESYNC_MS = 20;           // a drift of the target delay past this 
 export const LAG_SAMPLES = 15;         // picture lags the delay is the median of
 export const AUDIO_LAG_PACKETS = 100;  // the fastest packet of the last 2 s sets the voice's lag
 export const MAX_DECODE_QUEUE = 50;    // packets waiting for the decoder; past it dropped
+export const REANCHOR_MS = 10;         // the mic's stamps follow its sample count until the
+//                                        output clock mapping is this far off
 export const SPEAKING_LEVEL = 0.02;    // decoded RMS (0..1) above which a seat speaks
 const SYNC_LOG = 1000;                 // (capture, play) pairs kept for tests and the console
 
@@ -63,7 +65,11 @@ export class WsMicrophone {
     this.stream = null;
     this.ctx = null;
     this.encoder = null;
-    this.levels = [];  // the level of each frame sent to the encoder, in order
+    // Each frame sent to the encoder, in order: {capturedMs, level}. Packet k is frame k
+    // (20 ms each), so it takes frame k's own stamp: the encoder's timestamps count samples
+    // from the first frame on and would drift from performance.now() (measured: 10.6 ms
+    // off from the second packet on in Chromium).
+    this.frames = [];
     this.muted = false;
     this.sent = 0;
     this.errors = 0;
@@ -104,13 +110,20 @@ export class WsMicrophone {
     const track = this.stream.getAudioTracks()[0];
     const inputS = track?.getSettings().latency ?? 0;
     const aheadS = (this.ctx.baseLatency ?? 0) + (this.ctx.outputLatency ?? 0) + inputS;
-    return perfTimeAt(this.ctx, frame / SAMPLE_RATE) - aheadS * 1000;
+    const live = perfTimeAt(this.ctx, frame / SAMPLE_RATE) - aheadS * 1000;
+    // The mapping jitters by ms; counting samples from an anchor keeps packets 20 ms apart.
+    const counted = this.anchor && this.anchor.ms + (frame - this.anchor.frame) / SAMPLE_RATE * 1000;
+    if (!this.anchor || Math.abs(live - counted) > REANCHOR_MS) {
+      this.anchor = { frame, ms: live };
+      return live;
+    }
+    return counted;
   }
 
   _frame({ samples, frame }) {
     if (this.encoder?.state !== "configured") return;
     const capturedMs = Math.max(0, this._capturedMs(frame));
-    this.levels.push(levelDbov(samples));
+    this.frames.push({ capturedMs, level: levelDbov(samples) });
     const data = new AudioData({
       format: "f32-planar", sampleRate: SAMPLE_RATE, numberOfFrames: samples.length,
       numberOfChannels: 1, timestamp: Math.round(capturedMs * 1000), data: samples,
@@ -122,9 +135,10 @@ export class WsMicrophone {
   _packet(chunk) {
     const bytes = new Uint8Array(chunk.byteLength);
     chunk.copyTo(bytes);
-    const level = this.levels.shift() ?? -127;
+    const frame = this.frames.shift();
+    const capturedMs = frame?.capturedMs ?? chunk.timestamp / 1000;
     this.sent += 1;
-    this.send(bytes, Math.max(0, chunk.timestamp / 1e6), this.muted ? -127 : level);
+    this.send(bytes, Math.max(0, capturedMs / 1000), this.muted ? -127 : frame?.level ?? -127);
   }
 
   /** Muted: the track gives silence, still sent (as WebRTC does): nobody hears, nobody speaks. */
@@ -138,7 +152,8 @@ export class WsMicrophone {
     if (this.encoder?.state === "configured") this.encoder.close();
     this.ctx?.close();
     this.stream = this.ctx = this.encoder = null;
-    this.levels = [];
+    this.frames = [];
+    this.anchor = null;  // {frame, ms}: a context frame and its capture time
   }
 }
 
