@@ -7,15 +7,19 @@ the performer's Mute silences it."""
 
 from __future__ import annotations
 
+import json
 import statistics
 import time
+from pathlib import Path
 
 import numpy as np
+import pytest
 
 from tests.server_fixtures import server_fixture  # noqa: F401 (`server`)
 from tests.test_client_browser import server_log, wait_for  # noqa: F401 (a fixture)
+from tests.test_client_units import node, run_node
 from tests.test_voice_browser import LOUD_S, room, voice_counts, with_microphone  # noqa: F401
-from tests.test_webrtc_browser import browser_test, make_webrtc_chromium
+from tests.test_webrtc_browser import WEB, browser_test, make_webrtc_chromium
 
 WARM_UP_S = 2.0      # the first drives' frames, before the viewer has measured the picture
 EARLY_MS, LATE_MS = -45.0, 125.0  # ITU-R BT.1359: detectable when audio is earlier / later
@@ -123,3 +127,18 @@ def test_a_websocket_performer_speaks_and_a_websocket_viewer_hears_in_sync(serve
     finally:
         performer.quit()
         viewer.quit()
+
+
+@pytest.mark.skipif(node() is None, reason="node is not installed")
+def test_levels_in_dbov_and_the_missing_webcodecs_said_in_node():
+    url = Path(WEB, "voice_ws.js").resolve().as_uri()
+    out = json.loads(run_node(f"""
+        import {{ levelDbov, voiceUnsupported }} from {json.dumps(url)};
+        const square = (a) => Float32Array.from({{length: 960}}, (_, i) => (i % 2 ? a : -a));
+        console.log(JSON.stringify({{
+          full: levelDbov(square(1)), tenth: levelDbov(square(0.1)),
+          silence: levelDbov(new Float32Array(960)), tiny: levelDbov(square(1e-9)),
+          missing: voiceUnsupported()}}));"""))
+    assert out["full"] == 0 and out["tenth"] == pytest.approx(-20)
+    assert out["silence"] == -127 and out["tiny"] == -127  # clamped to RFC 6464's range
+    assert "WebCodecs" in out["missing"]  # node has no AudioEncoder: said, not thrown
