@@ -95,7 +95,8 @@ def test_a_websocket_performer_speaks_and_a_websocket_viewer_hears_in_sync(serve
                   if t is not None and at > first + WARM_UP_S * 1000]
         lags = [shown - t * 1000 for t, shown in log["frames"]]
         print(f"sync error ms: median {statistics.median(errors):.1f}, "
-              f"{len(errors)} events, min {min(errors):.1f} max {max(errors):.1f}; "
+              f"{len(errors)} events, min {min(errors):.1f} max {max(errors):.1f}, "
+              f"{sum(EARLY_MS <= e <= LATE_MS for e in errors)} within -45/+125; "
               f"voice delay spread {max(delays) - min(delays):.1f} ms, picture lag spread "
               f"{max(lags) - min(lags):.1f} ms")
         assert EARLY_MS <= statistics.median(errors) <= LATE_MS, errors
