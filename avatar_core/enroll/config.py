@@ -20,7 +20,7 @@ class EnrollConfig:
     min_brightness: float = 0.12     # mean luma in [0, 1] below this: too dark
     blur_ratio: float = 0.35         # a frame sharper than this x the video's median is kept
     min_sharpness: float = 2e-4      # median Laplacian variance (luma in [0, 1]) below: blurred
-    duplicate_threshold: float = 0.004  # mean abs luma change below this: a duplicate frame
+    duplicate_threshold: float = 0.002  # mean abs luma change below this: a duplicate
     track_size: int = 256            # longest side the tracker sees, px
     fit_iterations: int = 200        # joint shape + per-frame pose fit (Adam steps)
 
