@@ -50,19 +50,34 @@ def load_body(body_models: str | Path | None):
     return files, UpperBodyModel.load(files.smplx_npz, files.segmentation)
 
 
+class TakeTracker:
+    """The tracker (with the selfie mask) and a face detector that counts people: loaded once
+    per enrollment (loading the ONNX sessions costs seconds)."""
+
+    def __init__(self, models=None) -> None:
+        self.tracker = Tracker(models, mask=True)
+        self.faces = Detector("face_detection_short_range", FACE_SHORT_RANGE, 6, (-1.0, 1.0),
+                              models, min_score=FACE_DETECTION_SCORE, max_detections=4)
+
+    def close(self) -> None:
+        self.tracker.close()
+
+
 def track_take(frames: Sequence[np.ndarray], kept: Sequence[int], fps: float, model,
-               focal_px: float, track_size: int, masks: bool,
-               models=None, progress: Callable[[float], None] | None = None) -> TrackedTake:
+               focal_px: float, track_size: int, masks: bool, take_tracker: TakeTracker,
+               progress: Callable[[float], None] | None = None) -> TrackedTake:
     """Track and fit ``frames[kept]`` (RGB) in order; ``focal_px`` at the video's size."""
     h0, w0 = frames[0].shape[:2]
     s = tracking_scale(w0, h0, track_size)
     size = (max(1, round(w0 * s)), max(1, round(h0 * s)))
-    tracker = Tracker(models, mask=masks)
-    faces = Detector("face_detection_short_range", FACE_SHORT_RANGE, 6, (-1.0, 1.0), models,
-                     min_score=FACE_DETECTION_SCORE, max_detections=4)
+    tracker, faces = take_tracker.tracker, take_tracker.faces
+    tracker.reset()
     fit = SequenceFit(model, None, SequenceFitConfig(
         fov_x_deg=fov_x_deg(focal_px * s, size[0]), smoothing=False, gaze=False))
     take = TrackedTake([], [], [], [], size=size, scale=s)
+    mask_stage = tracker.mask
+    if not masks:
+        tracker.mask = None  # the segmentation is skipped, not computed and dropped
     try:
         for n, i in enumerate(kept):
             bgr = np.ascontiguousarray(frames[i][..., ::-1])
@@ -83,7 +98,7 @@ def track_take(frames: Sequence[np.ndarray], kept: Sequence[int], fps: float, mo
             if progress:
                 progress((n + 1) / len(kept))
     finally:
-        tracker.close()
+        tracker.mask = mask_stage
     return take
 
 
