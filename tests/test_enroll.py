@@ -219,7 +219,7 @@ def test_cli_reports_a_refusal_and_stores_nothing(take, tmp_path, capsys):
 
     path = tmp_path / "dark.mp4"
     writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 10.0, (320, 240))
-    for f in take:
+    for f in take + take:  # long enough: the dark check is what refuses it
         writer.write((f[..., ::-1].astype(np.float32) * 0.08).astype(np.uint8))
     writer.release()
     assert main(["enroll", str(path), "--out", str(tmp_path / "me")]) == 3
