@@ -29,6 +29,7 @@ DEFAULT_FOV_X_DEG = 60.0   # the focal prior without metadata: a typical webcam 
 @dataclass
 class PreparedTake:
     frames: list[np.ndarray]                 # the used frames, RGB at the video's size
+    indices: list[int]                       # their index in the video
     masks: list[np.ndarray] | None           # person probability per used frame
     params: list[dict[str, np.ndarray]]      # per used frame, after the shape fit
     betas: np.ndarray
@@ -115,7 +116,7 @@ def prepare(frames: Sequence[np.ndarray], fps: float, *, config: EnrollConfig,
                        progress=lambda f: say("fit", f))
     timings["fit_s"] = time.perf_counter() - t0
     return PreparedTake(
-        frames=[frames[take.frames[j]] for j in use],
+        frames=[frames[take.frames[j]] for j in use], indices=[take.frames[j] for j in use],
         masks=[take.masks[j] for j in use] if config.masks else None,
         params=fitted.params, betas=fitted.betas, fps=fps,
         focal_px=fitted.focal_px / take.scale, focal_source=source, counts=counts,
