@@ -108,7 +108,7 @@ def test_prepare_fits_one_shape_and_the_turn(prepared):
 
 
 def test_subsampling_above_max_frames_is_counted(doctored, onnx_models):
-    cfg = replace(CONFIG, max_frames=8, preflight_frames=0)
+    cfg = replace(CONFIG, min_frames=4, max_frames=8, preflight_frames=0)
     prep = prepare(doctored, 10.0, config=cfg)
     c = prep.counts
     assert c.subsampled == len(doctored) - 2 - 8  # all sharp, new frames past the first 8
