@@ -179,14 +179,30 @@ def enroll(frames: Sequence[np.ndarray], fps: float, out_dir: str | Path, *,
                           body_models=body_models)
 
 
+def _decode(path: str | Path, config: EnrollConfig, focal_px: float | None, limits
+            ) -> tuple[list[np.ndarray], float, float | None]:
+    """Frames, fps and focal (px at the frames' size): through the probe with its limits
+    (``enroll.video``, PyAV) where that module is present, else OpenCV (``frames``)."""
+    try:
+        from .video import read_video
+    except ImportError:  # the probe's branch not merged: the OpenCV stand-in
+        from .frames import read_frames
+
+        frames, fps = read_frames(path)
+        return frames, fps, focal_px
+    decoded = read_video(path, limits, long_side=max(config.resolution, config.track_size))
+    if focal_px is not None:  # given at the video's size
+        focal_px = focal_px * decoded.size[0] / decoded.info.width
+    return list(decoded.frames), decoded.fps, focal_px or decoded.focal_px
+
+
 def enroll_video(path: str | Path, out_dir: str | Path, *, config: EnrollConfig,
                  progress: Progress | None = None, body_models: str | Path | None = None,
-                 focal_px: float | None = None, models=None) -> EnrollResult:
-    """A video file -> an avatar package (decoded by ``frames.read_frames``, OpenCV)."""
-    from .frames import read_frames
-
-    frames, fps = read_frames(path)
+                 focal_px: float | None = None, models=None, limits=None) -> EnrollResult:
+    """A video file -> an avatar package. ``focal_px``: at the video's size (else from its
+    metadata, else the prior); ``limits``: the probe's ``VideoLimits`` (None: defaults)."""
+    frames, fps, focal = _decode(path, config, focal_px, limits)
     if progress:
         progress("decode", 1.0)
-    return enroll(frames, fps, out_dir, config=config, focal_px=focal_px, progress=progress,
+    return enroll(frames, fps, out_dir, config=config, focal_px=focal, progress=progress,
                   body_models=body_models, models=models)
