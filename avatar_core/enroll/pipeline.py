@@ -4,6 +4,7 @@ refused take stores nothing); ``train_prepared`` writes and trains; ``enroll`` i
 
 from __future__ import annotations
 
+import importlib
 import json
 import math
 import time
@@ -14,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from . import checks
+from .checks import check_length, check_people, check_turn
 from .config import EnrollConfig
 from .errors import EnrollmentRefused
 from .result import EnrollResult, FrameCounts
@@ -74,10 +75,10 @@ def prepare(frames: Sequence[np.ndarray], fps: float, *, config: EnrollConfig,
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     counts = FrameCounts(total=len(frames))
-    checks.check_length(len(frames), len(frames), config)
+    check_length(len(frames), len(frames), config)
     kept, dropped, _ = select_frames(frames, config)
     counts.blurred, counts.duplicate = dropped["blurred"], dropped["duplicate"]
-    checks.check_length(len(kept), len(frames), config)
+    check_length(len(kept), len(frames), config)
     # at most max_frames are tracked (evenly spread): tracking costs ~1 s a frame on 2 cores
     tracked = _even(kept, config.max_frames)
     counts.subsampled = len(kept) - len(tracked)
@@ -96,7 +97,7 @@ def prepare(frames: Sequence[np.ndarray], fps: float, *, config: EnrollConfig,
             sample = _even(kept, config.preflight_frames)
             pre = track_take(frames, sample, fps, model, focal, config.track_size, False, tt,
                              progress=lambda f: say("preflight", f))
-            checks.check_people(len(pre.frames), len(sample), pre.faces)
+            check_people(len(pre.frames), len(sample), pre.faces)
         timings["preflight_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         take = track_take(frames, kept, fps, model, focal, config.track_size, config.masks,
@@ -105,11 +106,11 @@ def prepare(frames: Sequence[np.ndarray], fps: float, *, config: EnrollConfig,
     finally:
         tt.close()
     counts.failed_track = len(take.failed)
-    checks.check_people(len(take.frames), len(kept), take.faces)
-    checks.check_length(len(take.frames), len(frames), config)
+    check_people(len(take.frames), len(kept), take.faces)
+    check_length(len(take.frames), len(frames), config)
     use = list(range(len(take.frames)))
     counts.used = len(use)
-    yaw_range = checks.check_turn(
+    yaw_range = check_turn(
         [yaw_deg(take.params[j]["global_orient"]) for j in use], config)
 
     t0 = time.perf_counter()
@@ -183,14 +184,14 @@ def _decode(path: str | Path, config: EnrollConfig, focal_px: float | None, limi
             ) -> tuple[list[np.ndarray], float, float | None]:
     """Frames, fps and focal (px at the frames' size): through the probe with its limits
     (``enroll.video``, PyAV) where that module is present, else OpenCV (``frames``)."""
-    try:
-        from .video import read_video
-    except ImportError:  # the probe's branch not merged: the OpenCV stand-in
+    try:  # by name: the module may be absent (the probe's branch not merged)
+        video = importlib.import_module(f"{__package__}.video")
+    except ModuleNotFoundError:  # the OpenCV stand-in
         from .frames import read_frames
 
         frames, fps = read_frames(path)
         return frames, fps, focal_px
-    decoded = read_video(path, limits, long_side=max(config.resolution, config.track_size))
+    decoded = video.read_video(path, limits, long_side=max(config.resolution, config.track_size))
     if focal_px is not None:  # given at the video's size
         focal_px = focal_px * decoded.size[0] / decoded.info.width
     return list(decoded.frames), decoded.fps, focal_px or decoded.focal_px
