@@ -23,7 +23,8 @@ import numpy as np
 
 from .errors import EnrollmentRefused
 
-__all__ = ["DecodedVideo", "VideoInfo", "VideoLimits", "probe_video", "read_video"]
+__all__ = ["DecodedVideo", "VideoInfo", "VideoLimits", "decode_plan", "output_size", "probe_video",
+           "read_video"]
 
 MiB = 2**20
 # A 35 mm frame's diagonal: a "35 mm equivalent" focal length is relative to it.
@@ -231,6 +232,17 @@ def output_size(width: int, height: int, long_side: int) -> tuple[int, int]:
     return max(1, round(width * scale)), max(1, round(height * scale))
 
 
+def decode_plan(info: VideoInfo, limits: VideoLimits, long_side: int) -> tuple[int, int, int]:
+    """The frames :func:`read_video` keeps and their width and height; EnrollmentRefused when
+    they pass ``max_frames`` or ``max_decoded_bytes``. From the probe alone (no decoding)."""
+    width, height = output_size(info.width, info.height, long_side)
+    # the first to the last frame's start: the duration less one frame
+    span = info.duration_s * (info.packets - 1) / info.packets
+    kept = min(info.packets, math.floor(span * limits.max_decode_fps + 1e-6) + 1)
+    _check_frames(kept, width, height, limits)
+    return kept, width, height
+
+
 def read_video(path: str | Path, limits: VideoLimits | None = None, *,
                long_side: int = 512) -> DecodedVideo:
     """The video's frames, upright, downscaled to at most ``long_side`` px, at most
@@ -241,11 +253,7 @@ def read_video(path: str | Path, limits: VideoLimits | None = None, *,
     if long_side < 16:
         raise ValueError(f"long_side must be >= 16 px, got {long_side}")
     info = probe_video(path, limits)
-    width, height = output_size(info.width, info.height, long_side)
-    # the first to the last frame's start: the duration less one frame
-    span = info.duration_s * (info.packets - 1) / info.packets
-    kept = min(info.packets, math.floor(span * limits.max_decode_fps + 1e-6) + 1)
-    _check_frames(kept, width, height, limits)
+    kept, width, height = decode_plan(info, limits, long_side)
     stored_w, stored_h = (height, width) if info.rotation in (90, 270) else (width, height)
     frames = np.empty((kept, height, width, 3), np.uint8)
     times: list[float] = []

@@ -25,7 +25,7 @@ from avatar_core.body.model_paths import (
 from avatar_core.bounded_npz import NpzLimits
 from avatar_core.dataset import DatasetError, load_dataset
 from avatar_core.enroll.errors import EnrollmentRefused
-from avatar_core.enroll.video import VideoLimits, probe_video
+from avatar_core.enroll.video import VideoLimits, decode_plan, probe_video
 from avatar_core.train.checkpoint import latest_checkpoint
 from avatar_core.train.config import TrainConfig, config_from_dict, config_to_dict, preset
 
@@ -330,8 +330,9 @@ class JobService:
             if left is not None and size > left:
                 raise SubmitError(f"the video is {size} bytes, more than the {max(0, left)} "
                                   "bytes left of your storage quota", 413)
-            try:
-                probe_video(video, self.video_limits)
+            try:  # what decoding it would hold too, before any of it
+                decode_plan(probe_video(video, self.video_limits), self.video_limits,
+                            resolved.resolution)
             except EnrollmentRefused as refused:
                 raise SubmitError(str(refused), refusal_status(refused),
                                   refused.to_dict()) from None
