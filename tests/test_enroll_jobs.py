@@ -106,7 +106,7 @@ def test_bad_enrollment_configs_are_422_naming_the_key(srv, videos):
     caps = EnrollCaps(max_iterations=100)
     assert enroll_config({"iterations": 100, "fine_tune": False}, caps).fine_tune is False
     with pytest.raises(Exception, match="resolution"):
-        enroll_config({"resolution": 4096}, caps)
+        enroll_config({"resolution": 4096, "iterations": 10}, caps)
 
 
 def test_a_video_the_job_refuses_fails_it_with_the_reason_and_is_deleted(srv, videos):
