@@ -510,6 +510,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     register_dataset(groups)
 
+    from .enroll.cli import register as register_enroll
+
+    register_enroll(groups, synth_cmds, _add_body_models)
+
     render = groups.add_parser("render", help="render an avatar under a motion")
     render.add_argument("avatar", help="avatar package (folder or .zip) or synthetic[:IDENTITY]")
     render.add_argument("--motion", default="demo",

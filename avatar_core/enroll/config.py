@@ -16,13 +16,14 @@ class EnrollConfig:
     masks: bool = True               # selfie-segmentation masks + mask loss
     min_frames: int = 24             # usable frames below this: refused (too short)
     max_frames: int = 300            # frames kept for training (evenly subsampled above this)
-    min_yaw_range_deg: float = 60.0  # the person must turn at least this much (max - min yaw)
+    min_yaw_range_deg: float = 45.0  # the person must turn at least this much (max - min yaw)
     min_brightness: float = 0.12     # mean luma in [0, 1] below this: too dark
     blur_ratio: float = 0.35         # a frame sharper than this x the video's median is kept
     min_sharpness: float = 2e-4      # median Laplacian variance (luma in [0, 1]) below: blurred
-    duplicate_threshold: float = 0.004  # mean abs luma change below this: a duplicate frame
+    duplicate_threshold: float = 0.002  # mean abs luma change below this: a duplicate
     track_size: int = 256            # longest side the tracker sees, px
     fit_iterations: int = 200        # joint shape + per-frame pose fit (Adam steps)
+    preflight_frames: int = 8        # tracked first to refuse nobody / two people early (0: off)
 
     def __post_init__(self) -> None:
         checks = (
@@ -37,6 +38,7 @@ class EnrollConfig:
             (self.duplicate_threshold >= 0, "duplicate_threshold", "must be >= 0"),
             (self.track_size >= 64, "track_size", "must be >= 64 px"),
             (self.fit_iterations >= 0, "fit_iterations", "must be >= 0"),
+            (self.preflight_frames >= 0, "preflight_frames", "must be >= 0"),
         )
         for ok, name, what in checks:
             if not ok:
