@@ -22,6 +22,7 @@ from server.jobs.service import SubmitError
 from .enroll_videos import write_audio_only, write_garbage, write_video
 from .server_fixtures import run_server
 from .test_jobs_support import wait_for
+from .track_models import needs_models
 
 TIMEOUT_S = 120.0
 ROOT = Path(__file__).resolve().parent.parent
@@ -30,7 +31,8 @@ ROOT = Path(__file__).resolve().parent.parent
 @pytest.fixture(scope="module")
 def srv(tmp_path_factory):
     with run_server(tmp_path_factory.mktemp("enroll-jobs"), job_threads=1, job_nice=0,
-                    enroll_max_video_bytes=400_000, enroll_max_duration_s=30.0) as server:
+                    enroll_max_video_bytes=400_000, enroll_max_duration_s=30.0,
+                    enroll_min_duration_s=1.0) as server:
         yield server
 
 
@@ -45,7 +47,7 @@ def videos(tmp_path_factory) -> dict[str, Path]:
     (d / "damaged.mp4").write_bytes(bytes(damaged))
     return {"clip": clip, "damaged": d / "damaged.mp4", "garbage": write_garbage(d / "x.mp4"),
             "audio": write_audio_only(d / "voice.ogg"),
-            "short": write_video(d / "short.webm", seconds=1.5),
+            "short": write_video(d / "short.webm", seconds=0.5),
             "long": write_video(d / "long.webm", seconds=40, fps=5, width=64, height=64),
             "huge": write_garbage(d / "huge.webm", size=500_000)}
 
@@ -191,3 +193,40 @@ def test_the_client_submits_a_video_and_watches_its_progress(srv, videos, tmp_pa
     refused = _client("jobs", "submit", "--video", str(videos["audio"]), *common)
     assert refused.returncode == 1 and "HTTP 422" in refused.stderr
     assert "not a sound recording" in refused.stderr and "(no_video_stream)" in refused.stderr
+
+
+TINY_ENROLL = {"iterations": 6, "resolution": 64, "min_frames": 8, "fit_iterations": 20,
+               "preflight_frames": 4}
+
+
+@needs_models
+def test_a_studio_take_becomes_an_avatar_the_server_lists(srv, tmp_path):
+    """The studio's one-camera take (the synthetic actor turning and gesturing, 2 s at
+    320 x 240), submitted and watched with the client, enrolled end to end by the job."""
+    from avatar_core.synth.enroll_video import EnrollVideoSpec, film_enroll_video
+
+    take = film_enroll_video(tmp_path / "take.mp4",
+                             EnrollVideoSpec(seconds=2.0, fps=10.0, width=320, height=240))
+    config = tmp_path / "tiny.json"
+    config.write_text(json.dumps(TINY_ENROLL))
+    done = _client("jobs", "submit", "--video", str(take), "--config", str(config), "--name",
+                   "studio-me", "--watch", "--server", srv.url, "--token", srv.token,
+                   timeout=600)
+    assert done.returncode == 0, done.stdout + done.stderr
+    bar = done.stderr.replace("\r", "\n")
+    assert "100%" in bar and "train" in bar, bar
+    lines = done.stdout.strip().splitlines()
+    job_id = lines[0].split()[-1]
+    assert lines[1].startswith(f"enrollment job {job_id} succeeded")
+    avatar_id = srv.ctx.jobs.store.get(job_id).avatar_id
+    assert lines[2] == f"avatar {avatar_id}"
+    listed = httpx.get(f"{srv.url}/v1/avatars", headers=srv.headers()).json()
+    listed = listed["avatars"] if isinstance(listed, dict) else listed
+    assert any(a["id"] == avatar_id and a["name"] == "studio-me" for a in listed), listed
+    stages = [e.get("stage") for e in events(srv, job_id) if e["type"] == "progress"]
+    assert [s for s in ("decode", "track", "fit", "train") if s in stages] == \
+        ["decode", "track", "fit", "train"], stages
+    steps = [e["iteration"] for e in events(srv, job_id) if e["type"] == "progress"]
+    assert steps == sorted(steps) and steps[-1] == PROGRESS_STEPS  # one bar, never back
+    folder = srv.ctx.jobs.worker.job_dir(job_id)
+    assert not (folder / "dataset").exists() and not (folder / "out" / "dataset").exists()

@@ -127,27 +127,40 @@ def _from_job_config(stored: dict[str, Any]) -> tuple[EnrollConfig, VideoLimits]
     return EnrollConfig(**fields), VideoLimits(**stored.get("video_limits", {}))
 
 
+# Where each stage of avatar_core/enroll (which reports each stage's own 0..1) lies in the
+# job's progress; training takes most of the time. A stage not named here keeps the bar where
+# it is.
+STAGE_SPANS = {"decode": (0.0, 0.03), "select": (0.03, 0.05), "preflight": (0.05, 0.08),
+               "track": (0.08, 0.30), "fit": (0.30, 0.38), "dataset": (0.38, 0.40),
+               "train": (0.40, 0.99), "done": (0.99, 1.0)}
+
+
 class _Progress:
-    """``progress(stage, fraction)`` as job events: ``progress`` events of ``PROGRESS_STEPS``
-    steps with the stage, written when the step or the stage changes (a pipeline may call it
-    per frame or per iteration: the store gets at most ~1000 writes). ``check()`` runs at each
-    call (cancel and stop requests)."""
+    """``progress(stage, fraction)`` as job events: ``progress`` events counting
+    ``PROGRESS_STEPS`` steps over the whole enrollment, with the ``stage`` and its own
+    ``stage_progress``; written when the step or the stage changes (a pipeline may call it
+    per frame or per iteration: the store gets at most ~1000 writes). ``check()`` runs at
+    each call (cancel and stop requests)."""
 
     def __init__(self, report: Callable[[dict[str, Any]], None], check: Callable[[], None]):
         self.report, self.check = report, check
         self.last: tuple[str, int] | None = None
+        self.step = 0
 
     def __call__(self, stage: str, fraction: float) -> None:
-        step = round(min(1.0, max(0.0, float(fraction))) * PROGRESS_STEPS)
-        if (stage, step) != self.last:
-            self.last = (stage, step)
-            self.report({"type": "progress", "iteration": step, "total": PROGRESS_STEPS,
-                         "stage": str(stage)[:64]})
+        fraction = min(1.0, max(0.0, float(fraction)))
+        start, end = STAGE_SPANS.get(stage, (self.step / PROGRESS_STEPS,) * 2)
+        self.step = max(self.step, round((start + (end - start) * fraction) * PROGRESS_STEPS))
+        if (stage, self.step) != self.last:
+            self.last = (stage, self.step)
+            self.report({"type": "progress", "iteration": self.step, "total": PROGRESS_STEPS,
+                         "stage": str(stage)[:64], "stage_progress": round(fraction, 4)})
         self.check()
 
 
 def run_enrollment(job: Any, job_dir: Path, out: Path, report: Callable[[dict], None],
-                   check: Callable[[], None], set_error: Callable[[str], None]) -> bool:
+                   check: Callable[[], None], set_error: Callable[[str], None],
+                   body_models: str | None = None) -> bool:
     """Enroll the job's video into ``out/avatar``; True when done, False when the video was
     refused (the reason is set and the video deleted). ``check`` raises to stop (a cancel,
     the server stopping)."""
@@ -160,15 +173,17 @@ def run_enrollment(job: Any, job_dir: Path, out: Path, report: Callable[[dict], 
     if not videos:
         set_error("the job's video is no longer on the server")
         return False
+    out.parent.mkdir(parents=True, exist_ok=True)
     progress = _Progress(report, check)
     try:
         progress("decode", 0.0)
         video = read_video(videos[0], limits, long_side=config.resolution)
+        progress("decode", 1.0)
         if out.exists():  # an earlier attempt's leftovers: enrollment starts over
             shutil.rmtree(out)
         out.mkdir(parents=True)
-        result = enroll(video.frames, video.fps, out, config=config, focal_px=video.focal_px,
-                        progress=progress)
+        result = enroll(list(video.frames), video.fps, out, config=config,
+                        focal_px=video.focal_px, progress=progress, body_models=body_models)
     except EnrollmentRefused as refused:
         log.info("job %s: video refused: %s", job.id, refused.reason)
         set_error(f"{refused.message} {refused.what_to_do}".strip())
@@ -178,6 +193,7 @@ def run_enrollment(job: Any, job_dir: Path, out: Path, report: Callable[[dict], 
     package = Path(result.package)
     if package.resolve() != (out / "avatar").resolve():
         package.rename(out / "avatar")
+    shutil.rmtree(out / "dataset", ignore_errors=True)  # the frames written for training
     summary = result.to_dict()
     report({"type": "message", "message": "enrolled", "frames": summary.get("frames"),
             "focal_source": summary.get("focal_source")})

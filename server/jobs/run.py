@@ -105,7 +105,7 @@ def train(store: JobStore, job_id: str, job_dir: Path, body_models: str | None, 
             raise _Interrupted
 
     if job.kind == "enroll":  # nothing to checkpoint: SIGTERM exits, a retry starts over
-        return _enroll(store, job, job_dir, interrupted)
+        return _enroll(store, job, job_dir, body_models, interrupted)
     if latest_checkpoint(out) is not None:
         trainer = Trainer.resume(out, job.dataset_path, body_model=body_models,
                                  progress=progress)
@@ -135,7 +135,7 @@ def train(store: JobStore, job_id: str, job_dir: Path, body_models: str | None, 
     return EXIT_OK
 
 
-def _enroll(store: JobStore, job: Any, job_dir: Path,
+def _enroll(store: JobStore, job: Any, job_dir: Path, body_models: str | None,
             interrupted: Callable[[], bool] | None) -> int:
     """An enrollment job (server/jobs/enrollment.py): its exit code."""
     from .enrollment import run_enrollment
@@ -150,7 +150,8 @@ def _enroll(store: JobStore, job: Any, job_dir: Path,
     try:
         done = run_enrollment(job, job_dir, job_dir / OUT_DIR,
                               report=lambda event: store.report(job.id, event), check=check,
-                              set_error=lambda error: store.set_error(job.id, error[:2000]))
+                              set_error=lambda error: store.set_error(job.id, error[:2000]),
+                              body_models=body_models)
     except _Cancelled:
         log.info("job %s cancelled", job.id)
         return EXIT_CANCELLED
