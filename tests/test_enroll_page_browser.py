@@ -10,26 +10,52 @@ import json
 import os
 from urllib.parse import quote
 
+import cv2
 import pytest
 
-from avatar_core.enroll.video import probe_video
+from avatar_core.enroll.video import probe_video, read_video
 from tests.server_fixtures import run_server
 from tests.test_client_browser import wait_for
 from tests.test_client_units import chromium_missing, make_chromium, node, run_node
+from tests.track_models import needs_models
 
 pytestmark = pytest.mark.skipif(chromium_missing() is not None,
                                 reason=chromium_missing() or "")
 WEB = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", "client", "web"))
 WAIT_S = 90.0  # each browser wait (bounded)
 RECORD_S = 5   # the shortest recording the page offers (?enroll_s=)
-TINY = {"iterations": 10, "resolution": 64, "fit_iterations": 2}
+TINY = {"iterations": 6, "resolution": 64, "min_frames": 8, "fit_iterations": 20,
+        "preflight_frames": 4}
 
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
-    with run_server(tmp_path_factory.mktemp("enroll-page"), job_threads=1,
-                    job_nice=0) as srv:
+    # 4 frames a second kept: a 5 s recording is ~20 frames to track (the test's time)
+    with run_server(tmp_path_factory.mktemp("enroll-page"), job_threads=1, job_nice=0,
+                    enroll_max_decode_fps=4.0) as srv:
         yield srv
+
+
+def write_y4m(path, frames_rgb, fps: int = 10) -> str:
+    """A raw YUV 4:2:0 video (Chromium's fake camera plays it in a loop)."""
+    height, width = frames_rgb[0].shape[:2]
+    with open(path, "wb") as out:
+        out.write(f"YUV4MPEG2 W{width} H{height} F{fps}:1 Ip A1:1 C420jpeg\n".encode())
+        for rgb in frames_rgb:
+            out.write(b"FRAME\n" + cv2.cvtColor(rgb, cv2.COLOR_RGB2YUV_I420).tobytes())
+    return str(path)
+
+
+@pytest.fixture(scope="module")
+def studio_camera(tmp_path_factory) -> str:
+    """The studio's one-camera take (the synthetic actor turning and gesturing) as the fake
+    camera's video."""
+    from avatar_core.synth.enroll_video import EnrollVideoSpec, film_enroll_video
+
+    d = tmp_path_factory.mktemp("studio-camera")
+    take = film_enroll_video(d / "take.mp4", EnrollVideoSpec(seconds=4.0, fps=10.0,
+                                                             width=320, height=240))
+    return write_y4m(d / "take.y4m", read_video(take).frames)
 
 
 @pytest.fixture()
@@ -51,7 +77,19 @@ def text_of(driver, element_id: str) -> str:
     return driver.execute_script(f"return document.getElementById('{element_id}').innerText")
 
 
-def test_record_upload_and_follow_an_enrollment_job(server, browser):
+@pytest.mark.parametrize("camera", ["pattern", pytest.param("studio", marks=needs_models)])
+def test_record_upload_and_follow_an_enrollment_job(server, camera, request):
+    """The fake camera's test pattern (no person: refused by the job before training) or the
+    studio take (enrolled: the new avatar appears in the page's avatar choice)."""
+    driver = make_chromium(camera_file=request.getfixturevalue("studio_camera")
+                           if camera == "studio" else None)
+    try:
+        record_upload_and_follow(server, driver, camera)
+    finally:
+        driver.quit()
+
+
+def record_upload_and_follow(server, browser, camera: str) -> None:
     open_page(browser, server, enroll_s=RECORD_S, enroll_config=json.dumps(TINY))
     browser.find_element("id", "enroll-record").click()
     wait_for(browser, "window.telesplat.enroll.phase === 'recording'", WAIT_S, "recording")
@@ -79,7 +117,7 @@ def test_record_upload_and_follow_an_enrollment_job(server, browser):
     job_id = wait_for(browser, "window.telesplat.enroll.jobId", WAIT_S, "the job's id")
     jobs = server.ctx.jobs
     job = jobs.store.get(job_id)
-    assert (job.kind, job.name, job.config["iterations"]) == ("enroll", "me", 10)
+    assert (job.kind, job.name, job.config["iterations"]) == ("enroll", "me", 6)
     # What the browser recorded is a WebM the server probes: its length from the packets
     # (MediaRecorder writes no duration in the header).
     if job.state in ("queued", "running"):
@@ -98,12 +136,20 @@ def test_record_upload_and_follow_an_enrollment_job(server, browser):
     assert progress and progress[0]["stage"] == "decode", end["events"]
     assert any(e["event"] == "end" for e in end["events"])
     status = text_of(browser, "enroll-status")
-    if end["phase"] == "succeeded":  # the new avatar is in the page's avatar choice
-        options = browser.execute_script(
-            "return [...document.getElementById('avatar').options].map(o => o.value)")
-        assert end["avatarId"] in options and status.startswith("done")
-    else:  # the fake camera shows a test pattern, no person: refused before training
+    if camera == "studio":  # enrolled: the new avatar is in the page's avatar choice
+        assert end["phase"] == "succeeded", (end["error"], status)
+        assert status.startswith("done") and end["avatarId"]
+        options = wait_for(browser, "[...document.getElementById('avatar').options]"
+                                    ".map(o => o.value)", WAIT_S, "the avatar list")
+        assert end["avatarId"] in options, options
+        assert {"track", "train"} <= {e.get("stage") for e in progress}
+        browser.find_element("id", "enroll-show").click()  # and it streams
+        wait_for(browser, f"window.telesplat.session?.welcome?.avatar?.id === "
+                          f"'{end['avatarId']}' && window.telesplat.framesShown > 0",
+                 WAIT_S, "the new avatar's stream")
+    else:  # a test pattern, no person: refused before training, with what to do
         assert end["phase"] == "failed" and status.startswith("failed: ") and end["error"]
+        assert "person" in status, status
         assert jobs.store.get(job_id).state == "failed"
 
 

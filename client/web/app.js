@@ -138,6 +138,7 @@ const enrollment = new Enrollment({
   seconds: enrollSeconds(location.search, (why) => notify(why, "error")),
   config: enrollConfig(location.search, (why) => notify(why, "error")),
 });
+state.enrollment = enrollment;  // its recording: enrollment.blob
 state.enroll = enrollment.state;  // phase, seconds, bytes, step, jobId, events, avatarId, error
 state.voices = [];  // the seats heard: [{seat, level, packets, speaking, volume, muted}]
 state.orbit = orbit;

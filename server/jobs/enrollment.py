@@ -104,6 +104,13 @@ def enroll_config(value: Any, caps: EnrollCaps) -> EnrollConfig:
     return config
 
 
+def decode_side(config: EnrollConfig) -> int:
+    """The longer side frames are decoded at: what the tracker looks at (``track_size``) and
+    what training uses (``resolution``), whichever is larger (a 64 px training run still
+    tracks at 256 px: people are not found in 64 px frames)."""
+    return max(config.resolution, config.track_size)
+
+
 def refusal_status(refused: EnrollmentRefused) -> int:
     return 413 if refused.reason in TOO_LARGE else 422
 
@@ -177,7 +184,7 @@ def run_enrollment(job: Any, job_dir: Path, out: Path, report: Callable[[dict], 
     progress = _Progress(report, check)
     try:
         progress("decode", 0.0)
-        video = read_video(videos[0], limits, long_side=config.resolution)
+        video = read_video(videos[0], limits, long_side=decode_side(config))
         progress("decode", 1.0)
         if out.exists():  # an earlier attempt's leftovers: enrollment starts over
             shutil.rmtree(out)

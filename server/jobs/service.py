@@ -36,6 +36,7 @@ from .enrollment import (
     VIDEO_FILE,
     ConfigRefused,
     EnrollCaps,
+    decode_side,
     enroll_caps,
     enroll_config,
     job_config,
@@ -332,7 +333,7 @@ class JobService:
                                   "bytes left of your storage quota", 413)
             try:  # what decoding it would hold too, before any of it
                 decode_plan(probe_video(video, self.video_limits), self.video_limits,
-                            resolved.resolution)
+                            decode_side(resolved))
             except EnrollmentRefused as refused:
                 raise SubmitError(str(refused), refusal_status(refused),
                                   refused.to_dict()) from None
