@@ -99,3 +99,11 @@ def test_bad_limits_are_an_error():
         VideoLimits(min_duration_s=10, max_duration_s=5)
     with pytest.raises(ValueError, match="long_side"):
         read_video("unused.mp4", long_side=4)
+
+
+def test_millisecond_timestamps_keep_the_full_frame_rate_cap(tmp_path):
+    """WebM stores times in milliseconds (33, 67, 100 ms ...): a 30 fps take capped at 15 fps
+    keeps every other frame, not every third (measured: 101 of 300 frames before the slots)."""
+    path = write_video(tmp_path / "page.webm", seconds=4, fps=30)
+    video = read_video(path, VideoLimits(max_decode_fps=15))
+    assert len(video.frames) == 60 and video.fps == pytest.approx(15.0, rel=0.02)

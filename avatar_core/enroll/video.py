@@ -34,6 +34,9 @@ FULL_FRAME_DIAGONAL_MM = math.hypot(36.0, 24.0)
 FOCAL_35MM_KEYS = ("com.apple.quicktime.camera.focal_length.35mm_equivalent",
                    "FocalLengthIn35mmFormat")
 FOCAL_35MM_RANGE = (8.0, 400.0)  # mm; other values are ignored as nonsense
+# Frames are kept one per 1 / max_decode_fps slot; timestamps rounded to a millisecond (WebM)
+# land a little before their slot, so each counts this much of a slot early.
+SLOT_SLACK = 0.05
 
 
 @dataclass(frozen=True)
@@ -238,7 +241,7 @@ def decode_plan(info: VideoInfo, limits: VideoLimits, long_side: int) -> tuple[i
     width, height = output_size(info.width, info.height, long_side)
     # the first to the last frame's start: the duration less one frame
     span = info.duration_s * (info.packets - 1) / info.packets
-    kept = min(info.packets, math.floor(span * limits.max_decode_fps + 1e-6) + 1)
+    kept = min(info.packets, math.floor(span * limits.max_decode_fps + SLOT_SLACK) + 1)
     _check_frames(kept, width, height, limits)
     return kept, width, height
 
@@ -264,11 +267,12 @@ def read_video(path: str | Path, limits: VideoLimits | None = None, *,
             for frame in container.decode(video=0):
                 t = float(frame.time) if frame.time is not None else len(times) * step
                 start = t if start is None else start
-                if last is not None and t - last < step - 1e-6:
+                slot = math.floor((t - start) / step + SLOT_SLACK)
+                if last is not None and slot <= last:
                     continue  # over max_decode_fps: skipped
                 if len(times) == kept:  # more pictures than the probe counted packets
                     raise _corrupt(f"it decodes to more than its {info.packets} frames")
-                last = t
+                last = slot
                 picture = frame.reformat(width=stored_w, height=stored_h, format="rgb24",
                                          interpolation="AREA").to_ndarray()
                 frames[len(times)] = np.rot90(picture, k=info.rotation // 90)
