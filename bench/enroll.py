@@ -37,7 +37,11 @@ from avatar_core.enroll.frames import read_frames  # noqa: E402
 from avatar_core.enroll.pipeline import prepare, train_prepared  # noqa: E402
 from avatar_core.metrics.evaluate import evaluate  # noqa: E402
 from avatar_core.synth.capture import CaptureSpec, capture  # noqa: E402
-from avatar_core.synth.enroll_video import EnrollVideoSpec, film_enroll_video  # noqa: E402
+from avatar_core.synth.enroll_video import (  # noqa: E402
+    EnrollVideoSpec,
+    film_enroll_video,
+    write_true_params,
+)
 from avatar_core.synth.studio import StudioConfig  # noqa: E402
 from avatar_core.train.config import preset  # noqa: E402
 from avatar_core.train.trainer import Trainer  # noqa: E402
@@ -47,7 +51,10 @@ HELD_OUT = ("peace", "grin")
 VARIANTS = {  # name -> (fine_tune, masks, seed)
     "enrolled": (True, True, 0), "enrolled_s1": (True, True, 1),
     "no_finetune": (False, True, 0), "no_finetune_s1": (False, True, 1),
-    "no_masks": (True, False, 0)}
+    "no_masks": (True, False, 0),
+    # not enrollment: the take's true parameters, betas and focal swapped in for the fitted
+    # ones (same frames and masks), to measure how much of the gap the tracking/fit makes
+    "truth_params": (True, True, 0)}
 KEYS = ("psnr", "ssim", "l1")
 
 
@@ -63,6 +70,17 @@ def multiview_config(iterations: int, resolution: int, frames: int):
                    densify=replace(base.densify, from_iter=max(1, it // 10),
                                    until_iter=it * 8 // 10,
                                    interval=max(1, min(max(frames, it // 20), it // 4))))
+
+
+def with_truth(prep, path: Path, spec: EnrollVideoSpec):
+    """``prep`` with the take's true per-frame parameters, betas and focal length."""
+    import math
+
+    with np.load(path) as raw:
+        truth = {k: np.asarray(raw[k]) for k in raw.files}
+    params = [{k: truth[k][i] for k in prep.params[0]} for i in prep.indices]
+    focal = 0.5 * spec.width / math.tan(math.radians(spec.fov_x_deg) / 2)
+    return replace(prep, params=params, betas=truth["betas"][0], focal_px=focal)
 
 
 def score(avatar: Path, data, protocol: str, drive_betas, stride: int) -> dict:
@@ -93,10 +111,16 @@ def main() -> int:
     out.mkdir(parents=True, exist_ok=True)
     rows: dict[str, dict] = {}
     video = out / "take.mp4"
+    take_spec = EnrollVideoSpec(seconds=args.seconds, fps=args.fps, width=2 * args.resolution,
+                                height=3 * args.resolution // 2, yaw_deg=args.yaw,
+                                gestures=GESTURES)
     if not video.exists():
-        film_enroll_video(video, EnrollVideoSpec(
-            seconds=args.seconds, fps=args.fps, width=2 * args.resolution,
-            height=3 * args.resolution // 2, yaw_deg=args.yaw, gestures=GESTURES))
+        film_enroll_video(video, take_spec, params_out=out / "take_true.npz")
+    if not (out / "take_true.npz").exists():
+        write_true_params(out / "take_true.npz", take_spec)
+    old = out / "enroll.json"
+    if old.exists():  # rows of an earlier run (other variants) are kept
+        rows.update(json.loads(old.read_text())["rows"])
     studio = out / "studio"
     if not (studio / "dataset.json").exists():
         capture(studio, CaptureSpec(sequences=(GESTURES, HELD_OUT), resolution=args.resolution,
@@ -132,6 +156,8 @@ def main() -> int:
         if not masks:  # the same tracked frames, without the masks
             prep_nomask = prep_nomask or replace(prep, masks=None)
             use = prep_nomask
+        if name == "truth_params":
+            use = with_truth(prep, out / "take_true.npz", take_spec)
         res = train_prepared(use, out / name, config=cfg)
         rows[name] = {"cameras": 1, "train_s": res.train["seconds"], "prepare_s": prep_s,
                       "frames": asdict(res.frames),

@@ -286,7 +286,7 @@ def cmd_motions(args: argparse.Namespace) -> int:
 
 def _config(value: str | None) -> dict[str, Any] | str | None:
     """--config: a JSON file (a training config) or a preset name (protocol.jobs.PRESET_NAMES:
-    default, quick, demo, test)."""
+    default, quick, demo, test, enroll)."""
     if value is None:
         return None
     path = Path(value)

@@ -1,5 +1,5 @@
 """``telesplat enroll VIDEO --out DIR``: one person, one fixed camera -> an avatar package
-(DIR/avatar), with a progress bar; ``telesplat synth enroll-video`` films the studio's take."""
+(DIR/avatar), with a progress bar."""
 
 from __future__ import annotations
 
@@ -50,20 +50,7 @@ def _enroll(args: argparse.Namespace) -> int:
     return 0
 
 
-def _film(args: argparse.Namespace) -> int:
-    from ..synth.enroll_video import EnrollVideoSpec, film_enroll_video
-
-    spec = EnrollVideoSpec(seconds=args.seconds, fps=args.fps, width=args.width,
-                           height=args.height, yaw_deg=args.yaw)
-    with tqdm(total=spec.num_frames, desc="filming", unit="frame") as bar:
-        path = film_enroll_video(args.out, spec, params_out=args.true_params,
-                                 progress=lambda i, n: bar.update(i - bar.n))
-    print(f"wrote {path}")
-    return 0
-
-
-def register(groups: argparse._SubParsersAction, synth_cmds: argparse._SubParsersAction,
-             add_body_models) -> None:
+def register(groups: argparse._SubParsersAction, add_body_models) -> None:
     p = groups.add_parser("enroll", help="make an avatar from one video of yourself turning "
                           "slowly in front of a fixed camera")
     p.add_argument("video", type=Path, help="the video (mp4, mov, webm, ...)")
@@ -82,15 +69,3 @@ def register(groups: argparse._SubParsersAction, synth_cmds: argparse._SubParser
                    help="no person masks and no mask loss (the ablation)")
     add_body_models(p)
     p.set_defaults(func=_enroll)
-
-    film = synth_cmds.add_parser(
-        "enroll-video", help="film the synthetic actor turning and gesturing (one camera, mp4)")
-    film.add_argument("--out", type=Path, required=True, help="the .mp4 to write")
-    film.add_argument("--seconds", type=float, default=4.0)
-    film.add_argument("--fps", type=float, default=10.0)
-    film.add_argument("--width", type=int, default=320)
-    film.add_argument("--height", type=int, default=240)
-    film.add_argument("--yaw", type=float, default=90.0, help="the turn either way, deg")
-    film.add_argument("--true-params", type=Path, default=None,
-                      help="also write the true per-frame parameters (.npz)")
-    film.set_defaults(func=_film)

@@ -29,6 +29,7 @@ DEFAULT_FOV_X_DEG = 60.0   # the focal prior without metadata: a typical webcam 
 @dataclass
 class PreparedTake:
     frames: list[np.ndarray]                 # the used frames, RGB at the video's size
+    indices: list[int]                       # their index in the video
     masks: list[np.ndarray] | None           # person probability per used frame
     params: list[dict[str, np.ndarray]]      # per used frame, after the shape fit
     betas: np.ndarray
@@ -77,6 +78,10 @@ def prepare(frames: Sequence[np.ndarray], fps: float, *, config: EnrollConfig,
     kept, dropped, _ = select_frames(frames, config)
     counts.blurred, counts.duplicate = dropped["blurred"], dropped["duplicate"]
     checks.check_length(len(kept), len(frames), config)
+    # at most max_frames are tracked (evenly spread): tracking costs ~1 s a frame on 2 cores
+    tracked = _even(kept, config.max_frames)
+    counts.subsampled = len(kept) - len(tracked)
+    kept = tracked
     say("select", 1.0)
     h, w = frames[0].shape[:2]
     source = "metadata" if focal_px is not None else "prior+fit"
@@ -102,8 +107,7 @@ def prepare(frames: Sequence[np.ndarray], fps: float, *, config: EnrollConfig,
     counts.failed_track = len(take.failed)
     checks.check_people(len(take.frames), len(kept), take.faces)
     checks.check_length(len(take.frames), len(frames), config)
-    use = _even(list(range(len(take.frames))), config.max_frames)
-    counts.subsampled = len(take.frames) - len(use)
+    use = list(range(len(take.frames)))
     counts.used = len(use)
     yaw_range = checks.check_turn(
         [yaw_deg(take.params[j]["global_orient"]) for j in use], config)
@@ -115,7 +119,7 @@ def prepare(frames: Sequence[np.ndarray], fps: float, *, config: EnrollConfig,
                        progress=lambda f: say("fit", f))
     timings["fit_s"] = time.perf_counter() - t0
     return PreparedTake(
-        frames=[frames[take.frames[j]] for j in use],
+        frames=[frames[take.frames[j]] for j in use], indices=[take.frames[j] for j in use],
         masks=[take.masks[j] for j in use] if config.masks else None,
         params=fitted.params, betas=fitted.betas, fps=fps,
         focal_px=fitted.focal_px / take.scale, focal_source=source, counts=counts,

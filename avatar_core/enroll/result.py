@@ -17,7 +17,7 @@ class FrameCounts:
     failed_track: int = 0
     blurred: int = 0
     duplicate: int = 0
-    subsampled: int = 0              # usable, but above max_frames
+    subsampled: int = 0              # sharp and new, but above max_frames (not tracked)
 
     def dropped(self) -> dict[str, int]:
         return {"failed_track": self.failed_track, "blurred": self.blurred,

@@ -15,7 +15,7 @@ from scipy.spatial.transform import Rotation
 
 from .tracking_eval.scene import background, subject_transl, webcam_camera
 
-__all__ = ["EnrollVideoSpec", "film_enroll_video", "take_params"]
+__all__ = ["EnrollVideoSpec", "film_enroll_video", "take_params", "write_true_params"]
 
 GESTURES = ("smile", "wave", "mouth_open", "thumbs_up", "peace", "grin")
 
@@ -124,3 +124,19 @@ def film_enroll_video(out: str | Path, spec: EnrollVideoSpec, *,
     if params_out is not None:
         np.savez(params_out, **{k: np.stack([p[k] for p in truth]) for k in truth[0]})
     return out
+
+
+def write_true_params(path: str | Path, spec: EnrollVideoSpec,
+                      model_dir: Path | None = None) -> Path:
+    """The take's true per-frame parameters (.npz, frame axis first), without filming it."""
+    from ..motion.rig import model_rig
+    from .actor import Actor
+    from .model_writer import ensure_models
+
+    files = ensure_models(model_dir)
+    actor = Actor.load(files, spec.identity)
+    camera = webcam_camera(spec.width, spec.height, spec.fov_x_deg)
+    truth = take_params(spec, actor, model_rig(files, actor.model),
+                        subject_transl(actor, camera))
+    np.savez(path, **{k: np.stack([p[k] for p in truth]) for k in truth[0]})
+    return Path(path)
