@@ -131,7 +131,14 @@ async def receive_form(request: Request, tmp_dir: Path, files: dict[str, int],
         with os.fdopen(fd, "wb") as fh:
             sink = _FormSink(files, texts, lambda part, limit: _LimitedFile(fh, limit, part))
             parser = MultipartParser(options[b"boundary"], sink.callbacks())
+            # the whole body too: parts that are skipped (unknown names, a second file) are
+            # not stored, but they must not stream on without end
+            body_limit = max(files.values()) + sum(texts.values()) + FORM_SLACK
+            received = 0
             async for chunk in request.stream():
+                received += len(chunk)
+                if received > body_limit:
+                    raise UploadTooLarge("request body", body_limit)
                 parser.write(chunk)
             parser.finalize()
         wanted = " or ".join(f"'{n}'" for n in files)

@@ -32,7 +32,7 @@ ROOT = Path(__file__).resolve().parent.parent
 def srv(tmp_path_factory):
     with run_server(tmp_path_factory.mktemp("enroll-jobs"), job_threads=1, job_nice=0,
                     enroll_max_video_bytes=400_000, enroll_max_duration_s=30.0,
-                    enroll_min_duration_s=1.0) as server:
+                    enroll_min_duration_s=1.0, max_upload_bytes=1_000_000) as server:
         yield server
 
 
@@ -230,3 +230,21 @@ def test_a_studio_take_becomes_an_avatar_the_server_lists(srv, tmp_path):
     assert steps == sorted(steps) and steps[-1] == PROGRESS_STEPS  # one bar, never back
     folder = srv.ctx.jobs.worker.job_dir(job_id)
     assert not (folder / "dataset").exists() and not (folder / "out" / "dataset").exists()
+
+
+def test_a_body_of_skipped_parts_is_bounded_too(srv, videos):
+    """Parts the server does not keep (an unknown name) still count against the body's
+    limit (the largest file part's, 1 MB here, plus the text fields' and some slack): a 4 MB
+    one is cut off at 413, nothing kept."""
+    before = stored(srv)
+
+    def body():
+        yield b"--b\r\nContent-Disposition: form-data; name=\"junk\"\r\n\r\n"
+        for _ in range(80):
+            yield b"x" * 50_000
+        yield b"\r\n--b--\r\n"
+
+    r = httpx.post(f"{srv.url}/v1/jobs", content=body(), timeout=60,
+                   headers={**srv.headers(), "Content-Type": "multipart/form-data; boundary=b"})
+    assert r.status_code == 413 and "request body" in r.text
+    assert stored(srv) == before
