@@ -248,3 +248,26 @@ def test_a_body_of_skipped_parts_is_bounded_too(srv, videos):
                    headers={**srv.headers(), "Content-Type": "multipart/form-data; boundary=b"})
     assert r.status_code == 413 and "request body" in r.text
     assert stored(srv) == before
+
+
+@needs_models
+def test_cancelling_an_enrollment_stops_it_at_its_next_progress_call(srv, tmp_path):
+    from avatar_core.synth.enroll_video import EnrollVideoSpec, film_enroll_video
+
+    take = film_enroll_video(tmp_path / "take.mp4",
+                             EnrollVideoSpec(seconds=2.0, fps=10.0, width=320, height=240))
+    r = post_video(srv, take, config={**TINY_ENROLL, "iterations": 30_000},
+                   content_type="video/mp4")
+    assert r.status_code == 201, r.text
+    job_id = r.json()["id"]
+    wait_for(lambda: any(e.get("stage") == "train" for e in events(srv, job_id)), 300,
+             what="training to start")
+    assert httpx.post(f"{srv.url}/v1/jobs/{job_id}/cancel", headers=srv.headers()
+                      ).status_code == 202
+    job = wait_for(lambda: (j := srv.ctx.jobs.store.get(job_id)).done and j, TIMEOUT_S,
+                   what="the cancel")
+    assert job.state == "cancelled"
+    folder = srv.ctx.jobs.worker.job_dir(job_id)
+    # the process saw the cancel itself (not killed after the grace period) ...
+    assert f"job {job_id} cancelled" in (folder / "log.txt").read_text()
+    assert not (folder / "dataset").exists()  # ... and the video is gone
