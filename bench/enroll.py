@@ -40,6 +40,7 @@ from avatar_core.synth.capture import CaptureSpec, capture  # noqa: E402
 from avatar_core.synth.enroll_video import (  # noqa: E402
     EnrollVideoSpec,
     film_enroll_video,
+    true_alpha,
     write_true_params,
 )
 from avatar_core.synth.studio import StudioConfig  # noqa: E402
@@ -54,7 +55,9 @@ VARIANTS = {  # name -> (fine_tune, masks, seed)
     "no_masks": (True, False, 0),
     # not enrollment: the take's true parameters, betas and focal swapped in for the fitted
     # ones (same frames and masks), to measure how much of the gap the tracking/fit makes
-    "truth_params": (True, True, 0)}
+    "truth_params": (True, True, 0),
+    # not enrollment: the actor's true coverage in place of the selfie masks (fitted params)
+    "truth_masks": (True, True, 0)}
 KEYS = ("psnr", "ssim", "l1")
 
 
@@ -158,6 +161,8 @@ def main() -> int:
             use = prep_nomask
         if name == "truth_params":
             use = with_truth(prep, out / "take_true.npz", take_spec)
+        if name == "truth_masks":
+            use = replace(prep, masks=true_alpha(take_spec, prep.indices))
         res = train_prepared(use, out / name, config=cfg)
         rows[name] = {"cameras": 1, "train_s": res.train["seconds"], "prepare_s": prep_s,
                       "frames": asdict(res.frames),

@@ -108,7 +108,7 @@ def test_prepare_fits_one_shape_and_the_turn(prepared):
 
 
 def test_subsampling_above_max_frames_is_counted(doctored, onnx_models):
-    cfg = replace(CONFIG, max_frames=8, preflight_frames=0)
+    cfg = replace(CONFIG, min_frames=4, max_frames=8, preflight_frames=0)
     prep = prepare(doctored, 10.0, config=cfg)
     c = prep.counts
     assert c.subsampled == len(doctored) - 2 - 8  # all sharp, new frames past the first 8
@@ -227,3 +227,31 @@ def test_cli_reports_a_refusal_and_stores_nothing(take, tmp_path, capsys):
     err = capsys.readouterr().err
     assert "too_dark" in err and "what to do" in err
     assert not (tmp_path / "me").exists()
+
+
+# -- the training side ----------------------------------------------------------------
+
+
+def test_mask_loss_is_the_weighted_alpha_error():
+    from avatar_core.train.regularizers import mask_loss
+
+    alpha = torch.tensor([[0.0, 1.0], [0.5, 1.0]], requires_grad=True)
+    mask = torch.tensor([[0.0, 1.0], [1.0, 0.0]])
+    weight = torch.tensor([[1.0, 1.0], [1.0, 0.0]])  # the last pixel is not scored
+    loss = mask_loss(alpha, mask, weight)
+    assert float(loss) == pytest.approx(0.5 / 3)
+    loss.backward()
+    assert float(alpha.grad[1, 1]) == 0.0 and float(alpha.grad[1, 0]) < 0
+
+
+def test_enroll_config_scales_the_schedule_to_the_run():
+    from avatar_core.enroll.training import enroll_train_config
+
+    short = enroll_train_config(EnrollConfig(iterations=1000), frames=300)
+    assert short.densify.interval == 250 and short.densify.until_iter == 800
+    assert short.finetune.schedule == "budget" and short.loss.lambda_mask > 0
+    long = enroll_train_config(EnrollConfig(iterations=20_000, masks=False, fine_tune=False),
+                               frames=300)
+    assert long.densify.interval == 1000 and long.densify.from_iter == 2000
+    assert long.loss.lambda_mask == 0 and not long.finetune.enabled
+    assert not long.data.crop_to_subject  # no mask, no subject box

@@ -15,7 +15,8 @@ from scipy.spatial.transform import Rotation
 
 from .tracking_eval.scene import background, subject_transl, webcam_camera
 
-__all__ = ["EnrollVideoSpec", "film_enroll_video", "take_params", "write_true_params"]
+__all__ = ["EnrollVideoSpec", "film_enroll_video", "take_params", "true_alpha",
+           "write_true_params"]
 
 GESTURES = ("smile", "wave", "mouth_open", "thumbs_up", "peace", "grin")
 
@@ -140,3 +141,19 @@ def write_true_params(path: str | Path, spec: EnrollVideoSpec,
                         subject_transl(actor, camera))
     np.savez(path, **{k: np.stack([p[k] for p in truth]) for k in truth[0]})
     return Path(path)
+
+
+def true_alpha(spec: EnrollVideoSpec, frames: list[int], model_dir: Path | None = None
+               ) -> list[np.ndarray]:
+    """The actor's true coverage [H, W] float32 at the take's ``frames`` (for benchmarks)."""
+    from ..motion.rig import model_rig
+    from .actor import Actor
+    from .model_writer import ensure_models
+
+    files = ensure_models(model_dir)
+    actor = Actor.load(files, spec.identity)
+    camera = webcam_camera(spec.width, spec.height, spec.fov_x_deg)
+    truth = take_params(spec, actor, model_rig(files, actor.model),
+                        subject_transl(actor, camera))
+    return [actor.render(actor.pose(truth[i]), camera, supersample=spec.supersample).alpha
+            for i in frames]
