@@ -139,9 +139,10 @@ def record_upload_and_follow(server, browser, camera: str) -> None:
     if camera == "studio":  # enrolled: the new avatar is in the page's avatar choice
         assert end["phase"] == "succeeded", (end["error"], status)
         assert status.startswith("done") and end["avatarId"]
-        options = wait_for(browser, "[...document.getElementById('avatar').options]"
-                                    ".map(o => o.value)", WAIT_S, "the avatar list")
-        assert end["avatarId"] in options, options
+        # the page fetches the list again once the job has ended
+        wait_for(browser, f"[...document.getElementById('avatar').options]"
+                          f".some(o => o.value === '{end['avatarId']}')", WAIT_S,
+                 "the new avatar in the avatar list")
         assert {"track", "train"} <= {e.get("stage") for e in progress}
         browser.find_element("id", "enroll-show").click()  # and it streams
         wait_for(browser, f"window.telesplat.session?.welcome?.avatar?.id === "
