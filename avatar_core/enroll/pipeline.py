@@ -4,7 +4,6 @@ refused take stores nothing); ``train_prepared`` writes and trains; ``enroll`` i
 
 from __future__ import annotations
 
-import importlib
 import json
 import math
 import time
@@ -22,6 +21,7 @@ from .result import EnrollResult, FrameCounts
 from .selection import select_frames
 from .shape_fit import fit_shape
 from .tracking import TakeTracker, load_body, track_take, yaw_deg
+from .video import read_video
 
 Progress = Callable[[str, float], None]
 DEFAULT_FOV_X_DEG = 60.0   # the focal prior without metadata: a typical webcam / phone
@@ -182,16 +182,9 @@ def enroll(frames: Sequence[np.ndarray], fps: float, out_dir: str | Path, *,
 
 def _decode(path: str | Path, config: EnrollConfig, focal_px: float | None, limits
             ) -> tuple[list[np.ndarray], float, float | None]:
-    """Frames, fps and focal (px at the frames' size): through the probe with its limits
-    (``enroll.video``, PyAV) where that module is present, else OpenCV (``frames``)."""
-    try:  # by name: the module may be absent (the probe's branch not merged)
-        video = importlib.import_module(f"{__package__}.video")
-    except ModuleNotFoundError:  # the OpenCV stand-in
-        from .frames import read_frames
-
-        frames, fps = read_frames(path)
-        return frames, fps, focal_px
-    decoded = video.read_video(path, limits, long_side=max(config.resolution, config.track_size))
+    """Frames, fps and focal (px at the frames' size), through the probe with its limits
+    (``enroll.video``: refused before any decoding when outside them)."""
+    decoded = read_video(path, limits, long_side=max(config.resolution, config.track_size))
     if focal_px is not None:  # given at the video's size
         focal_px = focal_px * decoded.size[0] / decoded.info.width
     return list(decoded.frames), decoded.fps, focal_px or decoded.focal_px
