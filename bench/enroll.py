@@ -31,9 +31,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from avatar_core.enroll.frames import read_frames  # noqa: E402
+
 from avatar_core.dataset.loader import load_dataset  # noqa: E402
 from avatar_core.enroll import EnrollConfig  # noqa: E402
-from avatar_core.enroll.frames import read_frames  # noqa: E402
 from avatar_core.enroll.pipeline import prepare, train_prepared  # noqa: E402
 from avatar_core.metrics.evaluate import evaluate  # noqa: E402
 from avatar_core.synth.capture import CaptureSpec, capture  # noqa: E402

@@ -12,10 +12,10 @@ import pytest
 import torch
 
 from avatar_core.enroll import EnrollConfig, EnrollmentRefused
-from avatar_core.enroll.video import VideoLimits, read_video
 from avatar_core.enroll.pipeline import enroll, prepare, train_prepared
 from avatar_core.enroll.selection import select_frames
 from avatar_core.enroll.tracking import yaw_deg
+from avatar_core.enroll.video import VideoLimits, read_video
 from avatar_core.synth.enroll_video import EnrollVideoSpec, film_enroll_video
 from avatar_core.track.models import ModelFetchError, fetch_models
 
