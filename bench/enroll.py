@@ -31,11 +31,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from avatar_core.enroll.frames import read_frames  # noqa: E402
 
 from avatar_core.dataset.loader import load_dataset  # noqa: E402
 from avatar_core.enroll import EnrollConfig  # noqa: E402
 from avatar_core.enroll.pipeline import prepare, train_prepared  # noqa: E402
+from avatar_core.enroll.video import read_video  # noqa: E402
 from avatar_core.metrics.evaluate import evaluate  # noqa: E402
 from avatar_core.synth.capture import CaptureSpec, capture  # noqa: E402
 from avatar_core.synth.enroll_video import (  # noqa: E402
@@ -147,7 +147,8 @@ def main() -> int:
                                            args.stride)}
     print("multiview", rows["multiview"], f"{time.perf_counter() - t0:.0f}s", flush=True)
 
-    rgb, fps = read_frames(video)
+    decoded = read_video(video)
+    rgb, fps = list(decoded.frames), decoded.fps
     base = EnrollConfig(iterations=args.iterations, resolution=args.resolution, min_frames=12)
     t0 = time.perf_counter()
     prep = prepare(rgb, fps, config=base)
