@@ -208,6 +208,18 @@ def _train(args: argparse.Namespace) -> int:
     return 0
 
 
+def _film_enroll_video(args: argparse.Namespace) -> int:
+    from ..synth.enroll_video import EnrollVideoSpec, film_enroll_video
+
+    spec = EnrollVideoSpec(seconds=args.seconds, fps=args.fps, width=args.width,
+                           height=args.height, yaw_deg=args.yaw)
+    with tqdm(total=spec.num_frames, desc="filming", unit="frame") as bar:
+        path = film_enroll_video(args.out, spec, params_out=args.true_params,
+                                 progress=lambda i, n: bar.update(i - bar.n))
+    print(f"wrote {path}")
+    return 0
+
+
 def _demo_avatar(args: argparse.Namespace) -> int:
     import logging
 
@@ -514,6 +526,21 @@ def build_parser() -> argparse.ArgumentParser:
     from .dataset.cli import register as register_dataset
 
     register_dataset(groups)
+
+    from .enroll.cli import register as register_enroll
+
+    register_enroll(groups, _add_body_models)
+    film = synth_cmds.add_parser(
+        "enroll-video", help="film the synthetic actor turning and gesturing (one camera, mp4)")
+    film.add_argument("--out", type=Path, required=True, help="the .mp4 to write")
+    film.add_argument("--seconds", type=float, default=4.0)
+    film.add_argument("--fps", type=float, default=10.0)
+    film.add_argument("--width", type=int, default=320)
+    film.add_argument("--height", type=int, default=240)
+    film.add_argument("--yaw", type=float, default=90.0, help="the turn either way, deg")
+    film.add_argument("--true-params", type=Path, default=None,
+                      help="also write the true per-frame parameters (.npz)")
+    film.set_defaults(func=_film_enroll_video)
 
     render = groups.add_parser("render", help="render an avatar under a motion")
     render.add_argument("avatar", help="avatar package (folder or .zip) or synthetic[:IDENTITY]")

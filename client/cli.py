@@ -8,6 +8,7 @@
     telesplat-client rooms create --avatar demo   (then: rooms invite ID --scope watch)
     telesplat-client motions get smile --avatar demo --out smile.json
     telesplat-client jobs submit --dataset NAME [--config cfg.json] --watch
+    telesplat-client jobs submit --video me.mp4 --watch   (enroll: an avatar of you)
     telesplat-client avatars list
 
 ``--server`` defaults to $TELESPLAT_SERVER (else http://127.0.0.1:8000), ``--token`` to
@@ -285,7 +286,7 @@ def cmd_motions(args: argparse.Namespace) -> int:
 
 def _config(value: str | None) -> dict[str, Any] | str | None:
     """--config: a JSON file (a training config) or a preset name (protocol.jobs.PRESET_NAMES:
-    default, quick, demo, test)."""
+    default, quick, demo, test, enroll)."""
     if value is None:
         return None
     path = Path(value)
@@ -315,7 +316,8 @@ def watch_job(api, job_id: str, *, progress: bool = True) -> dict[str, Any]:
                     bar.update(round(fraction * 100) - bar.n)
                 state = data.get("state")
                 loss = f" loss {data['loss']:.4f}" if isinstance(data.get("loss"), float) else ""
-                bar.set_postfix_str(f"{state or event.event}{loss}", refresh=True)
+                what = state or data.get("stage") or event.event  # an enrollment's stage
+                bar.set_postfix_str(f"{what}{loss}", refresh=True)
                 if event.event == "end":
                     return api.job(job_id)
             if api.job(job_id).get("state") in TERMINAL_JOB_STATES:
@@ -330,8 +332,11 @@ def job_summary(job: dict[str, Any]) -> str:
     if isinstance(job.get("started"), int | float) and isinstance(job.get("finished"),
                                                                    int | float):
         took = f" in {job['finished'] - job['started']:.0f} s"
-    head = f"job {job.get('id')} {state}{took}: {job.get('iteration')}/{job.get('total')} " \
-           "iterations"
+    if job.get("kind") == "enroll":
+        head = f"enrollment job {job.get('id')} {state}{took}"
+    else:
+        head = f"job {job.get('id')} {state}{took}: {job.get('iteration')}/{job.get('total')} " \
+               "iterations"
     if isinstance(job.get("loss"), int | float):
         head += f", loss {job['loss']:.4f}"
     lines = [head]
@@ -345,8 +350,9 @@ def job_summary(job: dict[str, Any]) -> str:
 def _warn_small(job: dict[str, Any]) -> None:
     from protocol.jobs import small_job_warning
 
-    total = job.get("total")
-    warning = small_job_warning(total) if isinstance(total, int) else None
+    total = job.get("total")  # (an enrollment's total counts thousandths, not iterations)
+    enroll = job.get("kind") == "enroll"
+    warning = small_job_warning(total) if isinstance(total, int) and not enroll else None
     if warning:
         print(f"telesplat-client: {warning}", file=sys.stderr)
 
@@ -355,8 +361,8 @@ def cmd_jobs(args: argparse.Namespace) -> int:
     with _rest(args) as api:
         if args.action == "submit":
             config = _config(args.config)
-            job = api.submit_job(dataset=args.dataset, archive=args.archive, config=config,
-                                 name=args.name)
+            job = api.submit_job(dataset=args.dataset, archive=args.archive, video=args.video,
+                                 config=config, name=args.name)
             job_id = job.get("id") or job.get("job_id")
             print(f"submitted job {job_id}")
             _warn_small(job)
@@ -515,9 +521,15 @@ def build_parser() -> argparse.ArgumentParser:
     source = j.add_mutually_exclusive_group(required=True)
     source.add_argument("--dataset", help="a dataset name the server knows")
     source.add_argument("--archive", type=Path, help="a dataset archive to upload")
+    source.add_argument("--video", type=Path,
+                        help="enroll: one person turning slowly before a fixed camera, smiling "
+                             "and opening their hands, 20-60 s (MP4, MOV, WebM); the job makes "
+                             "an avatar of them (preset 'enroll')")
     j.add_argument("--config", help="training config: a JSON file or a preset name: "
                    f"{', '.join(PRESET_NAMES)} (test: a smoke run, no usable avatar; "
-                   f"demo: the least that gives one, {MIN_USABLE_ITERATIONS} iterations)")
+                   f"demo: the least that gives one, {MIN_USABLE_ITERATIONS} iterations); "
+                   "with --video: 'enroll' (the default) or a JSON file of EnrollConfig "
+                   "fields")
     j.add_argument("--name")
     j.add_argument("--watch", action="store_true", help="follow progress until it ends")
     j.add_argument("--quiet", action="store_true")

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import io
 import json
+import mimetypes
 import zipfile
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -25,7 +26,12 @@ import httpx
 
 class ApiError(RuntimeError):
     def __init__(self, status: int, detail: Any, url: str = "") -> None:
-        super().__init__(f"HTTP {status} from {url}: {detail}")
+        if isinstance(detail, dict) and {"reason", "message", "what_to_do"} <= set(detail):
+            # a refused enrollment video: what is wrong and what to do, in words
+            text = f"{detail['message']} {detail['what_to_do']} ({detail['reason']})"
+        else:
+            text = str(detail)
+        super().__init__(f"HTTP {status} from {url}: {text}")
         self.status = status
         self.detail = detail
 
@@ -208,24 +214,29 @@ class RestClient:
     # -- jobs -----------------------------------------------------------------------------
 
     def submit_job(self, *, dataset: str | None = None, archive: str | Path | None = None,
+                   video: str | Path | None = None,
                    config: dict[str, Any] | str | None = None,
                    name: str | None = None) -> dict[str, Any]:
-        """Submit a training job on a dataset the server has (by name) or an uploaded .zip.
+        """Submit a training job on a dataset the server has (by name) or an uploaded .zip,
+        or an enrollment job on one uploaded ``video`` (preset "enroll").
 
-        ``config`` is a training-config dict or a preset name ("quick", "default", "test").
+        ``config`` is a training-config dict or a preset name ("quick", "default", "test");
+        with a video, "enroll" or a dict of EnrollConfig fields.
         """
-        if (dataset is None) == (archive is None):
-            raise ValueError("give exactly one of dataset and archive")
-        if archive is None:
+        if sum(x is not None for x in (dataset, archive, video)) != 1:
+            raise ValueError("give exactly one of dataset, archive and video")
+        if dataset is not None:
             body = {k: v for k, v in (("dataset", dataset), ("config", config), ("name", name))
                     if v is not None}
             return self._json("POST", "/v1/jobs", json=body)
         form = {k: v for k, v in (("config", json.dumps(config) if config is not None else None),
                                   ("name", name)) if v is not None}
-        archive = Path(archive)
-        with archive.open("rb") as fh:
-            files = {"archive": (archive.name, fh, "application/zip")}
-            return self._json("POST", "/v1/jobs", data=form, files=files)
+        path = Path(archive if archive is not None else video)
+        part, kind = ("archive", "application/zip") if archive is not None else \
+            ("video", mimetypes.guess_type(path.name)[0] or "application/octet-stream")
+        with path.open("rb") as fh:
+            return self._json("POST", "/v1/jobs", data=form, files={part: (path.name, fh, kind)},
+                              timeout=httpx.Timeout(60.0, write=None))
 
     def jobs(self) -> list[dict[str, Any]]:
         return _items(self._json("GET", "/v1/jobs"), "jobs")

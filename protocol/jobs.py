@@ -25,7 +25,7 @@ __all__ = ["JOB_EVENT_TYPES", "JOB_STATES", "MIN_USABLE_ITERATIONS", "PRESET_NAM
 
 # The training presets' names (avatar_core.train.config.PRESETS, which a test holds them to),
 # here for the clients, which do not import the engine's trainer.
-PRESET_NAMES = ("default", "quick", "demo", "test")
+PRESET_NAMES = ("default", "quick", "demo", "test", "enroll")
 PROGRESS_TYPES = ("progress", "densify", "checkpoint", "done", "resumed")
 JOB_EVENT_TYPES = (*PROGRESS_TYPES, "state", "cancel_requested", "message", "error", "end")
 JOB_STATES = ("queued", "running", "succeeded", "failed", "cancelled")

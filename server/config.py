@@ -268,6 +268,39 @@ class Settings(BaseModel):
         16 * 2**20, ge=1024, description="Largest .json file of an uploaded dataset archive "
                                          "(dataset.json, cameras.json, splits.json are parsed "
                                          "whole; 413).")
+    enroll_max_video_bytes: int = Field(
+        256 * 2**20, ge=1024, description="Largest enrollment video (POST /v1/jobs, part "
+                                          "'video'), counted as it arrives (413).")
+    enroll_min_duration_s: float = Field(
+        3.0, ge=0, description="Shortest enrollment video, seconds (from its packets; 422).")
+    enroll_max_duration_s: float = Field(
+        120.0, gt=0, description="Longest enrollment video, seconds (from its packets, "
+                                 "refused while they are read; 413).")
+    enroll_min_side_px: int = Field(
+        64, ge=1, description="Smallest shorter side of an enrollment video's picture (422).")
+    enroll_max_side_px: int = Field(
+        4096, ge=16, description="Largest longer side of an enrollment video's picture "
+                                 "(413); larger allowed ones are downscaled to the "
+                                 "enrollment's resolution.")
+    enroll_max_packets: int = Field(
+        20_000, ge=1, description="Most video packets (about frames) the probe of an "
+                                  "enrollment video reads (413).")
+    enroll_max_decode_fps: float = Field(
+        15.0, gt=0, le=240, description="Frames a second an enrollment keeps from its video; "
+                                        "the others are skipped while decoding.")
+    enroll_max_frames: int = Field(
+        1800, ge=1, description="Most frames an enrollment decodes and keeps (413 at "
+                                "submission; the job fails past it if the video lied).")
+    enroll_max_decoded_bytes: int = Field(
+        1024 * 2**20, ge=1024, description="Most bytes an enrollment's kept frames unpack to "
+                                           "(RGB, at the enrollment's resolution; 413).")
+    enroll_max_iterations: int = Field(
+        30_000, ge=1, description="Most training iterations an enrollment job may ask (422).")
+    enroll_max_resolution: int = Field(
+        1024, ge=32, description="Largest resolution and track_size (px, longer side) an "
+                                 "enrollment job may ask (422).")
+    enroll_max_fit_iterations: int = Field(
+        5_000, ge=0, description="Most shape-fit iterations an enrollment job may ask (422).")
     max_avatars_per_user: int = Field(
         100, ge=1, description="Avatars one user may own (uploads; trained avatars count "
                                "too); past it an upload is 429 (admins exempt).")

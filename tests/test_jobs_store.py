@@ -2,6 +2,7 @@
 writers (threads) at once, attempt records, resume and delete, quotas, and the migration of
 a database written by the previous release."""
 
+import dataclasses
 import sqlite3
 import threading
 
@@ -210,11 +211,13 @@ def test_a_database_of_the_previous_release_is_migrated(tmp_path):
     db.close()
     store = SQLiteJobStore(path)
     old = store.get("old1")
-    assert (old.state, old.attempts, old.max_attempts, old.attempt_log) == (
-        "running", 1, None, ())
+    assert (old.state, old.attempts, old.max_attempts, old.attempt_log, old.kind) == (
+        "running", 1, None, (), "train")  # every job before enrollment trained a dataset
     store.transition("old1", "queued", attempt_end={"attempt": 1, "reason": "restart"})
     store.close()
     again = SQLiteJobStore(path)  # opening a migrated database changes nothing
     assert again.get("old1").attempt_log[0]["reason"] == "restart"
     assert again.create(_new(max_attempts=3)).max_attempts == 3
+    enroll = again.create(dataclasses.replace(_new(), kind="enroll"))
+    assert again.get(enroll.id).kind == "enroll"
     again.close()

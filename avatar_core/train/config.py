@@ -94,11 +94,15 @@ class LossConfig:
     eps_pos: float = 1.0         # threshold_xyz
     lambda_scale: float = 1.0    # lambda_scale
     eps_scale: float = 0.6       # threshold_scale
+    # L1 between the rendered alpha and the view's mask (0: off; enrollment's masks): keeps
+    # Gaussians off the background where the colour alone would let them blend in.
+    lambda_mask: float = 0.0
 
     def __post_init__(self) -> None:
         _require(0 <= self.lambda_dssim <= 1, "loss.lambda_dssim", "must be in [0, 1]",
                  self.lambda_dssim)
-        for name in ("lambda_lpips", "lambda_pos", "eps_pos", "lambda_scale", "eps_scale"):
+        for name in ("lambda_lpips", "lambda_pos", "eps_pos", "lambda_scale", "eps_scale",
+                     "lambda_mask"):
             v = getattr(self, name)
             _require(math.isfinite(v) and v >= 0, f"loss.{name}", "must be >= 0", v)
 
@@ -282,8 +286,25 @@ def _test() -> TrainConfig:
                               opacity_reset_interval=10_000, max_gaussians=30_000))
 
 
+def _enroll() -> TrainConfig:
+    """Enrollment from one video (avatar_core.enroll; ``enroll.training.enroll_config`` scales
+    the schedule to the run's length and frame count): monocular, so per-frame parameters are
+    fine-tuned on the "budget" schedule (the tracker's per-frame errors are larger than a
+    studio's), the mask loss is on (the selfie masks), the position/scaling hinges are 3x
+    (parts seen from one side only must not drift off the surface) and the opacity never
+    reset (the far side is seen in few frames, a reset would leave it clear, as the demo's
+    armpits)."""
+    return TrainConfig(
+        iterations=3_000, checkpoint_interval=1_000, sh_interval=500, sh_degree=1,
+        loss=LossConfig(lambda_mask=0.1, lambda_pos=0.03, lambda_scale=3.0),
+        lr=GaussianLR(position_max_steps=3_000),
+        densify=DensifyConfig(from_iter=300, until_iter=2_400, interval=150,
+                              opacity_reset_interval=1_000_000, max_gaussians=60_000),
+        finetune=FineTuneConfig(schedule="budget"))
+
+
 PRESETS = types.MappingProxyType({"default": TrainConfig, "quick": _quick, "demo": _demo,
-                                  "test": _test})
+                                  "test": _test, "enroll": _enroll})
 
 
 def preset(name: str) -> TrainConfig:

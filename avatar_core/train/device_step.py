@@ -33,7 +33,7 @@ from ..render.types import RenderRequest
 from .density import screen_grad_norm, screen_visibility
 from .photometric import photometric_loss_fast
 from .posing import world_gaussians
-from .regularizers import avatar_regularizers
+from .regularizers import avatar_regularizers, mask_loss
 
 if TYPE_CHECKING:
     from .data import TrainView
@@ -79,14 +79,17 @@ def fit_on_device(tr: Trainer, view: TrainView, it: int) -> StepResult | None:
     gaussians.means.retain_grad()
     background = tr.background(it)
     view = replace(view, target=view.on_background(background), background=background)
-    request = RenderRequest(outputs=("rgb",), background=background)
-    pred = rasterize(gaussians, view.camera, request, check_finite=False).rgb  # [h, w, 3]
+    request = RenderRequest(outputs=tr._outputs(view), background=background)
+    out = rasterize(gaussians, view.camera, request, check_finite=False)
+    pred = out.rgb  # [h, w, 3]
     visible, radii = screen_visibility(gaussians, view.camera, validate=False)  # [N], [N]
     loss = photometric_loss_fast(pred, view.target, view.weight, cfg.loss.lambda_dssim)
     if tr.lpips is not None:
         keep = view.weight[..., None] > 0
         loss = loss + cfg.loss.lambda_lpips * tr.lpips(torch.where(keep, pred, view.target),
                                                        view.target)
+    if out.alpha is not None:
+        loss = loss + cfg.loss.lambda_mask * mask_loss(out.alpha, view.alpha, view.weight)
     reg = avatar_regularizers(tr.state["local_means"], tr.state["log_scales"],
                               weight=visible, config=tr.regularizer, check=False)
     loss = loss + reg["pos"] + reg["scale"]

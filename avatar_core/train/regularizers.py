@@ -26,7 +26,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-__all__ = ["RegularizerWeights", "avatar_regularizers", "position_loss", "scaling_loss"]
+__all__ = ["RegularizerWeights", "avatar_regularizers", "mask_loss", "position_loss",
+           "scaling_loss"]
 
 @dataclass(frozen=True)
 class RegularizerWeights:
@@ -95,3 +96,8 @@ def avatar_regularizers(local_means: Tensor, log_scales: Tensor, weight: Tensor 
         "scale": config.lambda_scale * scaling_loss(log_scales, config.eps_scale, weight,
                                                     check=check),
     }
+
+
+def mask_loss(alpha: Tensor, mask: Tensor, weight: Tensor) -> Tensor:
+    """Weighted mean |rendered alpha - mask| over the view (both [h, w])."""
+    return ((alpha - mask).abs() * weight).sum() / weight.sum().clamp(min=1e-8)

@@ -90,7 +90,7 @@ from .posing import (
     resolve_body,
     world_gaussians,
 )
-from .regularizers import RegularizerWeights, avatar_regularizers
+from .regularizers import RegularizerWeights, avatar_regularizers, mask_loss
 
 __all__ = ["PACKAGE_DIR", "StepResult", "Trainer", "camera_extent", "resolve_device",
            "visibility"]
@@ -414,9 +414,17 @@ class Trainer:
         r, g, b = np.random.default_rng([self.config.seed, it]).random(3).tolist()
         return (r, g, b)
 
-    def _loss(self, pred: Tensor, view: TrainView, visible: Tensor) -> Tensor:
+    def _outputs(self, view: TrainView) -> tuple[str, ...]:
+        """The render's outputs: alpha too when the mask loss is on and the view has one."""
+        use = self.config.loss.lambda_mask > 0 and view.alpha is not None
+        return ("rgb", "alpha") if use else ("rgb",)
+
+    def _loss(self, pred: Tensor, view: TrainView, visible: Tensor,
+              alpha: Tensor | None = None) -> Tensor:
         cfg = self.config.loss
         loss = photometric_loss_fast(pred, view.target, view.weight, cfg.lambda_dssim)
+        if alpha is not None:
+            loss = loss + cfg.lambda_mask * mask_loss(alpha, view.alpha, view.weight)
         if self.lpips is not None:
             # LPIPS takes no mask: the masked pixels of the render are replaced by the GT
             keep = view.weight[..., None] > 0
@@ -473,11 +481,12 @@ class Trainer:
         gaussians.means.retain_grad()
         background = self.background(it)
         view = replace(view, target=view.on_background(background), background=background)
-        request = RenderRequest(outputs=("rgb",), background=background)
-        pred = rasterize(gaussians, view.camera, request).rgb  # [h, w, 3]
+        request = RenderRequest(outputs=self._outputs(view), background=background)
+        out = rasterize(gaussians, view.camera, request)
+        pred = out.rgb  # [h, w, 3]
         ph.mark("render")
         visible, radii = visibility(gaussians, view.camera)  # [N], [N]
-        loss = self._loss(pred, view, visible)
+        loss = self._loss(pred, view, visible, out.alpha)
         value = float(loss.detach())
         ph.mark("loss")
         if not math.isfinite(value):

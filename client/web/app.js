@@ -20,6 +20,7 @@ import {
   canShare, chosenName, inviteAll, presenceNote, presenceText, showLinks, statusLine, storeName,
 } from "./share.js";
 import { demoBanner, watchDemoBuild } from "./demo_build.js";
+import { Enrollment, enrollConfig, enrollSeconds } from "./enroll.js";
 import { StreamStats, overlayToggle, renderStats } from "./stats.js";
 import { askForToken, unauthorized } from "./token.js";
 import { ViewControl, fitToViewport } from "./view.js";
@@ -135,6 +136,15 @@ const voices = new RoomVoices($("voices"));
 const wsVoices = new WsVoices($("voices"));  // the WebSocket's voices (voice_ws.js)
 let wsMic = null;  // the WebSocket performer's microphone, while on
 state.wsVoices = wsVoices;
+const enrollment = new Enrollment({
+  guide: $("enroll-guide"), steps: $("enroll-steps"), length: $("enroll-length"),
+  preview: $("enroll-preview"), status: $("enroll-status"), progress: $("enroll-progress"),
+}, token, {
+  seconds: enrollSeconds(location.search, (why) => notify(why, "error")),
+  config: enrollConfig(location.search, (why) => notify(why, "error")),
+});
+state.enrollment = enrollment;  // its recording: enrollment.blob
+state.enroll = enrollment.state;  // phase, seconds, bytes, step, jobId, events, avatarId, error
 state.voices = [];  // the seats heard: [{seat, level, packets, speaking, volume, muted}]
 state.orbit = orbit;
 state.player = player;
@@ -171,6 +181,7 @@ function setViewer(viewer) {
   if (viewer) {
     player.stop();
     webcam.stop();
+    enrollment.stop();
     $("webcam").checked = false;
   }
 }
@@ -420,25 +431,85 @@ async function connect(target, { retrying = false } = {}) {
 
 // ---- panels -----------------------------------------------------------------------------
 
-async function loadAvatars() {
+async function listAvatars() {
+  const body = await api("/v1/avatars");
+  return Array.isArray(body) ? body : body.avatars;
+}
+
+function fillAvatars(avatars, selected) {
   const select = $("avatar");
+  select.replaceChildren(...avatars.map((a) => new Option(`${a.name || a.id} (${a.id})`, a.id)));
+  if (avatars.some((a) => a.id === selected)) select.value = selected;
+}
+
+async function loadAvatars() {
   let avatars;
   try {
-    const body = await api("/v1/avatars");
-    avatars = Array.isArray(body) ? body : body.avatars;
+    avatars = await listAvatars();
   } catch (err) {
     $("status").textContent = `cannot list avatars: ${err.message}`;
     if (unauthorized(err)) tokenRefused(err.message);
     return;
   }
-  select.replaceChildren(...avatars.map((a) => new Option(`${a.name || a.id} (${a.id})`, a.id)));
   if (!avatars.length) {
     $("status").textContent = "no avatars on this server yet";
     return;
   }
   const wanted = params.get("avatar");
-  select.value = avatars.some((a) => a.id === wanted) ? wanted : avatars[0].id;
-  await connect(select.value);
+  fillAvatars(avatars, avatars.some((a) => a.id === wanted) ? wanted : avatars[0].id);
+  await connect($("avatar").value);
+}
+
+// ---- make my avatar (enroll.js): record, upload, follow the job, offer the result -------
+
+async function makeAvatar() {
+  const upload = $("enroll-upload");
+  upload.disabled = true;
+  $("enroll-show").hidden = true;
+  try {
+    const job = await enrollment.upload($("enroll-name").value.trim());
+    notify(`enrollment job ${job.id} accepted`);
+    const end = await enrollment.follow(job.id);
+    if (end.state !== "succeeded") {
+      notify(`your avatar could not be made: ${end.error ?? end.state}`, "error");
+      return;
+    }
+    const solo = !state.room || state.room.id === state.privateRoom;
+    if (solo) fillAvatars(await listAvatars(), state.avatar);  // the new one is in the list
+    $("enroll-show").hidden = !solo;
+    notify(`your avatar ${end.avatar_id} is ready${solo ? ": pick it in the Avatar list" : ""}`);
+  } catch (err) {
+    if (unauthorized(err)) tokenRefused(err.message);
+    notify(`cannot make the avatar: ${err.message}`, "error");
+  } finally {
+    upload.disabled = !enrollment.blob;
+  }
+}
+
+function wireEnrollment() {
+  const [record, stop, upload] = ["enroll-record", "enroll-stop", "enroll-upload"].map($);
+  record.addEventListener("click", async () => {
+    record.disabled = true;
+    upload.disabled = true;
+    stop.disabled = false;
+    try {
+      await enrollment.record();
+    } catch (err) {
+      enrollment.status(`camera unavailable: ${err.message}`, "error");
+    } finally {
+      record.disabled = false;
+      stop.disabled = true;
+      upload.disabled = !enrollment.blob;
+    }
+  });
+  stop.addEventListener("click", () => enrollment.stop());
+  upload.addEventListener("click", makeAvatar);
+  $("enroll-show").addEventListener("click", () => {
+    const id = enrollment.state.avatarId;
+    if (!id) return;
+    $("avatar").value = id;
+    connect(id);
+  });
 }
 
 async function loadMotions() {
@@ -510,6 +581,7 @@ async function share() {
 
 function wire() {
   fitToViewport($("stage"));
+  wireEnrollment();
   wireViewBar({
     view: orbit, capture, notify,
     sendBackground: (background) => state.session?.request({ background }),
@@ -569,6 +641,7 @@ function wire() {
   // Leaving the page ends the peer (DELETE of the WHEP resource) and the solo page's room.
   window.addEventListener("pagehide", () => {
     state.session?.close();
+    enrollment.close();
     forgetPrivateRoom({ keepalive: true });
   });
 }

@@ -104,6 +104,8 @@ def train(store: JobStore, job_id: str, job_dir: Path, body_models: str | None, 
         if stop["interrupt"] or (interrupted is not None and interrupted()):
             raise _Interrupted
 
+    if job.kind == "enroll":  # nothing to checkpoint: SIGTERM exits, a retry starts over
+        return _enroll(store, job, job_dir, body_models, interrupted)
     if latest_checkpoint(out) is not None:
         trainer = Trainer.resume(out, job.dataset_path, body_model=body_models,
                                  progress=progress)
@@ -131,6 +133,32 @@ def train(store: JobStore, job_id: str, job_dir: Path, body_models: str | None, 
         return EXIT_FAILED
     log.info("job %s trained: %s", job_id, package)
     return EXIT_OK
+
+
+def _enroll(store: JobStore, job: Any, job_dir: Path, body_models: str | None,
+            interrupted: Callable[[], bool] | None) -> int:
+    """An enrollment job (server/jobs/enrollment.py): its exit code."""
+    from .enrollment import run_enrollment
+
+    def check() -> None:
+        if store.get(job.id).cancel_requested:
+            raise _Cancelled
+        if interrupted is not None and interrupted():
+            raise _Interrupted
+
+    log.info("enrolling job %s", job.id)
+    try:
+        done = run_enrollment(job, job_dir, job_dir / OUT_DIR,
+                              report=lambda event: store.report(job.id, event), check=check,
+                              set_error=lambda error: store.set_error(job.id, error[:2000]),
+                              body_models=body_models)
+    except _Cancelled:
+        log.info("job %s cancelled", job.id)
+        return EXIT_CANCELLED
+    except _Interrupted:
+        log.info("job %s interrupted; it starts over when it runs again", job.id)
+        return EXIT_INTERRUPTED
+    return EXIT_OK if done else EXIT_FAILED
 
 
 def main(argv: list[str] | None = None) -> int:

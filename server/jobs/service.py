@@ -24,11 +24,26 @@ from avatar_core.body.model_paths import (
 )
 from avatar_core.bounded_npz import NpzLimits
 from avatar_core.dataset import DatasetError, load_dataset
+from avatar_core.enroll.errors import EnrollmentRefused
+from avatar_core.enroll.video import VideoLimits, decode_plan, probe_video
 from avatar_core.train.checkpoint import latest_checkpoint
 from avatar_core.train.config import TrainConfig, config_from_dict, config_to_dict, preset
 
 from ..quotas import storage_left
 from .archive import ArchiveError, UploadLimits, extract_archive
+from .enrollment import (
+    PROGRESS_STEPS,
+    VIDEO_FILE,
+    ConfigRefused,
+    EnrollCaps,
+    decode_side,
+    enroll_caps,
+    enroll_config,
+    job_config,
+    refusal_status,
+    video_limits,
+    video_suffix,
+)
 from .run import OUT_DIR
 from .store import (
     RESUMABLE,
@@ -54,11 +69,13 @@ CHECKPOINT_FRACTION = 10
 
 
 class SubmitError(ValueError):
-    """A submission that is refused; ``status`` is the HTTP status to answer."""
+    """A submission that is refused; ``status`` is the HTTP status to answer, ``detail`` what
+    the answer carries (the message, or an enrollment refusal's reason and what to do)."""
 
-    def __init__(self, message: str, status: int = 400) -> None:
+    def __init__(self, message: str, status: int = 400, detail: Any = None) -> None:
         super().__init__(message)
         self.status = status
+        self.detail = message if detail is None else detail
 
 
 @dataclass(frozen=True)
@@ -133,12 +150,15 @@ class JobService:
     def __init__(self, data_dir: str | Path, register: Register, *,
                  worker: WorkerConfig | None = None, limits: UploadLimits | None = None,
                  store: JobStore | None = None, quota: JobQuota | None = None,
-                 worker_type: Callable[..., Worker] = Worker) -> None:
+                 worker_type: Callable[..., Worker] = Worker,
+                 video: VideoLimits | None = None, enroll: EnrollCaps | None = None) -> None:
         self.data_dir = Path(data_dir)
         self.jobs_dir = self.data_dir / JOBS_DIR
         self.datasets_dir = self.data_dir / DATASETS_DIR
         self.jobs_dir.mkdir(parents=True, exist_ok=True)
         self.limits = limits or UploadLimits()
+        self.video_limits = video or VideoLimits()
+        self.enroll_caps = enroll or EnrollCaps()
         # owner -> bytes they may still store (None: no storage quota); set by from_settings
         self.storage_left: Callable[[str], int] | None = None
         self.quota = quota or JobQuota()
@@ -187,7 +207,8 @@ class JobService:
             max_stored=getattr(settings, "job_max_stored_per_user", JobQuota.max_stored))
         if getattr(settings, "job_backend", "local") == "ray":
             return cls._on_ray(settings, register, worker, upload, quota, registry)
-        service = cls(settings.data_dir, register, worker=worker, limits=upload, quota=quota)
+        service = cls(settings.data_dir, register, worker=worker, limits=upload, quota=quota,
+                      video=video_limits(settings), enroll=enroll_caps(settings))
         if hasattr(settings, "max_stored_bytes_per_user"):  # the avatars' and jobs' bytes
             service.storage_left = lambda owner: storage_left(owner, settings, registry, service)
         return service
@@ -209,7 +230,8 @@ class JobService:
         worker = replace(worker, max_concurrent=settings.ray_job_max_concurrent)
         store = SQLiteJobStore(Path(settings.data_dir) / JOBS_DIR / DB_FILE)
         service = cls(settings.cluster_storage_dir, register, worker=worker, limits=upload,
-                      store=store, quota=quota, worker_type=worker_type)
+                      store=store, quota=quota, worker_type=worker_type,
+                      video=video_limits(settings), enroll=enroll_caps(settings))
         service.storage_left = lambda owner: storage_left(owner, settings, registry, service)
         return service
 
@@ -289,6 +311,49 @@ class JobService:
         finally:
             shutil.rmtree(scratch, ignore_errors=True)
 
+    def submit_video(self, owner: str, video: Path, config: Any = None,
+                     name: str | None = None, *, filename: str | None = None,
+                     exempt: bool = False) -> Job:
+        """Probe an uploaded enrollment video (``video``: a file this call takes over) and
+        queue a job enrolling it. Refused (SubmitError, nothing kept) for a bad config (422),
+        past the owner's storage (413), or a video outside ``video_limits`` (413 / 422 with
+        the reason and what to do)."""
+        video = Path(video)
+        try:
+            self.check_quota(owner, exempt)
+            try:
+                resolved = enroll_config(config, self.enroll_caps)
+            except ConfigRefused as exc:
+                raise SubmitError(f"bad enrollment config: {exc}", 422) from None
+            name = _check_avatar_name(name)
+            size = video.stat().st_size
+            left = None if exempt or self.storage_left is None else self.storage_left(owner)
+            if left is not None and size > left:
+                raise SubmitError(f"the video is {size} bytes, more than the {max(0, left)} "
+                                  "bytes left of your storage quota", 413)
+            try:  # what decoding it would hold too, before any of it
+                decode_plan(probe_video(video, self.video_limits), self.video_limits,
+                            decode_side(resolved))
+            except EnrollmentRefused as refused:
+                raise SubmitError(str(refused), refusal_status(refused),
+                                  refused.to_dict()) from None
+            job_id = new_job_id()
+            folder = self.worker.job_dir(job_id)
+            (folder / UPLOADED_DATASET).mkdir(parents=True)
+            shutil.move(video, folder / UPLOADED_DATASET / (VIDEO_FILE + video_suffix(filename)))
+            try:
+                return self._insert(NewJob(
+                    owner=owner, dataset="video", dataset_path=str(
+                        (folder / UPLOADED_DATASET).resolve()),
+                    config=job_config(resolved, self.video_limits), total=PROGRESS_STEPS,
+                    name=name, id=job_id, max_attempts=self.worker.config.max_attempts,
+                    kind="enroll"), exempt)
+            except BaseException:
+                shutil.rmtree(folder, ignore_errors=True)
+                raise
+        finally:
+            video.unlink(missing_ok=True)
+
     def submit_prepared(self, owner: str, label: str, path: Path, config: Any,
                         name: str | None = None) -> Job:
         """A job the server itself queues (the trained demo avatar: server/jobs/demo_build.py) on a
@@ -302,9 +367,12 @@ class JobService:
 
     def _create(self, owner: str, dataset: str, path: Path, config: TrainConfig,
                 name: str | None, job_id: str | None = None, *, exempt: bool = False) -> Job:
-        new = NewJob(owner=owner, dataset=dataset, dataset_path=str(path.resolve()),
-                     config=config_to_dict(config), total=config.iterations, name=name,
-                     id=job_id, max_attempts=self.worker.config.max_attempts)
+        return self._insert(NewJob(
+            owner=owner, dataset=dataset, dataset_path=str(path.resolve()),
+            config=config_to_dict(config), total=config.iterations, name=name, id=job_id,
+            max_attempts=self.worker.config.max_attempts), exempt)
+
+    def _insert(self, new: NewJob, exempt: bool) -> Job:
         caps = {} if exempt else {"max_active": self.quota.max_active,
                                   "max_stored": self.quota.max_stored}
         try:

@@ -67,6 +67,7 @@ class NewJob:
     name: str | None = None
     id: str | None = None  # None: a fresh random id
     max_attempts: int | None = None  # None: the worker's default
+    kind: str = "train"   # "train" (a dataset) or "enroll" (one video: server/jobs/enrollment.py)
 
 
 @dataclass(frozen=True)
@@ -90,6 +91,7 @@ class Job:
     cancel_requested: bool
     max_attempts: int | None = None  # runs allowed; None: the worker's default
     attempt_log: tuple[dict[str, Any], ...] = ()  # how earlier attempts ended, oldest first
+    kind: str = "train"   # "train" or "enroll"
 
     @property
     def progress(self) -> float:
@@ -207,7 +209,8 @@ CREATE TABLE IF NOT EXISTS jobs (
     attempts INTEGER NOT NULL DEFAULT 0,
     cancel_requested INTEGER NOT NULL DEFAULT 0,
     max_attempts INTEGER,
-    attempt_log TEXT NOT NULL DEFAULT '[]'
+    attempt_log TEXT NOT NULL DEFAULT '[]',
+    kind TEXT NOT NULL DEFAULT 'train'
 );
 CREATE INDEX IF NOT EXISTS jobs_state ON jobs (state, created);
 CREATE INDEX IF NOT EXISTS jobs_owner ON jobs (owner, created);
@@ -220,10 +223,11 @@ CREATE TABLE IF NOT EXISTS events (
 );
 """
 # Columns added after the first release: (name, declaration), added to older databases.
-_ADDED_COLUMNS = (("max_attempts", "INTEGER"), ("attempt_log", "TEXT NOT NULL DEFAULT '[]'"))
+_ADDED_COLUMNS = (("max_attempts", "INTEGER"), ("attempt_log", "TEXT NOT NULL DEFAULT '[]'"),
+                  ("kind", "TEXT NOT NULL DEFAULT 'train'"))
 _COLUMNS = ("id, owner, name, state, dataset, dataset_path, config, created, started, "
             "finished, iteration, total, loss, error, avatar_id, attempts, cancel_requested, "
-            "max_attempts, attempt_log")
+            "max_attempts, attempt_log, kind")
 
 
 def _job(row: sqlite3.Row) -> Job:
@@ -304,9 +308,10 @@ class SQLiteJobStore(SQLiteFile, JobStore):
             check_quota(self._count(db, new.owner), new.owner, max_active, max_stored)
             db.execute(
                 "INSERT INTO jobs (id, owner, name, state, dataset, dataset_path, config, "
-                "created, total, max_attempts) VALUES (?, ?, ?, 'queued', ?, ?, ?, ?, ?, ?)",
+                "created, total, max_attempts, kind) "
+                "VALUES (?, ?, ?, 'queued', ?, ?, ?, ?, ?, ?, ?)",
                 (job_id, new.owner, new.name, new.dataset, new.dataset_path,
-                 json.dumps(new.config), now, int(new.total), new.max_attempts))
+                 json.dumps(new.config), now, int(new.total), new.max_attempts, new.kind))
             self._append(db, job_id, {"type": "state", "state": "queued"}, now)
             return self._get(db, job_id)
 

@@ -18,7 +18,6 @@ from fastapi import APIRouter, Header, HTTPException, Query, Request, Response
 from fastapi.responses import PlainTextResponse, StreamingResponse
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from starlette.concurrency import run_in_threadpool
-from starlette.datastructures import UploadFile
 
 from protocol.jobs import JobEnd
 
@@ -28,13 +27,15 @@ from ..dependencies import Jobs, TrainPrincipal
 from ..jobs.service import JobService, SubmitError
 from ..jobs.store import InvalidTransition, Job, JobNotFound
 from ..jobs.worker import LOG_FILE
+from ..uploads import receive_form
 
 __all__ = ["AttemptEnd", "JobList", "JobOut", "JobResult", "JobSubmit", "lifespan", "router"]
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 
 MAX_JSON_BODY = 1 << 20
-MULTIPART_SLACK = 1 << 20     # form fields and boundaries around the archive
+MAX_NAME_FIELD = 1024         # bytes of the form's name field (the name is checked after)
+INCOMING_DIR = "tmp"          # under the service's data_dir: uploads while they arrive
 MAX_LOG_BYTES = 1 << 20
 MAX_TAIL_LINES = 10_000
 MAX_STREAM_S = 600.0
@@ -73,11 +74,14 @@ class JobOut(BaseModel):
     owner: str
     name: str | None = Field(description="The avatar's name (None: the dataset's subject).")
     state: StateName
-    dataset: str = Field(description="'upload' or 'dataset:<name>'.")
+    kind: Literal["train", "enroll"] = Field(
+        "train", description="'train' (a dataset) or 'enroll' (one video).")
+    dataset: str = Field(description="'upload', 'dataset:<name>', or 'video' (enrollment).")
     created: float = Field(description="Unix seconds.")
     started: float | None
     finished: float | None
-    progress: float = Field(description="iteration / total, in [0, 1].")
+    progress: float = Field(description="iteration / total, in [0, 1] (an enrollment counts "
+                                        "thousandths: total 1000).")
     iteration: int
     total: int
     loss: float | None = Field(description="The last reported training loss.")
@@ -88,7 +92,9 @@ class JobOut(BaseModel):
                                                  "the server's default).")
     attempt_log: list[AttemptEnd] = Field(description="How earlier runs ended, oldest first.")
     cancel_requested: bool
-    config: dict[str, Any] = Field(description="The resolved training config.")
+    config: dict[str, Any] = Field(description="The resolved training config (enrollment: "
+                                               "preset 'enroll', the EnrollConfig fields and "
+                                               "the video limits it decodes within).")
 
     @classmethod
     def of(cls, job: Job) -> JobOut:
@@ -124,12 +130,17 @@ class JobSubmit(BaseModel):
 _SUBMIT_BODY = {"requestBody": {"required": True, "content": {
     "application/json": {"schema": JobSubmit.model_json_schema()},
     "multipart/form-data": {"schema": {
-        "type": "object", "required": ["archive"],
+        "type": "object",
         "properties": {
             "archive": {"type": "string", "format": "binary",
-                        "description": "A zip of one Format v1 dataset."},
+                        "description": "A zip of one Format v1 dataset (a training job)."},
+            "video": {"type": "string", "format": "binary",
+                      "description": "One person turning before a fixed camera, 20-60 s "
+                                     "(MP4, MOV, WebM): an enrollment job (preset 'enroll'). "
+                                     "Send 'archive' or 'video', not both."},
             "config": {"type": "string", "description": "JSON: a preset name or a "
-                                                        "TrainConfig object."},
+                                                        "TrainConfig object; with a video "
+                                                        "'enroll' or EnrollConfig fields."},
             "name": {"type": "string", "description": "The avatar's name."}}}},
 }}}
 
@@ -193,23 +204,25 @@ def _form_config(text: str | None) -> Any:
 
 async def _submit_upload(request: Request, service: JobService, owner: str,
                          exempt: bool) -> Job:
-    limit = service.limits.max_upload_bytes
-    limited = await _limited_body(request, limit + MULTIPART_SLACK)
-    form = await limited.form(max_files=1, max_fields=8)
+    """A multipart upload: a dataset ``archive`` (a training job) or a ``video`` (an
+    enrollment job), each bounded by its own limit while the bytes arrive."""
+    form = await receive_form(
+        request, service.data_dir / INCOMING_DIR,
+        files={"archive": service.limits.max_upload_bytes,
+               "video": service.video_limits.max_bytes},
+        texts={"config": MAX_JSON_BODY, "name": MAX_NAME_FIELD})
     try:
-        archive = form.get("archive")
-        if not isinstance(archive, UploadFile):
-            raise HTTPException(400, "the multipart body needs a file field 'archive' (a zip)")
-        if archive.size is not None and archive.size > limit:
-            raise HTTPException(413, f"the archive is larger than {limit} bytes")
-        fields = {k: form.get(k) for k in ("config", "name")}
-        if any(v is not None and not isinstance(v, str) for v in fields.values()):
-            raise HTTPException(400, "config and name must be text fields")
-        config = _form_config(fields["config"])
-        return await run_in_threadpool(service.submit_archive, owner, archive.file, config,
-                                       fields["name"], exempt=exempt)
+        if form.overflow:
+            raise HTTPException(413, f"the form field {sorted(form.overflow)[0]!r} is too long")
+        config = _form_config(form.fields.get("config"))
+        name = form.fields.get("name")
+        if form.part == "video":
+            return await run_in_threadpool(service.submit_video, owner, form.path, config,
+                                           name, filename=form.filename, exempt=exempt)
+        return await run_in_threadpool(service.submit_archive, owner, form.path, config, name,
+                                       exempt=exempt)
     finally:
-        await form.close()
+        form.path.unlink(missing_ok=True)
 
 
 async def _submit_named(request: Request, service: JobService, owner: str,
@@ -237,7 +250,10 @@ async def _submit_named(request: Request, service: JobService, owner: str,
 async def submit_job(request: Request, response: Response, principal: TrainPrincipal,
                      service: Jobs) -> JobOut:
     """Train an avatar: on a dataset on the server (JSON ``{"dataset", "config", "name"}``)
-    or on an uploaded zip (multipart: ``archive``, ``config``, ``name``). Past the per-user
+    or on an uploaded zip (multipart: ``archive``, ``config``, ``name``), or enroll one
+    uploaded video (multipart: ``video``, ``config`` 'enroll' or EnrollConfig fields,
+    ``name``; probed first: a refused video is 413 / 422 with ``detail`` {reason, message,
+    what_to_do}, and nothing is kept). Past the per-user
     job quotas (admins exempt): 429."""
     kind = request.headers.get("content-type", "").split(";")[0].strip().lower()
     try:
@@ -251,9 +267,9 @@ async def submit_job(request: Request, response: Response, principal: TrainPrinc
                                        principal.is_admin)
         else:
             raise HTTPException(415, "send application/json (a dataset on the server) or "
-                                     "multipart/form-data (an 'archive' zip)")
+                                     "multipart/form-data (an 'archive' zip or a 'video')")
     except SubmitError as exc:
-        raise HTTPException(exc.status, str(exc)) from None
+        raise HTTPException(exc.status, exc.detail) from None
     response.headers["Location"] = f"{router.prefix}/{job.id}"
     return JobOut.of(job)
 
