@@ -102,7 +102,7 @@ def test_the_timeline_is_continuous_across_publishers_and_wraps():
 
 
 def test_a_listener_waits_the_median_picture_lag_bounded():
-    seat = voice(voice_max_delay_s=0.2)
+    seat = voice(voice_max_delay_s=0.2, voice_pacing="frames")  # even: the slew test below
     listener = seat.subscribe()
     for drive, lag in enumerate([0.05, 0.06, 0.3, 0.07, 0.08]):
         listener.follow_picture(100.0 + drive, 100.0 + drive + lag)
@@ -123,7 +123,8 @@ def test_a_listener_waits_the_median_picture_lag_bounded():
 
 def test_a_packet_waits_for_the_frame_of_its_drive_and_never_past_the_bound():
     drive = {"arrived": None}
-    seat = SeatVoice(Settings(voice_max_delay_s=0.5), drive_arrived=lambda: drive["arrived"])
+    seat = SeatVoice(Settings(voice_max_delay_s=0.5, voice_pacing="frames"),
+                     drive_arrived=lambda: drive["arrived"])
     watching, hearing = seat.subscribe(), seat.subscribe()  # the second follows no picture
 
     async def run():
@@ -146,6 +147,60 @@ def test_a_packet_waits_for_the_frame_of_its_drive_and_never_past_the_bound():
     heard, waited, released, bounded = asyncio.run(run())
     assert heard is not None and waited and released
     assert bounded >= 0.5 - 0.01  # voice_max_delay_s after its arrival, not forever
+
+
+def test_even_pacing_releases_a_burst_at_its_own_cadence_behind_the_picture():
+    """Packets that came in a burst (a stalled network) leave 20 ms apart, each at its paced
+    time plus the picture's lag; a lag that jumps moves the delay at DELAY_SLEW only."""
+    from server.rooms.voice import DELAY_SLEW
+
+    seat = voice(voice_max_delay_s=0.5)
+    listener = seat.subscribe()
+
+    async def run():
+        t0 = time.monotonic()
+        listener.follow_picture(t0 - 1.0, t0 - 0.9)  # the picture lags 100 ms
+        seat.publish("p", b"\xf8\x00", 0, t0)  # on time: the paced clock's origin
+        for i in range(1, 6):  # the next five all arrive 80 ms late, at once
+            seat.publish("p", b"\xf8\x00", i * 960, t0 + 0.18)
+        out = []
+        for _ in range(6):
+            await listener.next()
+            out.append(time.monotonic() - t0)
+        listener.follow_picture(t0 - 0.5, t0 - 0.5 + 0.3)  # a lag jump to 300 ms ...
+        delay = listener.delay_s
+        seat.publish("p", b"\xf8\x00", 50 * 960, t0 + 1.0)
+        await listener.next()
+        return out, delay, listener.paced_delay_s
+
+    out, delay, paced = asyncio.run(run())
+    want = [0.1 + 0.02 * i for i in range(6)]  # not all five at 0.18 + 0.1
+    assert all(w - 0.002 <= got <= w + 0.03 for got, w in zip(out, want, strict=True)), out
+    assert delay == pytest.approx(0.2)  # the median of 100 and 300 ms
+    assert paced < 0.1 + DELAY_SLEW * 1.2  # ... is followed slowly (about 1 s passed)
+
+
+def test_frames_pacing_releases_a_drives_packets_with_its_frame():
+    drive = {"arrived": None}
+    seat = SeatVoice(Settings(voice_max_delay_s=0.5, voice_pacing="frames"),
+                     drive_arrived=lambda: drive["arrived"])
+    listener = seat.subscribe()
+
+    async def run():
+        now = time.monotonic()
+        listener.follow_picture(now - 1.0, now - 0.99)
+        drive["arrived"] = now
+        for i in range(5):
+            seat.publish("p", b"\xf8\x00", i * 960, now + 0.02 * i)
+        got = [asyncio.create_task(listener.next()) for _ in range(1)]
+        await asyncio.sleep(0.2)
+        waiting = not got[0].done()
+        listener.follow_picture(now, time.monotonic())
+        out = [await got[0]] + [await listener.next() for _ in range(4)]
+        return waiting, time.monotonic() - now, out
+
+    waiting, took, out = asyncio.run(run())
+    assert waiting and len(out) == 5 and took < 0.35  # all five at once, with the frame
 
 
 def test_a_full_listener_drops_its_oldest_and_counts():
