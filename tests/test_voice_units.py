@@ -150,8 +150,9 @@ def test_a_packet_waits_for_the_frame_of_its_drive_and_never_past_the_bound():
 
 
 def test_even_pacing_releases_a_burst_at_its_own_cadence_behind_the_picture():
-    """Packets that came in a burst (a stalled network) leave 20 ms apart, each at its paced
-    time plus the picture's lag; a lag that jumps moves the delay at DELAY_SLEW only."""
+    """After a second of packets on time, five that arrive together (a stalled network) leave
+    20 ms apart, each at its paced time plus the picture's lag; a lag that jumps moves the
+    delay at DELAY_SLEW only."""
     from server.rooms.voice import DELAY_SLEW
 
     seat = voice(voice_max_delay_s=0.5)
@@ -159,25 +160,31 @@ def test_even_pacing_releases_a_burst_at_its_own_cadence_behind_the_picture():
 
     async def run():
         t0 = time.monotonic()
-        listener.follow_picture(t0 - 1.0, t0 - 0.9)  # the picture lags 100 ms
-        seat.publish("p", b"\xf8\x00", 0, t0)  # on time: the paced clock's origin
-        for i in range(1, 6):  # the next five all arrive 80 ms late, at once
-            seat.publish("p", b"\xf8\x00", i * 960, t0 + 0.18)
-        out = []
-        for _ in range(6):
+        base = t0 - 1.0
+        listener.follow_picture(t0 - 2.0, t0 - 1.9)  # the picture lags 100 ms
+        for i in range(50):  # on time, in the past: released at once
+            seat.publish("p", b"\xf8\x00", i * 960, base + 0.02 * i)
+        for _ in range(50):
             await listener.next()
-            out.append(time.monotonic() - t0)
+        now = time.monotonic()
+        first = round((now - 0.08 - base) / 0.02)  # due 80 ms ago, arriving only now
+        for j in range(5):
+            seat.publish("p", b"\xf8\x00", (first + j) * 960, now)
+        out = []
+        for _ in range(5):
+            packet = await listener.next()
+            out.append(time.monotonic() - (packet.paced + 0.1))
         listener.follow_picture(t0 - 0.5, t0 - 0.5 + 0.3)  # a lag jump to 300 ms ...
         delay = listener.delay_s
-        seat.publish("p", b"\xf8\x00", 50 * 960, t0 + 1.0)
+        await asyncio.sleep(0.5)
+        seat.publish("p", b"\xf8\x00", (first + 30) * 960)
         await listener.next()
         return out, delay, listener.paced_delay_s
 
     out, delay, paced = asyncio.run(run())
-    want = [0.1 + 0.02 * i for i in range(6)]  # not all five at 0.18 + 0.1
-    assert all(w - 0.002 <= got <= w + 0.03 for got, w in zip(out, want, strict=True)), out
+    assert all(-0.002 <= late <= 0.03 for late in out), out  # not all five at once
     assert delay == pytest.approx(0.2)  # the median of 100 and 300 ms
-    assert paced < 0.1 + DELAY_SLEW * 1.2  # ... is followed slowly (about 1 s passed)
+    assert 0.1 < paced < 0.1 + DELAY_SLEW * 1.0  # ... is followed slowly (about 0.5 s)
 
 
 def test_frames_pacing_releases_a_drives_packets_with_its_frame():

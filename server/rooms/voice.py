@@ -10,8 +10,8 @@ the frames of its instant: the voice waits for the picture, never the other way 
 How it waits is ``voice_pacing``:
 
 - ``even`` (the default): each packet leaves at its own cadence, its *paced* time (when it would
-  have arrived had no packet been late: its media time on the earliest arrival clock of the
-  last ``ORIGIN_WINDOW_S``) plus the listener's picture delay ``delay_s``; ``delay_s`` follows
+  typically arrive: its media time on the median arrival clock of the last
+  ``ORIGIN_WINDOW_S``) plus the listener's picture delay ``delay_s``; ``delay_s`` follows
   the median picture lag (from a drive's arrival to the frame that first shows it leaving for
   the encoder) at most ``DELAY_SLEW`` seconds per second, so consecutive packets leave 20 ms
   apart (give or take 2 ms) and a browser's jitter buffer sees a steady stream.
@@ -37,6 +37,7 @@ polls for the end.
 from __future__ import annotations
 
 import asyncio
+import bisect
 import collections
 import statistics
 import time
@@ -53,7 +54,7 @@ SPEAKING_S = 0.3                    # a seat speaks while its last loud packet i
 LAG_SAMPLES = 15                    # picture lags the voice delay is the median of
 DRIVE_SLACK_S = 0.02                # a drive this soon after a packet is of its instant (one
 #                                     20 ms frame: a drive and its sound leave together)
-ORIGIN_WINDOW_S = 2.0               # the paced clock: the earliest arrival over this long
+ORIGIN_WINDOW_S = 2.0               # the paced clock: the median arrival over this long
 DELAY_SLEW = 0.1                    # even pacing: delay_s moves at most 0.1 s per second (2 ms
 #                                     per 20 ms packet: a stretch a jitter buffer absorbs)
 PACINGS = ("even", "frames")
@@ -66,7 +67,7 @@ class VoicePacket:
     arrived: float    # time.monotonic() when the server got it
     t_capture: float | None = None  # its capture time on the performer's clock, when sent
     drive_arrived: float | None = None  # the seat's newest drive's arrival when it came
-    paced: float | None = None  # when it would have arrived had none been late (monotonic)
+    paced: float | None = None  # when it typically arrives (monotonic): its even cadence
 
 
 class Listener:
@@ -180,9 +181,10 @@ class SeatVoice:
         self.max_delay_s = settings.voice_max_delay_s
         self.buffer_packets = settings.voice_buffer_packets
         self.pacing = getattr(settings, "voice_pacing", "even")
-        # (arrived - media time) of the last ORIGIN_WINDOW_S, ascending: the paced clock's
-        # origin is the first (the earliest arrival; a late packet moves nothing)
+        # (arrival, arrived - media time) of the last ORIGIN_WINDOW_S, and those sorted: the
+        # paced clock's origin is their median
         self._origins: collections.deque[tuple[float, float]] = collections.deque()
+        self._sorted_origins: list[float] = []
         self._metrics = metrics
         self.listeners: set[Listener] = set()
         self.counts: collections.Counter[str] = collections.Counter()
@@ -254,15 +256,16 @@ class SeatVoice:
         return self._last_out
 
     def _paced(self, media_ts: int, now: float) -> float:
-        """When a packet of ``media_ts`` would have arrived had none been late: its media time
-        on the earliest arrival of the last ORIGIN_WINDOW_S (a sliding minimum)."""
+        """When a packet of ``media_ts`` typically arrives: its media time on the median
+        arrival clock of the last ORIGIN_WINDOW_S (the median, not the earliest: the drives
+        the picture lag is measured from come as late as a typical packet does)."""
         origin = now - media_ts / CLOCK_RATE
-        while self._origins and self._origins[-1][1] >= origin:
-            self._origins.pop()
         self._origins.append((now, origin))
+        bisect.insort(self._sorted_origins, origin)
         while self._origins[0][0] < now - ORIGIN_WINDOW_S:
-            self._origins.popleft()
-        return self._origins[0][1] + media_ts / CLOCK_RATE
+            _, gone = self._origins.popleft()
+            del self._sorted_origins[bisect.bisect_left(self._sorted_origins, gone)]
+        return self._sorted_origins[len(self._sorted_origins) // 2] + media_ts / CLOCK_RATE
 
     def _count(self, outcome: str) -> None:
         self.counts[outcome] += 1
