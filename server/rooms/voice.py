@@ -57,7 +57,9 @@ DRIVE_SLACK_S = 0.02                # a drive this soon after a packet is of its
 ORIGIN_WINDOW_S = 2.0               # the paced clock: the median arrival over this long
 DELAY_SLEW = 0.1                    # even pacing: delay_s moves at most 0.1 s per second (2 ms
 #                                     per 20 ms packet: a stretch a jitter buffer absorbs)
-PACINGS = ("even", "frames")
+EVEN_LAG_QUANTILE = 0.8             # even pacing follows this quantile of the lags, not the
+#                                     median: a drive at a random instant waits for the render
+#                                     under way, the freshest drive a render takes does not
 
 
 @dataclass(frozen=True)
@@ -158,7 +160,9 @@ class Listener:
         self._shown_arrival = arrived
         self._shown.set()
         self.lags.append(now - arrived)
-        self.delay_s = min(max(0.0, statistics.median(self.lags)), self.max_delay_s)
+        lag = (statistics.median(self.lags) if self.pacing == "frames"
+               else sorted(self.lags)[int(EVEN_LAG_QUANTILE * (len(self.lags) - 1))])
+        self.delay_s = min(max(0.0, lag), self.max_delay_s)
         if len(self.lags) == 1:
             self.paced_delay_s = self.delay_s  # the first lag: nothing to smooth yet
 
