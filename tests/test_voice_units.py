@@ -155,7 +155,7 @@ def test_even_pacing_releases_a_burst_at_its_own_cadence_behind_the_picture():
     delay at DELAY_SLEW only."""
     from server.rooms.voice import DELAY_SLEW
 
-    seat = voice(voice_max_delay_s=0.5)
+    seat = voice(voice_max_delay_s=0.5, voice_pacing="even")
     listener = seat.subscribe()
 
     async def run():

@@ -9,16 +9,16 @@ the frames of its instant: the voice waits for the picture, never the other way 
 
 How it waits is ``voice_pacing``:
 
-- ``even`` (the default): each packet leaves at its own cadence, its *paced* time (when it would
-  typically arrive: its media time on the median arrival clock of the last
-  ``ORIGIN_WINDOW_S``) plus the listener's picture delay ``delay_s``; ``delay_s`` follows
-  the median picture lag (from a drive's arrival to the frame that first shows it leaving for
-  the encoder) at most ``DELAY_SLEW`` seconds per second, so consecutive packets leave 20 ms
-  apart (give or take 2 ms) and a browser's jitter buffer sees a steady stream.
-- ``frames``: a packet waits the median lag, then until the listener's picture shows the
-  seat's drive of its instant (the newest drive that arrived before it, or up to
-  ``DRIVE_SLACK_S`` after it), so the packets of one drive leave together with its frame, in
-  bursts (docs/benchmarks.md: Chromium's jitter buffer grows to absorb them).
+- ``frames`` (the default): a packet waits the median picture lag (from a drive's arrival
+  to the frame that first shows it leaving for the encoder), then until the listener's
+  picture shows the seat's drive of its instant (the newest drive that arrived before it, or
+  up to ``DRIVE_SLACK_S`` after it), so the packets of one drive leave together with its
+  frame, in bursts.
+- ``even``: each packet leaves at its own cadence, its *paced* time (when it would typically
+  arrive: its media time on the median arrival clock of the last ``ORIGIN_WINDOW_S``) plus
+  the listener's picture delay, which follows the ``EVEN_LAG_QUANTILE`` of the recent lags
+  at most ``DELAY_SLEW`` seconds per second: consecutive packets leave 20 ms apart (give or
+  take 2 ms). Closer in Chromium, farther at aiortc viewers (docs/benchmarks.md, voice).
 
 Either way never past ``voice_max_delay_s`` after its arrival.
 
@@ -76,7 +76,7 @@ class Listener:
     """One participant's queue of a seat's packets (latest kept, oldest dropped)."""
 
     def __init__(self, voice: SeatVoice, capacity: int, max_delay_s: float,
-                 pacing: str = "even") -> None:
+                 pacing: str = "frames") -> None:
         self.voice = voice
         self.max_delay_s = max_delay_s
         self.pacing = pacing
@@ -184,7 +184,7 @@ class SeatVoice:
         self.max_bytes_per_s = settings.voice_max_bitrate / 8
         self.max_delay_s = settings.voice_max_delay_s
         self.buffer_packets = settings.voice_buffer_packets
-        self.pacing = getattr(settings, "voice_pacing", "even")
+        self.pacing = getattr(settings, "voice_pacing", "frames")
         # (arrival, arrived - media time) of the last ORIGIN_WINDOW_S, and those sorted: the
         # paced clock's origin is their median
         self._origins: collections.deque[tuple[float, float]] = collections.deque()
