@@ -26,6 +26,7 @@ the server's ``webrtc_max_bitrate`` (TELESPLAT_WEBRTC_MAX_BITRATE), on the video
 
     nice -n 10 .venv/bin/python bench/voice_sync.py [--events 50] [--viewers 1,16]
         [--caps 0,500000] [--processes 4] [--drive-hz 0,30] [--mouth-clock arrival,decode]
+        [--pacing even,frames]
 """
 
 from __future__ import annotations
@@ -444,16 +445,21 @@ def main() -> int:
                         "(a webcam performer's rate; 0: only at the jaw's edges), e.g. 0,30")
     parser.add_argument("--mouth-clock", default="arrival", help="arrival (the frame's last "
                         "RTP packet, as the click's), decode, or arrival,decode")
+    parser.add_argument("--pacing", default="even", help="the server's voice_pacing per run, "
+                        "side by side: even, frames or even,frames")
     args = parser.parse_args()
-    print("| viewers | processes | mouth clock | drives/s | cap bit/s | events | paired | missed | "
+    print("| pacing | viewers | processes | mouth clock | drives/s | cap bit/s | events | paired | "
+          "missed | "
           "median ms | p5 / p95 ms | min / max ms | within -45/+125 | mouth after event ms | "
           "click after event ms | on the sender reports' clock: median (p5 / p95) ms, within | "
           "longest audio gap ms "
           "(viewers / mic) | server overflow drops | voice | server CPU s/s |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     most = max(int(v) for v in args.viewers.split(","))
     os.environ["TELESPLAT_WEBRTC_MAX_PEERS"] = str(most + 2)  # the viewers and the performer
-    for cap in (int(c) for c in args.caps.split(",")):
+    for pacing, cap in itertools.product(args.pacing.split(","),
+                                         (int(c) for c in args.caps.split(","))):
+        os.environ["TELESPLAT_VOICE_PACING"] = pacing
         if cap:
             os.environ["TELESPLAT_WEBRTC_MAX_BITRATE"] = str(cap)
             os.environ["TELESPLAT_WEBRTC_MIN_BITRATE"] = str(min(cap, 250_000))
@@ -468,7 +474,7 @@ def main() -> int:
                     r = asyncio.run(run(url, token, n, args.events, args.size,
                                         args.open_pixels, proc.pid, voice == "on", procs,
                                         clock, hz))
-                    print(f"| {n} | {procs} | {clock} | {hz:g} | {cap or 'default'} | "
+                    print(f"| {pacing} | {n} | {procs} | {clock} | {hz:g} | {cap or 'default'} | "
                           f"{r['events']} | {r['paired']} | {r['missed']} | {r['median_ms']:.0f} | "
                           f"{r['p5_ms']:.0f} / {r['p95_ms']:.0f} | {r['min_ms']:.0f} / "
                           f"{r['max_ms']:.0f} | {r['within']:.0%} | {r['mouth_lag']} | "

@@ -15,6 +15,7 @@ records, on the page's clock (performance.now()):
   event interval. Chromium lip-syncs the tracks itself (one MediaStream, RTCP sender reports).
 
     nice -n 10 .venv/bin/python bench/voice_sync_chromium.py [--events 50] [--drive-hz 30]
+        [--pacing even,frames]
 """
 
 from __future__ import annotations
@@ -183,19 +184,10 @@ def offsets(rec: dict) -> list[float]:
     return out
 
 
-def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--events", type=int, default=50)
-    parser.add_argument("--size", type=int, default=256, help="the page's frame size (its "
-                        "#size menu: 256, 384, 512, 768)")
-    parser.add_argument("--open-pixels", type=int, default=8)
-    parser.add_argument("--drive-hz", type=float, default=30.0)
-    parser.add_argument("--avatar", default="synthetic")
-    args = parser.parse_args()
+def run_once(args) -> dict:
+    """One server (its settings from the environment), one page, one take."""
     from tests.test_webrtc_browser import make_webrtc_chromium
 
-    os.environ["TELESPLAT_WEBRTC_MAX_PEERS"] = "4"
     with tempfile.TemporaryDirectory() as tmp:
         proc, url, token = start_server(Path(tmp), 1, 8, args.avatar)
         driver = make_webrtc_chromium()
@@ -208,23 +200,43 @@ def main() -> int:
                 return await perform(url, token, room, args.size, args.events, args.drive_hz,
                                      driver, args.open_pixels)
 
-            rec = asyncio.run(run())
+            return asyncio.run(run())
         finally:
             driver.quit()
             stop_server(proc)
-    arr = np.asarray(offsets(rec))
-    print(f"# frames {rec['frames']}, audio blocks {rec['blocks']}, mouth edges "
-          f"{len(rec['mouth'])}, clicks {len(rec['clicks'])}, audio {rec.get('context')}, "
-          f"error {rec['error']}, mean jitter-buffer delay ms {rec['buffers']}; "
-          f"offsets ms {[round(x) for x in arr]}", file=sys.stderr)
-    print("| viewer | drives/s | events | paired | median ms | p5 / p95 ms | min / max ms | "
-          "within -45/+125 |")
-    print("|---|---|---|---|---|---|---|---|")
-    if len(arr):
-        print(f"| Chromium | {args.drive_hz:g} | {args.events} | {len(arr)} | "
-              f"{np.median(arr):.0f} | {np.percentile(arr, 5):.0f} / "
-              f"{np.percentile(arr, 95):.0f} | {arr.min():.0f} / {arr.max():.0f} | "
-              f"{((arr >= -45) & (arr <= 125)).mean():.0%} |")
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--events", type=int, default=50)
+    parser.add_argument("--size", type=int, default=256, help="the page's frame size (its "
+                        "#size menu: 256, 384, 512, 768)")
+    parser.add_argument("--open-pixels", type=int, default=8)
+    parser.add_argument("--drive-hz", type=float, default=30.0)
+    parser.add_argument("--avatar", default="synthetic")
+    parser.add_argument("--pacing", default="even", help="the server's voice_pacing per run, "
+                        "side by side: even, frames or even,frames")
+    args = parser.parse_args()
+
+    os.environ["TELESPLAT_WEBRTC_MAX_PEERS"] = "4"
+    print("| viewer | pacing | drives/s | events | paired | median ms | p5 / p95 ms | "
+          "min / max ms | within -45/+125 | jitter buffer ms (audio / video) |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for pacing in args.pacing.split(","):
+        os.environ["TELESPLAT_VOICE_PACING"] = pacing
+        rec = run_once(args)
+        arr = np.asarray(offsets(rec))
+        print(f"# {pacing}: frames {rec['frames']}, audio blocks {rec['blocks']}, mouth edges "
+              f"{len(rec['mouth'])}, clicks {len(rec['clicks'])}, audio {rec.get('context')}, "
+              f"error {rec['error']}, mean jitter-buffer delay ms {rec['buffers']}; "
+              f"offsets ms {[round(x) for x in arr]}", file=sys.stderr, flush=True)
+        buffers = f"{rec['buffers'].get('audio', '-')} / {rec['buffers'].get('video', '-')}"
+        if len(arr):
+            print(f"| Chromium | {pacing} | {args.drive_hz:g} | {args.events} | {len(arr)} | "
+                  f"{np.median(arr):.0f} | {np.percentile(arr, 5):.0f} / "
+                  f"{np.percentile(arr, 95):.0f} | {arr.min():.0f} / {arr.max():.0f} | "
+                  f"{((arr >= -45) & (arr <= 125)).mean():.0%} | {buffers} |", flush=True)
     return 0
 
 

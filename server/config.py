@@ -440,6 +440,11 @@ class Settings(BaseModel):
     voice_max_delay_s: float = Field(
         0.5, ge=0.0, le=5.0, description="The longest the voice waits for the picture (its "
                                          "delay buffer) so that lips and voice match.")
+    voice_pacing: Literal["even", "frames"] = Field(
+        "frames", description="How a WebRTC listener's voice waits for the picture: frames "
+                              "(each packet until the frame of its drive leaves: bursts) or "
+                              "even (each packet at its own cadence, shifted by the smoothed "
+                              "picture lag; docs/benchmarks.md has both measured).")
     voice_buffer_packets: int = Field(
         64, ge=4, le=4096, description="Opus packets one listener may have waiting; past it "
                                        "the oldest is dropped and counted.")

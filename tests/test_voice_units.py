@@ -102,7 +102,7 @@ def test_the_timeline_is_continuous_across_publishers_and_wraps():
 
 
 def test_a_listener_waits_the_median_picture_lag_bounded():
-    seat = voice(voice_max_delay_s=0.2)
+    seat = voice(voice_max_delay_s=0.2, voice_pacing="frames")  # even: the slew test below
     listener = seat.subscribe()
     for drive, lag in enumerate([0.05, 0.06, 0.3, 0.07, 0.08]):
         listener.follow_picture(100.0 + drive, 100.0 + drive + lag)
@@ -123,7 +123,8 @@ def test_a_listener_waits_the_median_picture_lag_bounded():
 
 def test_a_packet_waits_for_the_frame_of_its_drive_and_never_past_the_bound():
     drive = {"arrived": None}
-    seat = SeatVoice(Settings(voice_max_delay_s=0.5), drive_arrived=lambda: drive["arrived"])
+    seat = SeatVoice(Settings(voice_max_delay_s=0.5, voice_pacing="frames"),
+                     drive_arrived=lambda: drive["arrived"])
     watching, hearing = seat.subscribe(), seat.subscribe()  # the second follows no picture
 
     async def run():
@@ -146,6 +147,68 @@ def test_a_packet_waits_for_the_frame_of_its_drive_and_never_past_the_bound():
     heard, waited, released, bounded = asyncio.run(run())
     assert heard is not None and waited and released
     assert bounded >= 0.5 - 0.01  # voice_max_delay_s after its arrival, not forever
+
+
+def test_even_pacing_releases_a_burst_at_its_own_cadence_behind_the_picture():
+    """After a second of packets on time, five that arrive together (a stalled network) leave
+    20 ms apart, each at its paced time plus the picture's lag; a lag that jumps moves the
+    delay at DELAY_SLEW only."""
+    from server.rooms.voice import DELAY_SLEW
+
+    seat = voice(voice_max_delay_s=0.5, voice_pacing="even")
+    listener = seat.subscribe()
+
+    async def run():
+        t0 = time.monotonic()
+        base = t0 - 1.0
+        listener.follow_picture(t0 - 2.0, t0 - 1.9)  # the picture lags 100 ms
+        for i in range(50):  # on time, in the past: released at once
+            seat.publish("p", b"\xf8\x00", i * 960, base + 0.02 * i)
+        for _ in range(50):
+            await listener.next()
+        now = time.monotonic()
+        first = round((now - 0.08 - base) / 0.02)  # due 80 ms ago, arriving only now
+        for j in range(5):
+            seat.publish("p", b"\xf8\x00", (first + j) * 960, now)
+        out = []
+        for _ in range(5):
+            packet = await listener.next()
+            out.append(time.monotonic() - (packet.paced + 0.1))
+        for k in range(2):  # the lag jumps to 300 ms ...
+            listener.follow_picture(t0 - 0.5 + k * 0.1, t0 - 0.2 + k * 0.1)
+        delay = listener.delay_s
+        await asyncio.sleep(0.5)
+        seat.publish("p", b"\xf8\x00", (first + 30) * 960)
+        await listener.next()
+        return out, delay, listener.paced_delay_s
+
+    out, delay, paced = asyncio.run(run())
+    assert all(-0.002 <= late <= 0.03 for late in out), out  # not all five at once
+    assert delay == pytest.approx(0.3)  # EVEN_LAG_QUANTILE of 100, 300, 300 ms
+    assert 0.1 < paced < 0.1 + DELAY_SLEW * 1.0  # ... is followed slowly (about 0.5 s)
+
+
+def test_frames_pacing_releases_a_drives_packets_with_its_frame():
+    drive = {"arrived": None}
+    seat = SeatVoice(Settings(voice_max_delay_s=0.5, voice_pacing="frames"),
+                     drive_arrived=lambda: drive["arrived"])
+    listener = seat.subscribe()
+
+    async def run():
+        now = time.monotonic()
+        listener.follow_picture(now - 1.0, now - 0.99)
+        drive["arrived"] = now
+        for i in range(5):
+            seat.publish("p", b"\xf8\x00", i * 960, now + 0.02 * i)
+        got = [asyncio.create_task(listener.next()) for _ in range(1)]
+        await asyncio.sleep(0.2)
+        waiting = not got[0].done()
+        listener.follow_picture(now, time.monotonic())
+        out = [await got[0]] + [await listener.next() for _ in range(4)]
+        return waiting, time.monotonic() - now, out
+
+    waiting, took, out = asyncio.run(run())
+    assert waiting and len(out) == 5 and took < 0.35  # all five at once, with the frame
 
 
 def test_a_full_listener_drops_its_oldest_and_counts():

@@ -3,14 +3,24 @@
 One :class:`SeatVoice` per seat, made when someone first publishes or listens. Each packet is
 checked (protocol/opus.py: RFC 6716's rules, no decoding), bounded (``voice_max_packet_bytes``,
 ``voice_max_bitrate``) and counted; a valid one goes to every :class:`Listener`, each a bounded
-queue (``voice_buffer_packets``, the oldest dropped past it). A listener releases a packet only
-``delay_s`` after it arrived: the voice waits for the picture, never the other way round.
-``delay_s`` follows that listener's own picture lag (:meth:`Listener.follow_picture`: from a
-drive's arrival to the frame that first shows it leaving for the encoder), smoothed, at most
-``voice_max_delay_s``. That median is a floor: a packet also waits until the listener's picture
-shows the seat's drive of its instant (the newest drive that arrived before it, or up to
-``DRIVE_SLACK_S`` after it), so one slow render delays the voice with it instead of letting
-the voice run ahead; never past ``voice_max_delay_s`` after its arrival.
+queue (``voice_buffer_packets``, the oldest dropped past it). A listener that follows a picture
+(a WebRTC viewer: :meth:`Listener.follow_picture`) holds the voice back so that it leaves with
+the frames of its instant: the voice waits for the picture, never the other way round.
+
+How it waits is ``voice_pacing``:
+
+- ``frames`` (the default): a packet waits the median picture lag (from a drive's arrival
+  to the frame that first shows it leaving for the encoder), then until the listener's
+  picture shows the seat's drive of its instant (the newest drive that arrived before it, or
+  up to ``DRIVE_SLACK_S`` after it), so the packets of one drive leave together with its
+  frame, in bursts.
+- ``even``: each packet leaves at its own cadence, its *paced* time (when it would typically
+  arrive: its media time on the median arrival clock of the last ``ORIGIN_WINDOW_S``) plus
+  the listener's picture delay, which follows the ``EVEN_LAG_QUANTILE`` of the recent lags
+  at most ``DELAY_SLEW`` seconds per second: consecutive packets leave 20 ms apart (give or
+  take 2 ms). Closer in Chromium, farther at aiortc viewers (docs/benchmarks.md, voice).
+
+Either way never past ``voice_max_delay_s`` after its arrival.
 
 Packets carry a media time in 48 kHz ticks: the publisher's RTP timestamps, unwrapped and made
 continuous across publishers (a new performer goes on where the last one stopped), so a
@@ -27,6 +37,7 @@ polls for the end.
 from __future__ import annotations
 
 import asyncio
+import bisect
 import collections
 import statistics
 import time
@@ -43,6 +54,12 @@ SPEAKING_S = 0.3                    # a seat speaks while its last loud packet i
 LAG_SAMPLES = 15                    # picture lags the voice delay is the median of
 DRIVE_SLACK_S = 0.02                # a drive this soon after a packet is of its instant (one
 #                                     20 ms frame: a drive and its sound leave together)
+ORIGIN_WINDOW_S = 2.0               # the paced clock: the median arrival over this long
+DELAY_SLEW = 0.1                    # even pacing: delay_s moves at most 0.1 s per second (2 ms
+#                                     per 20 ms packet: a stretch a jitter buffer absorbs)
+EVEN_LAG_QUANTILE = 0.8             # even pacing follows this quantile of the lags, not the
+#                                     median: a drive at a random instant waits for the render
+#                                     under way, the freshest drive a render takes does not
 
 
 @dataclass(frozen=True)
@@ -52,15 +69,20 @@ class VoicePacket:
     arrived: float    # time.monotonic() when the server got it
     t_capture: float | None = None  # its capture time on the performer's clock, when sent
     drive_arrived: float | None = None  # the seat's newest drive's arrival when it came
+    paced: float | None = None  # when it typically arrives (monotonic): its even cadence
 
 
 class Listener:
     """One participant's queue of a seat's packets (latest kept, oldest dropped)."""
 
-    def __init__(self, voice: SeatVoice, capacity: int, max_delay_s: float) -> None:
+    def __init__(self, voice: SeatVoice, capacity: int, max_delay_s: float,
+                 pacing: str = "frames") -> None:
         self.voice = voice
         self.max_delay_s = max_delay_s
-        self.delay_s = 0.0
+        self.pacing = pacing
+        self.delay_s = 0.0          # the median picture lag (bounded)
+        self.paced_delay_s = 0.0    # even pacing: delay_s approached at DELAY_SLEW
+        self._paced_at: float | None = None
         self.lags: collections.deque[float] = collections.deque(maxlen=LAG_SAMPLES)
         self._shown_arrival: float | None = None  # None: this listener follows no picture
         self._shown = asyncio.Event()
@@ -89,6 +111,12 @@ class Listener:
                 continue
             head, now = self._queue[0], time.monotonic()
             deadline = head.arrived + self.max_delay_s
+            if self.pacing == "even" and self._shown_arrival is not None:
+                wait = min(self._even_release(head, now), deadline) - now
+                if wait > 0:
+                    await asyncio.sleep(wait)
+                    continue
+                return self._queue.popleft()
             wait = min(head.arrived + self.delay_s, deadline) - now
             if wait > 0:
                 await asyncio.sleep(wait)
@@ -102,6 +130,16 @@ class Listener:
                 continue
             return self._queue.popleft()
         return None
+
+    def _even_release(self, packet: VoicePacket, now: float) -> float:
+        """``packet``'s paced time plus the picture delay, which moves toward ``delay_s`` at
+        most ``DELAY_SLEW`` s per second (one render's jitter never bunches packets)."""
+        if self._paced_at is not None:
+            step = DELAY_SLEW * max(0.0, now - self._paced_at)
+            self.paced_delay_s += min(step, max(-step, self.delay_s - self.paced_delay_s))
+        self._paced_at = now
+        paced = packet.arrived if packet.paced is None else packet.paced
+        return paced + self.paced_delay_s
 
     def _picture_behind(self, packet: VoicePacket) -> bool:
         """Has this listener's picture yet to show the seat's drive of ``packet``'s instant?"""
@@ -122,7 +160,11 @@ class Listener:
         self._shown_arrival = arrived
         self._shown.set()
         self.lags.append(now - arrived)
-        self.delay_s = min(max(0.0, statistics.median(self.lags)), self.max_delay_s)
+        lag = (statistics.median(self.lags) if self.pacing == "frames"
+               else sorted(self.lags)[int(EVEN_LAG_QUANTILE * (len(self.lags) - 1))])
+        self.delay_s = min(max(0.0, lag), self.max_delay_s)
+        if len(self.lags) == 1:
+            self.paced_delay_s = self.delay_s  # the first lag: nothing to smooth yet
 
     def close(self) -> None:
         self.closed = True
@@ -142,6 +184,11 @@ class SeatVoice:
         self.max_bytes_per_s = settings.voice_max_bitrate / 8
         self.max_delay_s = settings.voice_max_delay_s
         self.buffer_packets = settings.voice_buffer_packets
+        self.pacing = getattr(settings, "voice_pacing", "frames")
+        # (arrival, arrived - media time) of the last ORIGIN_WINDOW_S, and those sorted: the
+        # paced clock's origin is their median
+        self._origins: collections.deque[tuple[float, float]] = collections.deque()
+        self._sorted_origins: list[float] = []
         self._metrics = metrics
         self.listeners: set[Listener] = set()
         self.counts: collections.Counter[str] = collections.Counter()
@@ -174,8 +221,9 @@ class SeatVoice:
         now = time.monotonic() if now is None else now
         outcome = self._check(payload, now)
         if outcome == "forwarded":
-            packet = VoicePacket(payload, self._timeline(publisher, rtp_ts, now), now,
-                                 t_capture, self.drive_arrived())
+            media_ts = self._timeline(publisher, rtp_ts, now)
+            packet = VoicePacket(payload, media_ts, now, t_capture, self.drive_arrived(),
+                                 self._paced(media_ts, now))
             self.last_packet_at = now
             self._heard(level_dbov, now)
             for listener in list(self.listeners):
@@ -211,6 +259,18 @@ class SeatVoice:
         self._last_out += step
         return self._last_out
 
+    def _paced(self, media_ts: int, now: float) -> float:
+        """When a packet of ``media_ts`` typically arrives: its media time on the median
+        arrival clock of the last ORIGIN_WINDOW_S (the median, not the earliest: the drives
+        the picture lag is measured from come as late as a typical packet does)."""
+        origin = now - media_ts / CLOCK_RATE
+        self._origins.append((now, origin))
+        bisect.insort(self._sorted_origins, origin)
+        while self._origins[0][0] < now - ORIGIN_WINDOW_S:
+            _, gone = self._origins.popleft()
+            del self._sorted_origins[bisect.bisect_left(self._sorted_origins, gone)]
+        return self._sorted_origins[len(self._sorted_origins) // 2] + media_ts / CLOCK_RATE
+
     def _count(self, outcome: str) -> None:
         self.counts[outcome] += 1
         if self._metrics is not None:
@@ -219,7 +279,7 @@ class SeatVoice:
     # -- listening ----------------------------------------------------------------------------
 
     def subscribe(self) -> Listener:
-        listener = Listener(self, self.buffer_packets, self.max_delay_s)
+        listener = Listener(self, self.buffer_packets, self.max_delay_s, self.pacing)
         self.listeners.add(listener)
         return listener
 
