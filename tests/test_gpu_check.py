@@ -59,11 +59,15 @@ def test_the_section_is_replaced_and_the_rest_kept(tmp_path):
 
 
 def test_the_committed_page_has_the_section_and_says_why_it_is_empty():
+    """The measured section names the GPU it came from; an empty one says why it is empty."""
     bench = _bench()
     text = (ROOT / "docs" / "gpu.md").read_text()
     assert text.count(bench.BEGIN) == 1 and text.count(bench.END) == 1
-    if "not measured" in text:
+    section = text.split(bench.BEGIN, 1)[1].split(bench.END, 1)[0]
+    if "| not measured |" in section:
         assert "No GPU was lent" in text
+    else:
+        assert "Measured by `make gpu-check` on **" in section
 
 
 @pytest.mark.slow
