@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 import tempfile
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -150,15 +151,21 @@ async def receive_form(request: Request, tmp_dir: Path, files: dict[str, int],
         overflow = {k for k, v in sink.texts.items() if len(v) > texts[k]}
         return FormUpload(sink.file_parts[0], path, sink.out.size, sink.filename or None,
                           fields, overflow)
-    except UploadTooLarge as exc:
-        path.unlink(missing_ok=True)
-        raise HTTPException(413, f"the {exc.part} is larger than {exc.limit} bytes") from None
-    except HTTPException:
-        path.unlink(missing_ok=True)
-        raise
-    except Exception as exc:
-        path.unlink(missing_ok=True)
-        raise HTTPException(400, f"malformed upload: {exc}") from exc
+    except BaseException as exc:
+        raise _refused(path, exc, lambda e: f"the {e.part} is larger than {e.limit} bytes"
+                       ) from None
+
+
+def _refused(path: Path, exc: BaseException,
+             too_large: Callable[[UploadTooLarge], str]) -> BaseException:
+    """A failed upload's partial file goes; the error to raise: 413 ``too_large`` past its
+    limit, an HTTPException (or anything not an Exception) as it was, else 400 malformed."""
+    path.unlink(missing_ok=True)
+    if isinstance(exc, UploadTooLarge):
+        return HTTPException(413, too_large(exc))
+    if isinstance(exc, HTTPException) or not isinstance(exc, Exception):
+        return exc
+    return HTTPException(400, f"malformed upload: {exc}")
 
 
 async def receive_upload(request: Request, tmp_dir: Path, limit: int) -> Upload:
@@ -191,12 +198,6 @@ async def receive_upload(request: Request, tmp_dir: Path, limit: int) -> Upload:
         if out.size == 0:
             raise HTTPException(400, "empty upload")
         return Upload(path, out.size, None)
-    except UploadTooLarge:
-        path.unlink(missing_ok=True)
-        raise HTTPException(413, f"upload exceeds the limit of {limit} bytes") from None
-    except HTTPException:
-        path.unlink(missing_ok=True)
-        raise
-    except Exception as exc:
-        path.unlink(missing_ok=True)
-        raise HTTPException(400, f"malformed upload: {exc}") from exc
+    except BaseException as exc:
+        raise _refused(path, exc, lambda _: f"upload exceeds the limit of {limit} bytes"
+                       ) from None

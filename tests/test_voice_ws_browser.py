@@ -82,7 +82,11 @@ def test_a_websocket_performer_speaks_and_a_websocket_viewer_hears_in_sync(serve
         says = "document.getElementById('presence').textContent.includes('performing, speaking')"
         wait_for(viewer, says, LOUD_S, "presence: seat 0 speaking")
         # Lips and voice: the sound captured with a drive plays when that drive's frame shows.
-        time.sleep(5.0)  # a few seconds of drives past the warm-up
+        past_warm_up = (  # drives' frames shown past the warm-up, enough for >= 10 events
+            "(() => { const f = window.telesplat.wsVoices.log.frames; if (!f.length) "
+            "return false; const first = Math.min(...f.map(x => x[1])); "
+            f"return f.filter(x => x[1] > first + {WARM_UP_S * 1000}).length >= 20; }})()")
+        wait_for(viewer, past_warm_up, 30, "frames past the warm-up")
         log = viewer.execute_script("return window.telesplat.wsVoices.log")
         first = min(shown for _, shown in log["frames"])
         log["frames"] = [f for f in log["frames"] if f[1] > first + WARM_UP_S * 1000]
@@ -117,9 +121,11 @@ def test_a_websocket_performer_speaks_and_a_websocket_viewer_hears_in_sync(serve
                  10, "the muted performer's silence")
         played = viewer.execute_script(
             "return window.telesplat.voices.find(v => v.seat === 0).played")
-        levels = []
-        for _ in range(5):  # bounded: several beeps' worth of one-second polls
-            time.sleep(1.0)
+        levels = []  # sampled until 100 more packets (several beeps' worth) have played
+        deadline = time.monotonic() + 15.0
+        while not levels or levels[-1]["played"] <= played + 100:
+            assert time.monotonic() < deadline, levels[-1:]
+            time.sleep(0.2)
             levels.append(viewer.execute_script(
                 "return window.telesplat.voices.find(v => v.seat === 0)"))
         assert max(v["level"] for v in levels) < 0.005, levels
