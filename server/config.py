@@ -429,6 +429,12 @@ class Settings(BaseModel):
     webrtc_max_sctp_streams: int = Field(
         16, ge=1, description="SCTP stream ids (data channels) one WebRTC peer may use; "
                               "chunks on more are dropped.")
+    webrtc_sender_clock: Literal["capture", "send"] = Field(
+        "capture", description="What a WebRTC viewer's RTP timestamps and RTCP sender reports "
+                               "(video and voice) count: capture (the performer's capture "
+                               "instants, one clock for both tracks: a browser lip-syncs "
+                               "them) or send (aiortc's: the moment each was sent; "
+                               "docs/benchmarks.md has both measured).")
     voice_max_packet_bytes: int = Field(
         1276, ge=2, le=8192, description="Largest Opus packet a performer's voice may carry "
                                          "(bytes; 1276 is one largest Opus frame and its "

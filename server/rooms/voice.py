@@ -48,6 +48,8 @@ from typing import Any
 from protocol import Voice
 from protocol.opus import OpusPacketError, packet_duration_ms
 
+from ..stream.capture_clock import ArrivalClock
+
 CLOCK_RATE = 48_000                 # Opus' RTP clock
 DISCONTINUITY_TICKS = 5 * CLOCK_RATE  # a timestamp jump past this is a new stream, not a gap
 SPEAKING_S = 0.3                    # a seat speaks while its last loud packet is this recent
@@ -70,6 +72,7 @@ class VoicePacket:
     t_capture: float | None = None  # its capture time on the performer's clock, when sent
     drive_arrived: float | None = None  # the seat's newest drive's arrival when it came
     paced: float | None = None  # when it typically arrives (monotonic): its even cadence
+    captured_at: float | None = None  # its capture instant on this server's clock (monotonic)
 
 
 class Listener:
@@ -198,6 +201,7 @@ class SeatVoice:
         self._last_in: int | None = None    # the publisher's last RTP timestamp
         self._last_out = 0                   # its place on the seat's timeline
         self._publisher: object | None = None
+        self._capture_clock = ArrivalClock()  # the publisher's media time on our clock
 
     @property
     def speaking(self) -> bool:
@@ -223,7 +227,8 @@ class SeatVoice:
         if outcome == "forwarded":
             media_ts = self._timeline(publisher, rtp_ts, now)
             packet = VoicePacket(payload, media_ts, now, t_capture, self.drive_arrived(),
-                                 self._paced(media_ts, now))
+                                 self._paced(media_ts, now),
+                                 self._capture_clock.observe(media_ts / CLOCK_RATE, now))
             self.last_packet_at = now
             self._heard(level_dbov, now)
             for listener in list(self.listeners):
@@ -253,6 +258,7 @@ class SeatVoice:
         else:
             step = DISCONTINUITY_TICKS + 1
         if abs(step) > DISCONTINUITY_TICKS:  # a new publisher or stream: go on from the wall
+            self._capture_clock.reset()  # its transit is its own
             elapsed = 0.0 if self.last_packet_at is None else now - self.last_packet_at
             step = max(1, round(min(elapsed, 5.0) * CLOCK_RATE))
         self._publisher, self._last_in = publisher, rtp_ts

@@ -20,6 +20,8 @@ from avatar_core.body.rest_pose import rest_body_pose
 from protocol import Drive, ProtocolError
 from protocol.params import FAMILIES, FLAME_FIELDS
 
+from .capture_clock import ArrivalClock
+
 FAMILY_NAMES = tuple(FAMILIES)  # smplx, flame, mano_left, mano_right
 
 # FLAME fields fusion reads live: the protocol's fixed-shape ones, plus expr (fitted to the
@@ -88,9 +90,14 @@ class DriveState:
     version: int = 0  # +1 per applied drive: equal versions pose the same mesh
     captured: float | None = None  # the last drive's t_capture (the performer's clock)
     arrived: float | None = None   # time.monotonic() when it was applied here
+    # its capture instant on this server's clock (t_capture through the performer's
+    # ArrivalClock; its arrival when it had no t_capture): the WebRTC senders' clock
+    captured_at: float | None = None
 
-    def apply(self, drive: Drive, fitted: dict[str, dict[str, np.ndarray]]) -> None:
-        """Merge a drive (its families as :func:`fit_drive` returned them)."""
+    def apply(self, drive: Drive, fitted: dict[str, dict[str, np.ndarray]],
+              clock: ArrivalClock | None = None) -> None:
+        """Merge a drive (its families as :func:`fit_drive` returned them); ``clock`` maps
+        its t_capture to this server's clock."""
         if drive.reset:
             self.families = {name: {} for name in FAMILY_NAMES}
         for name, values in fitted.items():
@@ -98,6 +105,8 @@ class DriveState:
         self.seq = drive.seq
         self.version += 1
         self.captured, self.arrived = drive.t_capture, time.monotonic()
+        self.captured_at = (self.arrived if clock is None or drive.t_capture is None
+                            else clock.observe(drive.t_capture, self.arrived))
 
     def restore(self, failed: DriveState, good: DriveState) -> bool:
         """A frame of ``failed`` did not render: every value it held that is still current
@@ -123,7 +132,7 @@ class DriveState:
     def copy(self) -> DriveState:
         # Arrays are never mutated in place (updates replace them), so a shallow copy is enough.
         return DriveState({k: dict(v) for k, v in self.families.items()}, self.seq,
-                          self.version, self.captured, self.arrived)
+                          self.version, self.captured, self.arrived, self.captured_at)
 
     def smplx_params(self, model: SMPLXModel, manos: dict[str, MANOModel]) -> dict[str, Any]:
         """SMPL-X parameters (no batch axis, or batch 1) with the face and hands fused in.

@@ -99,8 +99,9 @@ class Frame:
     versions: tuple[int, ...] = ()    # each seat's drive version this frame shows
     rgb: np.ndarray | None = None     # [H, W, 3] uint8, raw frames only
     preview: bool = False             # rendered cheaper while its view moves
-    # each seat's (t_capture, server arrival) of the drive shown: the one clock (voice sync)
-    seat_drives: tuple[tuple[float | None, float | None], ...] = ()
+    # each seat's (t_capture, server arrival, capture instant on the server's clock) of the
+    # drive shown: the one clock (voice sync, the WebRTC senders' timestamps)
+    seat_drives: tuple[tuple[float | None, float | None, float | None], ...] = ()
 
 
 @dataclass
@@ -275,7 +276,8 @@ class SceneFrames:
                                 keyframe, timings, seat_seqs=seqs, versions=job.versions,
                                 rgb=rgb if job.raw else None, preview=job.preview,
                                 captured=job.seats[0].captured,
-                                seat_drives=tuple((d.captured, d.arrived) for d in job.seats)))
+                                seat_drives=tuple((d.captured, d.arrived, d.captured_at)
+                                                  for d in job.seats)))
         return frames
 
     def _count_cost(self, stats: list[dict]) -> None:

@@ -59,6 +59,7 @@ from protocol import (
 from protocol.messages import Answers
 
 from ..metrics import ServerMetrics
+from .capture_clock import ArrivalClock
 from .drive import DriveState, fit_drive
 from .encoders import check_request
 from .inbound import InboundDecoder, InboundLimits
@@ -135,6 +136,7 @@ class Session:
         self.position = next(i for i, s in enumerate(live.seats) if s.index == seat_index)
         self.shapes = self.scene.shapes[self.position]
         self.drive: DriveState = live.seats[self.position].drive  # the seat's, shared
+        self.capture_clock = ArrivalClock()  # this performer's t_capture on the server's clock
         self.share_key = self.scene.share_key  # whose render time this is: the scene's
         self.track_scheduler = track_scheduler
         self.metrics = metrics
@@ -245,7 +247,7 @@ class Session:
                                 {"type": msg.type, "seq": msg.seq})
         if isinstance(msg, Drive):
             fitted = fit_drive(msg, self.shapes)  # ProtocolError before anything changes
-            self.drive.apply(msg, fitted)
+            self.drive.apply(msg, fitted, self.capture_clock)
             self._pending_drives += 1
             self._drive_changed()
         elif isinstance(msg, View):
@@ -413,7 +415,8 @@ class Session:
                 drive = Drive.model_validate({"seq": tracked.seq, "smplx": tracked.params},
                                              context={"limits": self.limits})
                 self.drive.apply(drive, fit_drive(drive, self.shapes))
-                self.drive.arrived = received_at  # the picture's lag counts tracking too
+                # the picture's lag counts tracking too; the image was taken as it came
+                self.drive.arrived = self.drive.captured_at = received_at
             except TrackingUnavailable as exc:
                 self.send_error("unsupported", str(exc), answers)
                 continue

@@ -23,7 +23,8 @@ from aiortc import MediaStreamTrack
 from aiortc import sdp as aiortc_sdp
 from aiortc.mediastreams import MediaStreamError
 
-from ..rooms.voice import CLOCK_RATE, Listener, SeatVoice
+from ..rooms.voice import CLOCK_RATE, Listener, SeatVoice, VoicePacket
+from .sender_clock import CaptureEpoch, CaptureStamps
 
 log = logging.getLogger(__name__)
 
@@ -33,22 +34,40 @@ RTP_HANDLER = "_handle_rtp_packet"  # RTCRtpReceiver's entry for each routed RTP
 
 
 class VoiceTrack(MediaStreamTrack):
+    """A seat's voice out. Timestamps (48 kHz) follow the seat's media time, so they stay
+    continuous; with a :class:`~.sender_clock.CaptureEpoch` they start at the first packet's
+    capture instant and each one's own capture instant is kept for the sender reports."""
+
     kind = "audio"
 
-    def __init__(self, listener: Listener, position: int) -> None:
+    def __init__(self, listener: Listener, position: int,
+                 epoch: CaptureEpoch | None = None) -> None:
         super().__init__()
         self.listener = listener
         self.position = position  # the seat's place in the room (and in each frame's seats)
         self.sent = 0
+        self.epoch = epoch
+        self.stamps = None if epoch is None else CaptureStamps()
+        self._shift: int | None = None  # media time -> ticks since the epoch
 
     async def recv(self) -> av.Packet:
         packet = await self.listener.next()
         if packet is None or self.readyState != "live":
             raise MediaStreamError
         out = av.Packet(packet.payload)
-        out.pts, out.time_base = packet.media_ts, TIME_BASE
+        out.pts, out.time_base = self._pts(packet), TIME_BASE
         self.sent += 1
         return out
+
+    def _pts(self, packet: VoicePacket) -> int:
+        if self.epoch is None:
+            return packet.media_ts
+        at = packet.arrived if packet.captured_at is None else packet.captured_at
+        if self._shift is None:
+            self._shift = max(0, self.epoch.ticks(at, CLOCK_RATE)) - packet.media_ts
+        pts = packet.media_ts + self._shift
+        self.stamps.note(pts, at)
+        return pts
 
     def stop(self) -> None:
         super().stop()

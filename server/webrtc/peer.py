@@ -33,6 +33,7 @@ from .encoders import install_encoder
 from .ingest import ingest
 from .negotiate import Kind, Offer, answer, configuration
 from .sctp import GuardLimits, SctpGuard
+from .sender_clock import CaptureEpoch, report_capture_clock
 from .track import LatestFrameTrack
 from .transport import WebRTCTransport
 
@@ -53,6 +54,7 @@ class WebRTCPeer:
         self.guard = SctpGuard(GuardLimits.from_settings(ctx.settings), self._too_large,
                                metrics=ctx.metrics, name=resource)
         self.track: LatestFrameTrack | None = None
+        self.epoch: CaptureEpoch | None = None  # webrtc_sender_clock = capture: both tracks'
         self.participant: Session | None = None
         self.codec: str | None = None      # negotiated video codec (MIME type), watching
         self.encoder: Any = None           # our clamped encoder, once installed
@@ -70,8 +72,10 @@ class WebRTCPeer:
         """Seat the participant, answer the offer, start everything; the answer SDP. Raises
         Refusal (seating) or OfferRefused (the SDP); the peer is closed then."""
         s = self.ctx.settings
+        # capture clock: both tracks' timestamps and sender reports count from this epoch
+        self.epoch = CaptureEpoch.now() if s.webrtc_sender_clock == "capture" else None
         if offer.watch_mid is not None:
-            self.track = LatestFrameTrack()
+            self.track = LatestFrameTrack(epoch=self.epoch)
         self.pc.on("datachannel", self.channel.attach)
         if not offer.data_channel:
             self.channel.absent()
@@ -85,6 +89,9 @@ class WebRTCPeer:
             self._run = self._spawn(self._serve(), "serve")
             self.voices = self._voices(offer, role, seat)
             transport.voices = [(t.position, t.listener) for t in self.voices.values()]
+            # the browser syncs the video with one voice of its stream: the first seat heard
+            transport.clock_position = min((t.position for t in self.voices.values()),
+                                           default=self.participant.position)
             speaks = role == "perform" and offer.microphone_mid is not None
             sdp, self.codec = await answer(self.pc, offer, self.track, self.guard,
                                            self.voices, speaks)
@@ -97,15 +104,25 @@ class WebRTCPeer:
                           if t.mid == offer.watch_mid)
             self.encoder = install_encoder(sender, self.codec, s.webrtc_min_bitrate,
                                            s.webrtc_max_bitrate)
+        if self.epoch is not None:
+            self._report_capture_clock(offer)
         self._spawn(self._connect_deadline(s.webrtc_connect_timeout_s), "deadline")
         return sdp
+
+    def _report_capture_clock(self, offer: Offer) -> None:
+        """Each sending track's sender reports on its capture instants (sender_clock.py)."""
+        tracks = {**self.voices, offer.watch_mid: self.track}
+        for transceiver in self.pc.getTransceivers():
+            track = tracks.get(transceiver.mid)
+            if track is not None and transceiver.sender.track is track:
+                report_capture_clock(transceiver.sender, track, self.epoch)
 
     def _voices(self, offer: Offer, role: str, seat: int) -> dict[str, VoiceTrack]:
         """The offer's received audio m-lines carry the room's seats in order; a performer
         does not get its own seat's voice back."""
         seats = self.room.live.seats
         return {mid: VoiceTrack(seat_voice(seats[i], self.ctx.settings,
-                                           self.ctx.metrics).subscribe(), i)
+                                           self.ctx.metrics).subscribe(), i, self.epoch)
                 for i, mid in enumerate(offer.voice_mids[:len(seats)])
                 if not (role == "perform" and seats[i].index == seat)}
 

@@ -4,7 +4,10 @@ The render loop ``deliver``s a frame and waits until the encoder has taken it, s
 frame waits here and a slow encoder (or link) means fewer, fresh frames, as on a WebSocket.
 ``recv`` returns the newest frame; when none arrived for ``repeat_after_s`` (the picture is
 still: nothing renders) it repeats the last one, so a late keyframe request or a new receiver
-still gets a picture. Timestamps come from a monotonic clock (90 kHz), strictly increasing.
+still gets a picture. Timestamps (90 kHz) are strictly increasing: with a
+:class:`~.sender_clock.CaptureEpoch` each frame's is the capture instant of the drive it shows
+(a repeat, or a frame of no new drive, the moment of sending less the last picture lag), else
+the moment the encoder took it (aiortc's clock: ``webrtc_sender_clock = send``).
 """
 
 from __future__ import annotations
@@ -18,32 +21,40 @@ import numpy as np
 from aiortc import MediaStreamTrack
 from aiortc.mediastreams import VIDEO_CLOCK_RATE, VIDEO_TIME_BASE, MediaStreamError
 
+from .sender_clock import CaptureEpoch, CaptureStamps
+
 REPEAT_AFTER_S = 0.5
 
 
 class LatestFrameTrack(MediaStreamTrack):
     kind = "video"
 
-    def __init__(self, repeat_after_s: float = REPEAT_AFTER_S) -> None:
+    def __init__(self, repeat_after_s: float = REPEAT_AFTER_S,
+                 epoch: CaptureEpoch | None = None) -> None:
         super().__init__()
         self.repeat_after_s = repeat_after_s
-        self._pending: tuple[np.ndarray, asyncio.Future] | None = None
+        self._pending: tuple[np.ndarray, asyncio.Future, float | None] | None = None
         self._new = asyncio.Event()
         self._last: np.ndarray | None = None  # [H, W, 3] uint8, the newest taken
         self._start = time.monotonic()
         self._pts = -1
+        self.epoch = epoch  # None: timestamps on the send time
+        self.stamps = None if epoch is None else CaptureStamps()
+        self._captured_at: float | None = None  # the last new capture instant taken
+        self._lag = 0.0  # from that capture to the encoder taking it
         self.sent = 0       # distinct frames handed to the encoder
         self.repeated = 0   # repeats of the last one
 
-    async def deliver(self, rgb: np.ndarray) -> None:
-        """Offer ``rgb`` ([H, W, 3] uint8); returns once the encoder took it, a newer frame
-        replaced it, or the track ended."""
+    async def deliver(self, rgb: np.ndarray, captured_at: float | None = None) -> None:
+        """Offer ``rgb`` ([H, W, 3] uint8) showing the drive captured at ``captured_at``
+        (monotonic; None: unknown); returns once the encoder took it, a newer frame replaced
+        it, or the track ended."""
         if self.readyState != "live":
             return
         if self._pending is not None:
             _settle(self._pending[1])  # superseded (latest wins)
         taken = asyncio.get_running_loop().create_future()
-        self._pending = (rgb, taken)
+        self._pending = (rgb, taken, captured_at)
         self._new.set()
         await taken
 
@@ -58,8 +69,9 @@ class LatestFrameTrack(MediaStreamTrack):
                 self._new.clear()
             if self.readyState != "live":
                 raise MediaStreamError
+            captured_at = None
             if self._pending is not None:
-                rgb, taken = self._pending
+                rgb, taken, captured_at = self._pending
                 self._pending = None
                 _settle(taken)
                 self._last = np.ascontiguousarray(rgb)
@@ -70,10 +82,24 @@ class LatestFrameTrack(MediaStreamTrack):
                 break
         # A new frame object each time: the encoder may still hold the one before.
         frame = av.VideoFrame.from_ndarray(self._last, format="rgb24")
-        pts = int((time.monotonic() - self._start) * VIDEO_CLOCK_RATE)
-        self._pts = max(pts, self._pts + 1)
-        frame.pts, frame.time_base = self._pts, VIDEO_TIME_BASE
+        frame.pts, frame.time_base = self._next_pts(captured_at), VIDEO_TIME_BASE
         return frame
+
+    def _next_pts(self, captured_at: float | None) -> int:
+        now = time.monotonic()
+        if self.epoch is None:
+            self._pts = max(int((now - self._start) * VIDEO_CLOCK_RATE), self._pts + 1)
+            return self._pts
+        if captured_at is not None and (self._captured_at is None
+                                        or captured_at > self._captured_at):
+            self._captured_at, self._lag = captured_at, max(0.0, now - captured_at)
+        else:  # no new drive in it: as if captured one picture lag ago
+            captured_at = now - self._lag
+        # never back (a capture older than the last frame's: a held frame, a restarted
+        # performer, or the peer's first frame showing a drive from before the epoch)
+        self._pts = max(self.epoch.ticks(captured_at, VIDEO_CLOCK_RATE), self._pts + 1, 0)
+        self.stamps.note(self._pts, self.epoch.monotonic + self._pts / VIDEO_CLOCK_RATE)
+        return self._pts
 
     def stop(self) -> None:
         super().stop()

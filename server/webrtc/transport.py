@@ -22,6 +22,7 @@ class WebRTCTransport:
         self.track = track  # None: a WHIP peer that only publishes, and so renders nothing
         self.stamp = stamp  # each frame's drive seq in its top-left corner (latency tests)
         self.voices: list[tuple[int, Listener]] = []  # (seat position, its listener) heard
+        self.clock_position = 0  # the seat whose drives' capture instants stamp the video
 
     @property
     def renders(self) -> bool:
@@ -37,7 +38,9 @@ class WebRTCTransport:
         rgb = frame.rgb  # shared with the room's other raw participants: stamp a copy
         if self.stamp:
             rgb = stamp_frame(rgb.copy(), frame.seq)
-        await self.track.deliver(rgb)
+        drives = frame.seat_drives
+        await self.track.deliver(rgb, drives[self.clock_position][2]
+                                 if self.clock_position < len(drives) else None)
         now = time.monotonic()  # the encoder took it: the voice waits as long as it did
         for position, listener in self.voices:
             if position < len(frame.seat_drives):
