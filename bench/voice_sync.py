@@ -22,11 +22,13 @@ process), record for every event, on time.monotonic() (one clock for every proce
 - the server's voice drops (overflow of listener buffers), its CPU and each viewer's.
 
 Each line of the table is one run: (viewers, processes, clock, drives/s, voice) under a cap,
-the server's ``webrtc_max_bitrate`` (TELESPLAT_WEBRTC_MAX_BITRATE), on the video encoder.
+the server's ``webrtc_max_bitrate`` (TELESPLAT_WEBRTC_MAX_BITRATE), on the video encoder;
+servers side by side for each ``--pacing``, ``--sender-clock`` (``webrtc_sender_clock``) and
+``--max-delay-s`` (``voice_max_delay_s``; "default": unset).
 
     nice -n 10 .venv/bin/python bench/voice_sync.py [--events 50] [--viewers 1,16]
         [--caps 0,500000] [--processes 4] [--drive-hz 0,30] [--mouth-clock arrival,decode]
-        [--pacing even,frames]
+        [--pacing even,frames] [--sender-clock capture,send] [--max-delay-s default,0]
 """
 
 from __future__ import annotations
@@ -445,21 +447,33 @@ def main() -> int:
                         "(a webcam performer's rate; 0: only at the jaw's edges), e.g. 0,30")
     parser.add_argument("--mouth-clock", default="arrival", help="arrival (the frame's last "
                         "RTP packet, as the click's), decode, or arrival,decode")
-    parser.add_argument("--pacing", default="even", help="the server's voice_pacing per run, "
-                        "side by side: even, frames or even,frames")
+    parser.add_argument("--pacing", default="frames", help="the server's voice_pacing per "
+                        "run, side by side: even, frames or even,frames")
+    parser.add_argument("--sender-clock", default="capture,send", help="the server's "
+                        "webrtc_sender_clock per run: capture, send or capture,send")
+    parser.add_argument("--max-delay-s", default="default", help="the server's "
+                        "voice_max_delay_s per run (default: unset), e.g. default,0")
     args = parser.parse_args()
-    print("| pacing | viewers | processes | mouth clock | drives/s | cap bit/s | events | paired | "
+    print("| pacing | sender clock | voice_max_delay_s | viewers | processes | mouth clock | "
+          "drives/s | cap bit/s | events | paired | "
           "missed | "
           "median ms | p5 / p95 ms | min / max ms | within -45/+125 | mouth after event ms | "
           "click after event ms | on the sender reports' clock: median (p5 / p95) ms, within | "
           "longest audio gap ms "
           "(viewers / mic) | server overflow drops | voice | server CPU s/s |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     most = max(int(v) for v in args.viewers.split(","))
     os.environ["TELESPLAT_WEBRTC_MAX_PEERS"] = str(most + 2)  # the viewers and the performer
-    for pacing, cap in itertools.product(args.pacing.split(","),
-                                         (int(c) for c in args.caps.split(","))):
+    for pacing, sender_clock, delay, cap in itertools.product(
+            args.pacing.split(","), args.sender_clock.split(","), args.max_delay_s.split(","),
+            (int(c) for c in args.caps.split(","))):
         os.environ["TELESPLAT_VOICE_PACING"] = pacing
+        os.environ["TELESPLAT_WEBRTC_SENDER_CLOCK"] = sender_clock
+        os.environ.pop("TELESPLAT_VOICE_MAX_DELAY_S", None)
+        if delay != "default":
+            os.environ["TELESPLAT_VOICE_MAX_DELAY_S"] = delay
+        os.environ.pop("TELESPLAT_WEBRTC_MAX_BITRATE", None)
+        os.environ.pop("TELESPLAT_WEBRTC_MIN_BITRATE", None)
         if cap:
             os.environ["TELESPLAT_WEBRTC_MAX_BITRATE"] = str(cap)
             os.environ["TELESPLAT_WEBRTC_MIN_BITRATE"] = str(min(cap, 250_000))
@@ -474,7 +488,8 @@ def main() -> int:
                     r = asyncio.run(run(url, token, n, args.events, args.size,
                                         args.open_pixels, proc.pid, voice == "on", procs,
                                         clock, hz))
-                    print(f"| {pacing} | {n} | {procs} | {clock} | {hz:g} | {cap or 'default'} | "
+                    print(f"| {pacing} | {sender_clock} | {delay} | {n} | {procs} | {clock} | "
+                          f"{hz:g} | {cap or 'default'} | "
                           f"{r['events']} | {r['paired']} | {r['missed']} | {r['median_ms']:.0f} | "
                           f"{r['p5_ms']:.0f} / {r['p95_ms']:.0f} | {r['min_ms']:.0f} / "
                           f"{r['max_ms']:.0f} | {r['within']:.0%} | {r['mouth_lag']} | "

@@ -14,14 +14,21 @@ records, on the page's clock (performance.now()):
 - offset = click - mouth, each mouth edge paired with the click nearest it within half an
   event interval. Chromium lip-syncs the tracks itself (one MediaStream, RTCP sender reports).
 
+Runs side by side, one fresh server each: every combination of ``--pacing``,
+``--sender-clock`` (the server's ``webrtc_sender_clock``: capture or send) and
+``--max-delay-s`` (its ``voice_max_delay_s``; "default": unset). Per track the page's
+getStats() at the end: the mean jitter-buffer delay and target delay (ms), and the mean delay
+Chromium's A/V sync added (RtpStreamsSynchronizer shows as the gap between them).
+
     nice -n 10 .venv/bin/python bench/voice_sync_chromium.py [--events 50] [--drive-hz 30]
-        [--pacing even,frames]
+        [--pacing even,frames] [--sender-clock capture,send] [--max-delay-s default,0]
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import itertools
 import os
 import sys
 import tempfile
@@ -110,7 +117,10 @@ window.telesplat.session.pc.getStats().then((stats) => {
   const out = {};
   stats.forEach((s) => {
     if (s.type === 'inbound-rtp' && s.jitterBufferEmittedCount) {
-      out[s.kind] = Math.round(1000 * s.jitterBufferDelay / s.jitterBufferEmittedCount);
+      const n = s.jitterBufferEmittedCount;
+      out[s.kind] = Math.round(1000 * s.jitterBufferDelay / n);
+      out[s.kind + '_target'] = Math.round(1000 * (s.jitterBufferTargetDelay || 0) / n);
+      out[s.kind + '_minimum'] = Math.round(1000 * (s.jitterBufferMinimumDelay || 0) / n);
     }
   });
   done(out);
@@ -215,25 +225,39 @@ def main() -> int:
     parser.add_argument("--open-pixels", type=int, default=8)
     parser.add_argument("--drive-hz", type=float, default=30.0)
     parser.add_argument("--avatar", default="synthetic")
-    parser.add_argument("--pacing", default="even", help="the server's voice_pacing per run, "
-                        "side by side: even, frames or even,frames")
+    parser.add_argument("--pacing", default="frames", help="the server's voice_pacing per "
+                        "run, side by side: even, frames or even,frames")
+    parser.add_argument("--sender-clock", default="capture,send", help="the server's "
+                        "webrtc_sender_clock per run: capture, send or capture,send")
+    parser.add_argument("--max-delay-s", default="default", help="the server's "
+                        "voice_max_delay_s per run (default: unset), e.g. default,0")
     args = parser.parse_args()
 
     os.environ["TELESPLAT_WEBRTC_MAX_PEERS"] = "4"
-    print("| viewer | pacing | drives/s | events | paired | median ms | p5 / p95 ms | "
-          "min / max ms | within -45/+125 | jitter buffer ms (audio / video) |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
-    for pacing in args.pacing.split(","):
+    print("| viewer | pacing | sender clock | voice_max_delay_s | drives/s | events | paired | "
+          "median ms | p5 / p95 ms | min / max ms | within -45/+125 | jitter buffer ms: "
+          "audio (target) / video (target) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for pacing, clock, delay in itertools.product(args.pacing.split(","),
+                                                  args.sender_clock.split(","),
+                                                  args.max_delay_s.split(",")):
         os.environ["TELESPLAT_VOICE_PACING"] = pacing
+        os.environ["TELESPLAT_WEBRTC_SENDER_CLOCK"] = clock
+        os.environ.pop("TELESPLAT_VOICE_MAX_DELAY_S", None)
+        if delay != "default":
+            os.environ["TELESPLAT_VOICE_MAX_DELAY_S"] = delay
         rec = run_once(args)
         arr = np.asarray(offsets(rec))
-        print(f"# {pacing}: frames {rec['frames']}, audio blocks {rec['blocks']}, mouth edges "
-              f"{len(rec['mouth'])}, clicks {len(rec['clicks'])}, audio {rec.get('context')}, "
-              f"error {rec['error']}, mean jitter-buffer delay ms {rec['buffers']}; "
+        print(f"# {pacing} {clock} {delay}: frames {rec['frames']}, audio blocks "
+              f"{rec['blocks']}, mouth edges {len(rec['mouth'])}, clicks {len(rec['clicks'])}, "
+              f"audio {rec.get('context')}, error {rec['error']}, getStats {rec['buffers']}; "
               f"offsets ms {[round(x) for x in arr]}", file=sys.stderr, flush=True)
-        buffers = f"{rec['buffers'].get('audio', '-')} / {rec['buffers'].get('video', '-')}"
+        b = rec["buffers"]
+        buffers = (f"{b.get('audio', '-')} ({b.get('audio_target', '-')}) / "
+                   f"{b.get('video', '-')} ({b.get('video_target', '-')})")
         if len(arr):
-            print(f"| Chromium | {pacing} | {args.drive_hz:g} | {args.events} | {len(arr)} | "
+            print(f"| Chromium | {pacing} | {clock} | {delay} | {args.drive_hz:g} | "
+                  f"{args.events} | {len(arr)} | "
                   f"{np.median(arr):.0f} | {np.percentile(arr, 5):.0f} / "
                   f"{np.percentile(arr, 95):.0f} | {arr.min():.0f} / {arr.max():.0f} | "
                   f"{((arr >= -45) & (arr <= 125)).mean():.0%} | {buffers} |", flush=True)

@@ -24,8 +24,10 @@ Either way never past ``voice_max_delay_s`` after its arrival.
 
 Packets carry a media time in 48 kHz ticks: the publisher's RTP timestamps, unwrapped and made
 continuous across publishers (a new performer goes on where the last one stopped), so a
-listener's outgoing timestamps never jump back. A seat nobody publishes to sends nothing and
-wakes nobody.
+listener's outgoing timestamps never jump back. Each also gets its capture instant on this
+server's clock (its media time through an :class:`~..stream.capture_clock.ArrivalClock`,
+restarted with each new publisher): what a WebRTC sender's timestamps and reports count
+(server/webrtc/sender_clock.py). A seat nobody publishes to sends nothing and wakes nobody.
 
 A seat speaks while a packet louder than ``voice_speaking_dbov`` came in the last
 ``SPEAKING_S`` (the level the sender put in the packet: RTP's RFC 6464 extension, or a
