@@ -52,7 +52,18 @@ STAMP_ROWS = 12  # the frame stamp's strip (<= 8 px cells) and the codec's bleed
 
 RECORDER = """
 const [openPixels, stampRows] = arguments;
-const rec = window.__sync = {mouth: [], clicks: [], frames: 0, blocks: 0, error: null};
+const rec = window.__sync = {mouth: [], clicks: [], frames: 0, blocks: 0, error: null,
+                             mouthMeta: [], stats: []};
+// every 200 ms, each track's jitter-buffer totals (their deltas: the delay of that window)
+setInterval(() => window.telesplat.session.pc.getStats().then((stats) => {
+  const row = {t: performance.now()};
+  stats.forEach((s) => {
+    if (s.type === 'inbound-rtp') row[s.kind] = [s.jitterBufferDelay, s.jitterBufferEmittedCount,
+                                                 s.jitterBufferTargetDelay,
+                                                 s.jitterBufferMinimumDelay];
+  });
+  rec.stats.push(row);
+}), 200);
 const video = document.getElementById('video');
 const canvas = document.createElement('canvas');
 const g = canvas.getContext('2d', {willReadFrequently: true});
@@ -69,7 +80,11 @@ function onFrame(now, meta) {
     let n = 0;
     for (let i = stampRows * w; i < w * h; i++) if (Math.abs(grey[i] - closed[i]) > 25) n++;
     const isOpen = n > openPixels;
-    if (isOpen && !open) rec.mouth.push(meta.expectedDisplayTime);
+    if (isOpen && !open) {
+      rec.mouth.push(meta.expectedDisplayTime);
+      rec.mouthMeta.push({receive: meta.receiveTime, capture: meta.captureTime,
+                          display: meta.expectedDisplayTime, rtp: meta.rtpTimestamp});
+    }
     open = isOpen;
   }
   rec.frames++;
@@ -183,6 +198,55 @@ def join_page(driver, url: str, token: str, room: str, size: int, open_pixels: i
     wait_for(driver, "window.__sync.blocks > 10 || window.__sync.error", 30, "the worklet")
 
 
+def window_delay(stats: list[dict], kind: str, at: float, span: float = 600.0) -> float | None:
+    """``kind``'s mean jitter-buffer delay (ms) over the getStats samples within ``span`` ms
+    before ``at`` (performance time): what the buffer held then, not the run's mean."""
+    rows = [r for r in stats if kind in r and at - span <= r["t"] <= at]
+    if len(rows) < 2 or rows[-1][kind][1] <= rows[0][kind][1]:
+        return None
+    return 1e3 * (rows[-1][kind][0] - rows[0][kind][0]) / (rows[-1][kind][1] - rows[0][kind][1])
+
+
+def explain(rec: dict) -> str:
+    """Per paired event, the parts of its offset the page can see: the video frame's wait
+    from its last packet to display (rVFC expectedDisplayTime - receiveTime), its receive time
+    less the capture time Chromium estimated from the reports (captureTime), and the audio
+    and video jitter-buffer delays of the 0.6 s before it; with each one's correlation with
+    the offset (which part makes the spread)."""
+    clicks = np.asarray(rec["clicks"])
+    rows = []
+    for meta in rec.get("mouthMeta", []):
+        mouth = meta["display"]
+        if not len(clicks):
+            break
+        nearest = clicks[np.argmin(np.abs(clicks - mouth))]
+        if abs(nearest - mouth) >= EVENT_EVERY_S * 1e3 / 2:
+            continue
+        wait = mouth - meta["receive"] if meta.get("receive") else np.nan
+        transit = (meta["receive"] - meta["capture"] if meta.get("capture") and meta.get("receive")
+                   else np.nan)
+        audio = window_delay(rec.get("stats", []), "audio", nearest)
+        video = window_delay(rec.get("stats", []), "video", mouth)
+        rows.append((nearest - mouth, wait, transit, np.nan if audio is None else audio,
+                     np.nan if video is None else video))
+    if len(rows) < 3:
+        return "too few events to explain"
+    arr = np.asarray(rows, dtype=float)
+    parts = []
+    for i, name in enumerate(("video wait (display - receive)", "video receive - capture",
+                              "audio jitter buffer", "video jitter buffer"), start=1):
+        col = arr[:, i]
+        ok = ~np.isnan(col)
+        if ok.sum() < 3:
+            parts.append(f"{name}: not given")
+            continue
+        r = np.corrcoef(arr[ok, 0], col[ok])[0, 1]
+        parts.append(f"{name}: median {np.median(col[ok]):.0f}, p5-p95 "
+                     f"{np.percentile(col[ok], 5):.0f}-{np.percentile(col[ok], 95):.0f} ms, "
+                     f"corr with the offset {r:+.2f}")
+    return "; ".join(parts)
+
+
 def offsets(rec: dict) -> list[float]:
     clicks = np.asarray(rec["clicks"])
     out = []
@@ -252,6 +316,8 @@ def main() -> int:
               f"{rec['blocks']}, mouth edges {len(rec['mouth'])}, clicks {len(rec['clicks'])}, "
               f"audio {rec.get('context')}, error {rec['error']}, getStats {rec['buffers']}; "
               f"offsets ms {[round(x) for x in arr]}", file=sys.stderr, flush=True)
+        print(f"# {pacing} {clock} {delay}, per event: {explain(rec)}", file=sys.stderr,
+              flush=True)
         b = rec["buffers"]
         buffers = (f"{b.get('audio', '-')} ({b.get('audio_target', '-')}) / "
                    f"{b.get('video', '-')} ({b.get('video_target', '-')})")
