@@ -53,7 +53,7 @@ STAMP_ROWS = 12  # the frame stamp's strip (<= 8 px cells) and the codec's bleed
 RECORDER = """
 const [openPixels, stampRows] = arguments;
 const rec = window.__sync = {mouth: [], clicks: [], frames: 0, blocks: 0, error: null,
-                             mouthMeta: [], stats: []};
+                             mouthMeta: [], stats: [], arrivals: []};
 // every 200 ms, each track's jitter-buffer totals (their deltas: the delay of that window)
 setInterval(() => window.telesplat.session.pc.getStats().then((stats) => {
   const row = {t: performance.now()};
@@ -87,6 +87,7 @@ function onFrame(now, meta) {
     }
     open = isOpen;
   }
+  if (meta.receiveTime) rec.arrivals.push([meta.receiveTime, meta.rtpTimestamp]);
   rec.frames++;
   video.requestVideoFrameCallback(onFrame);
 }
@@ -207,6 +208,17 @@ def window_delay(stats: list[dict], kind: str, at: float, span: float = 600.0) -
     return 1e3 * (rows[-1][kind][0] - rows[0][kind][0]) / (rows[-1][kind][1] - rows[0][kind][1])
 
 
+def picture_lag(rec: dict, at: float, span: float = 2000.0) -> float:
+    """The frames' arrival less their RTP time (capture, with the capture clock), median over
+    the ``span`` ms before ``at``, less the run's least: how late the picture came then."""
+    rows = np.asarray(rec.get("arrivals", []), dtype=float)
+    if len(rows) < 2:
+        return np.nan
+    lag = rows[:, 0] - np.unwrap(rows[:, 1], period=2**32) / 90.0
+    near = lag[(rows[:, 0] >= at - span) & (rows[:, 0] <= at)]
+    return float(np.median(near) - lag.min()) if len(near) else np.nan
+
+
 def explain(rec: dict) -> str:
     """Per paired event, the parts of its offset the page can see: the video frame's wait
     from its last packet to display (rVFC expectedDisplayTime - receiveTime), its receive time
@@ -228,13 +240,15 @@ def explain(rec: dict) -> str:
         audio = window_delay(rec.get("stats", []), "audio", nearest)
         video = window_delay(rec.get("stats", []), "video", mouth)
         rows.append((nearest - mouth, wait, transit, np.nan if audio is None else audio,
-                     np.nan if video is None else video))
+                     np.nan if video is None else video, picture_lag(rec, mouth)))
     if len(rows) < 3:
         return "too few events to explain"
     arr = np.asarray(rows, dtype=float)
     parts = []
     for i, name in enumerate(("video wait (display - receive)", "video receive - capture",
-                              "audio jitter buffer", "video jitter buffer"), start=1):
+                              "audio jitter buffer", "video jitter buffer",
+                              "picture lag (receive - RTP time, 2 s median, less its least)"),
+                             start=1):
         col = arr[:, i]
         ok = ~np.isnan(col)
         if ok.sum() < 3:
