@@ -444,8 +444,11 @@ class Settings(BaseModel):
                                        "may send (token bucket, burst one second); packets "
                                        "past it are dropped and counted.")
     voice_max_delay_s: float = Field(
-        0.5, ge=0.0, le=5.0, description="The longest the voice waits for the picture (its "
-                                         "delay buffer) so that lips and voice match.")
+        0.0, ge=0.0, le=5.0, description="The longest a WebRTC listener's voice waits for "
+                                         "its picture on the server (its delay buffer); 0: "
+                                         "sent as it comes, the receiver syncs by the "
+                                         "capture-clock sender reports (webrtc_sender_clock; "
+                                         "docs/benchmarks.md, voice, has both measured).")
     voice_pacing: Literal["even", "frames"] = Field(
         "frames", description="How a WebRTC listener's voice waits for the picture: frames "
                               "(each packet until the frame of its drive leaves: bursts) or "

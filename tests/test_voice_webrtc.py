@@ -26,8 +26,10 @@ NTP_TO_UNIX_S = 2_208_988_800  # 1900 -> 1970
 
 @pytest.fixture(scope="module")
 def srv(tmp_path_factory):
+    # the server's delay buffer on (off by default: browsers sync by the sender reports):
+    # the lip-sync test below measures arrivals at an aiortc viewer, which syncs nothing
     with run_server(tmp_path_factory.mktemp("voice"), default_width=SIZE, default_height=SIZE,
-                    default_max_fps=10) as running:
+                    default_max_fps=10, voice_max_delay_s=0.5) as running:
         yield running
 
 
@@ -255,9 +257,10 @@ def test_a_seat_without_a_voice_sends_nothing(srv):
 
 def test_both_tracks_sender_reports_are_on_one_clock(srv):
     """The audio and the video track's RTCP sender reports carry NTP times of one clock (the
-    server's wall clock at sending, aiortc's choice), the clock a browser lines the two up
-    by: each report's time is within a second of this machine's wall clock when it arrives,
-    and the two tracks' reports advance together."""
+    server's wall clock of each capture instant, webrtc_sender_clock = capture; that they
+    land on the captures themselves is tests/test_sender_clock.py's), the clock a browser
+    lines the two up by: each report's time is within a second of this machine's wall clock
+    when it arrives, and the two tracks' reports advance together."""
     from aiortc.rtp import RtcpSrPacket
 
     room = create_room(srv)

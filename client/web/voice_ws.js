@@ -12,8 +12,8 @@ export const SAMPLE_RATE = 48000;
 export const FRAME_US = 20000;         // one Opus frame: 20 ms
 export const VOICE_BITRATE = 32000;    // bits/s; the server drops past voice_max_bitrate (128k)
 export const JITTER_MS = 40;           // ahead of the fastest packet: relay and network jitter
-export const MAX_DELAY_MS = 500;       // the longest a voice waits for the picture (the server's
-//                                        voice_max_delay_s default): past it, lips lag
+export const MAX_DELAY_MS = 500;       // the longest a voice waits for the picture (as the
+//                                        server's WebRTC buffer once did): past it, lips lag
 export const RESYNC_MS = 20;           // a drift of the target delay past this moves playback
 export const LAG_SAMPLES = 15;         // picture lags the delay is the median of
 export const AUDIO_LAG_PACKETS = 100;  // the fastest packet of the last 2 s sets the voice's lag
