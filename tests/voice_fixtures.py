@@ -2,8 +2,10 @@
 
 :class:`ClickTrack` sends 20 ms frames of 48 kHz mono s16 in real time (paced like aiortc's
 ``AudioStreamTrack``), a 5 ms burst at full scale every ``click_every`` frames, and records the
-time.monotonic() each click frame was handed to the encoder. Hostile RTP for a peer's audio
-m-line is written with :func:`send_raw_rtp`.
+time.monotonic() each click frame was handed to the encoder (``clicks``) and its media time,
+the instant a sound card would have captured it (``click_media``: the two differ when the
+event loop stalls). Hostile RTP for a peer's audio m-line is written with
+:func:`send_raw_rtp`.
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ def click_track(click_every: int = 10, on_click=None):
             super().__init__()
             self.sent = 0
             self.clicks: list[float] = []
+            self.click_media: list[float] = []  # each click's media time (its due instant)
             self._start: float | None = None
 
         async def recv(self):
@@ -44,6 +47,7 @@ def click_track(click_every: int = 10, on_click=None):
             if self.sent % click_every == click_every - 1:
                 samples[0, :CLICK_SAMPLES] = 30000
                 self.clicks.append(time.monotonic())
+                self.click_media.append(due)  # when a sound card would have captured it
                 if on_click is not None:
                     on_click()
             frame = av.AudioFrame.from_ndarray(samples, format="s16", layout="mono")
