@@ -445,7 +445,7 @@ def main() -> int:
                         "(a webcam performer's rate; 0: only at the jaw's edges), e.g. 0,30")
     parser.add_argument("--mouth-clock", default="arrival", help="arrival (the frame's last "
                         "RTP packet, as the click's), decode, or arrival,decode")
-    parser.add_argument("--pacing", default="even", help="the server's voice_pacing per run, "
+    parser.add_argument("--pacing", default="frames", help="the server's voice_pacing per run, "
                         "side by side: even, frames or even,frames")
     args = parser.parse_args()
     print("| pacing | viewers | processes | mouth clock | drives/s | cap bit/s | events | paired | "

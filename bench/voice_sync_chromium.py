@@ -215,7 +215,7 @@ def main() -> int:
     parser.add_argument("--open-pixels", type=int, default=8)
     parser.add_argument("--drive-hz", type=float, default=30.0)
     parser.add_argument("--avatar", default="synthetic")
-    parser.add_argument("--pacing", default="even", help="the server's voice_pacing per run, "
+    parser.add_argument("--pacing", default="frames", help="the server's voice_pacing per run, "
                         "side by side: even, frames or even,frames")
     args = parser.parse_args()
 
