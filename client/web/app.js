@@ -224,7 +224,7 @@ async function wsMicrophone(session) {
   const mic = new WsMicrophone((data, tCapture, level) => session.voice(data, tCapture, level));
   mic.setMuted(voices.micMuted);
   try {
-    await mic.start(await openMicrophone());
+    await mic.start(await openMicrophone(), session.welcome?.voice);
   } catch (err) {
     mic.stop();
     $("mic").checked = false;

@@ -30,6 +30,7 @@ from protocol import (
     Request,
     RoomWelcome,
     View,
+    VoiceBounds,
     Welcome,
     encode,
 )
@@ -234,7 +235,9 @@ def _welcome(session: Session, record: AvatarRecord, expression_names: tuple[str
     return Welcome(session=session.id, minor=PROTOCOL_MINOR, avatar=info, limits=s.limits,
                    codecs=list(CODECS), request=request, encoders=encoders_info(),
                    framing=framing, room=RoomWelcome(id=room.id, name=room.name, role=role,
-                                    seat=seat if role == "perform" else None))
+                                    seat=seat if role == "perform" else None),
+                   voice=VoiceBounds(max_bitrate=s.voice_max_bitrate,
+                                     max_packet_bytes=s.voice_max_packet_bytes))
 
 
 async def serve(ctx: ServerContext, session: Session, welcome: bytes | None = None,
