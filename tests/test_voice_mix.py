@@ -228,3 +228,44 @@ def test_the_whep_query_names_the_choice(srv):
     assert r.status_code == 422 and "voice" in r.text
 
 
+
+
+def test_cli_watch_voice_mix_records_the_mix(srv, tmp_path):
+    import json
+    import wave
+
+    from client.cli import main as cli_main
+    from client.stream import StreamClient
+
+    room, performers, watch = two_seat_room(srv)
+    opus = tone_packets(TONES[1], 50)  # one second of seat 1's tone
+    out = tmp_path / "heard"
+    argv = ["watch", "--room", room["id"], "--out", str(out), "--seconds", "120", "--frames",
+            "3", "--size", "64", "--voice-mix", "--server", srv.url, "--token", watch["token"]]
+    assert cli_main([*argv, "--voice"]) == 2  # one or the other
+
+    async def run():
+        async with await StreamClient.connect(srv.url, token=performers[1]["token"],
+                                              room=room["id"]) as performer:
+            recorder = asyncio.create_task(asyncio.to_thread(cli_main, argv))
+            await performer.wait_presence(lambda p: p.viewers >= 1, timeout=60)
+            await asyncio.sleep(0.5)  # its mix subscribed
+            for packet in opus:
+                await performer.voice(packet)
+                await asyncio.sleep(0.02)
+            for i in range(400):  # bounded; ends once the recorder has its frames
+                if recorder.done():
+                    break
+                seq = await performer.drive(jaw_pose=[0.1 * (i % 5), 0.0, 0.0])
+                await performer.wait_frame(seq, timeout=30)
+            return await recorder
+
+    assert asyncio.run(run()) == 0
+    lines = [json.loads(x) for x in (out / "voice.jsonl").read_text().splitlines()]
+    assert lines and all(x["seat"] is None for x in lines)
+    assert not (out / "voice-seat1.wav").exists()
+    with wave.open(str(out / "voice-mix.wav")) as wav:
+        samples = np.frombuffer(wav.readframes(wav.getnframes()), np.int16)
+    left = samples[0::2].astype(np.float32) / 32768
+    assert len(left) >= 0.5 * RATE
+    assert tone_levels(left)[TONES[1]] > 0.3  # seat 1's tone, through the mix
