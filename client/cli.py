@@ -183,7 +183,11 @@ def cmd_watch(args: argparse.Namespace) -> int:
     from .watch import parse_view, watch_room
 
     view = parse_view(args.view) if args.view and args.view != "orbit" else None
-    if args.webrtc and args.voice:
+    if args.voice and args.voice_mix:
+        print("telesplat-client: error: --voice and --voice-mix are alternatives",
+              file=sys.stderr)
+        return 2
+    if args.webrtc and (args.voice or args.voice_mix):
         print("telesplat-client: error: --voice records the WebSocket's voice messages; it "
               "does not combine with --webrtc (a WHEP viewer gets the voices as audio tracks)",
               file=sys.stderr)
@@ -201,11 +205,12 @@ def cmd_watch(args: argparse.Namespace) -> int:
     result = asyncio.run(watch_room(args.server, args.token, args.room, args.out,
                                     seconds=args.seconds, max_frames=args.frames, view=view,
                                     size=args.size, timeout=args.timeout,
-                                    reconnect=_backoff(args), voice=args.voice))
+                                    reconnect=_backoff(args),
+                                    voice="mix" if args.voice_mix else args.voice))
     down = ", ".join(f"{r['downtime_s']:.1f}" for r in result["reconnections"])
     again = f" (reconnected after {down} s)" if down else ""
     heard = (f" and {result['voice_packets']} voice packets ({', '.join(result['voice_files'])})"
-             if args.voice else "")
+             if args.voice or args.voice_mix else "")
     print(f"wrote {result['frames']} frames{heard} of room {args.room} to {args.out}{again}")
     return 0
 
@@ -459,6 +464,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--voice", action="store_true",
                    help="also record the seats' voices: voice-seat{N}.wav and voice.jsonl "
                         "(capture times, to match frames.jsonl)")
+    p.add_argument("--voice-mix", action="store_true",
+                   help="record the room's one mixed voice instead (decoded, summed and "
+                        "encoded once on the server): voice-mix.wav and voice.jsonl")
     _reconnect_argument(p)
     p.set_defaults(func=cmd_watch)
 

@@ -142,18 +142,21 @@ ROLES = ("perform", "watch")
 
 def room_hello(client_name: str, *, room: str | None = None, role: str | None = None,
                seat: int | None = None, name: str | None = None,
-               voice: bool = False) -> Hello:
+               voice: bool | str = False) -> Hello:
     """The hello: role, seat, the display name ``name`` (what others see in presence;
-    ValueError if the protocol refuses it) and voice only in a room (a plain session's hello
-    stays as it was)."""
+    ValueError if the protocol refuses it) and voice (True: each seat's; "mix": the room's one
+    mix, watching) only in a room (a plain session's hello stays as it was)."""
     if room is None:
         if role is not None or seat is not None or name is not None or voice:
             raise ValueError("role, seat, name and voice are for rooms only")
         return Hello(client=client_name)
     if role is not None and role not in ROLES:
         raise ValueError(f"role must be one of {ROLES}, not {role!r}")
+    if voice not in (False, True, "mix"):
+        raise ValueError(f"voice must be True, False or 'mix', not {voice!r}")
     fields = {k: v for k, v in (("role", role), ("seat", seat), ("name", name),
-                                ("voice", voice or None)) if v is not None}
+                                ("voice", bool(voice) or None),
+                                ("voice_mix", voice == "mix" or None)) if v is not None}
     return Hello.model_validate({"client": client_name, **fields})
 
 
@@ -220,14 +223,15 @@ class StreamClient:
                       seat: int | None = None, client_name: str = "telesplat-python",
                       timeout: float = 30.0, queue_size: int = 64,
                       reconnect: Backoff | None = None, name: str | None = None,
-                      voice: bool = False) -> StreamClient:
+                      voice: bool | str = False) -> StreamClient:
         """Open a session on ``avatar``, or join ``room`` (``role`` "perform" or "watch" and
         ``seat``; both default to what the token allows; ``name``: the display name others
         see, default "performer" / "viewer N"); returns once ``welcome`` arrived
         (StreamError if the server refuses). ``server`` is the base URL (http://host:port) or
         a full ws:// URL. ``reconnect``: reconnect by itself after a restart or a dropped
         connection (see the module); None: the session ends with its connection. ``voice``:
-        hear the room's other seats (``on_voice``)."""
+        hear the room's other seats (``on_voice``); "mix": one mix of them all instead
+        (``voice`` messages without a seat; viewers only)."""
         join = {"server": server, "avatar": avatar, "token": token, "room": room,
                 "role": role, "seat": seat, "client_name": client_name, "timeout": timeout,
                 "name": name, "voice": voice}
@@ -238,7 +242,7 @@ class StreamClient:
     async def _open(cls, server: str, avatar: str | None, token: str | None, room: str | None,
                     role: str | None, seat: int | None, client_name: str,
                     timeout: float, name: str | None = None,
-                    voice: bool = False) -> tuple[Any, Welcome]:
+                    voice: bool | str = False) -> tuple[Any, Welcome]:
         """A connection and its welcome."""
         hello = room_hello(client_name, room=room, role=role, seat=seat, name=name,
                            voice=voice)
@@ -379,11 +383,15 @@ class StreamClient:
         self._request_fields.update(fields)
         await self._send(message)
 
-    async def image(self, data: bytes, format: str = "jpeg") -> int:
-        """Send an encoded webcam frame for server-side tracking; returns its seq."""
+    async def image(self, data: bytes, format: str = "jpeg",
+                    t_capture: float | None = None) -> int:
+        """Send an encoded webcam frame for server-side tracking; returns its seq.
+        ``t_capture``: when the camera took it (the clock of this performer's voice): the
+        drive tracked from it, and so the frames showing it, carry it (lip sync)."""
         seq = self._next_seq()
         self._sent_at[seq] = time.monotonic()
-        await self._send(Image.model_validate({"seq": seq, "format": format, "data": data},
+        await self._send(Image.model_validate({"seq": seq, "format": format, "data": data,
+                                               "t_capture": t_capture},
                                               context={"limits": self.limits}))
         return seq
 

@@ -1,7 +1,8 @@
 """Record the voices a room's viewer hears (``voice`` messages, Opus): one ``voice-seat{N}.wav``
-per seat (48 kHz stereo s16, decoded with PyAV's Opus decoder) and one JSON line per packet in
-``voice.jsonl`` (seat, seq, capture time, arrival, its sample offset in the WAV), so each
-packet can be matched with the frames (frames.jsonl: ``t_capture``).
+per seat, or one ``voice-mix.wav`` for the room's mix (messages without a seat), 48 kHz stereo
+s16 decoded with PyAV's Opus decoder, and one JSON line per packet in ``voice.jsonl`` (seat,
+seq, capture time, arrival, its sample offset in the WAV), so each packet can be matched with
+the frames (frames.jsonl: ``t_capture``).
 
 A gap in a seat's seqs (packets lost, or dropped as the viewer fell behind) is written as
 silence as long as the packet before it, so the WAV keeps the seat's timeline.
@@ -26,17 +27,21 @@ class VoiceRecorder:
     def __init__(self, out: Path, start: float) -> None:
         self.out, self.start = out, start
         self._log: TextIO = (out / "voice.jsonl").open("w")
-        self._seats: dict[int, dict[str, Any]] = {}
+        self._seats: dict[int | str, dict[str, Any]] = {}  # seat index, or "mix"
         self.packets = 0
         self.undecodable = 0
 
-    def _seat(self, index: int) -> dict[str, Any]:
+    @staticmethod
+    def _file(index: int | str) -> str:
+        return f"voice-{index}.wav" if index == "mix" else f"voice-seat{index}.wav"
+
+    def _seat(self, index: int | str) -> dict[str, Any]:
         if index not in self._seats:
             import av
 
             decoder = av.CodecContext.create("opus", "r")
             decoder.sample_rate = RATE
-            wav = wave.open(str(self.out / f"voice-seat{index}.wav"), "wb")
+            wav = wave.open(str(self.out / self._file(index)), "wb")
             wav.setnchannels(CHANNELS)
             wav.setsampwidth(SAMPLE_BYTES)
             wav.setframerate(RATE)
@@ -50,7 +55,7 @@ class VoiceRecorder:
     def __call__(self, message: Voice, received: float) -> None:
         import av
 
-        seat = self._seat(message.seat or 0)
+        seat = self._seat("mix" if message.seat is None else message.seat)
         if seat["seq"] is not None and message.seq > seat["seq"] + 1:
             missing = message.seq - seat["seq"] - 1
             silence = int(missing * seat["last_ms"] * RATE / 1000)
@@ -78,4 +83,4 @@ class VoiceRecorder:
         for seat in self._seats.values():
             seat["wav"].close()
         return {"voice_packets": self.packets, "voice_undecodable": self.undecodable,
-                "voice_files": [f"voice-seat{i}.wav" for i in sorted(self._seats)]}
+                "voice_files": sorted(self._file(i) for i in self._seats)}

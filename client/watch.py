@@ -67,7 +67,8 @@ async def watch_room(server: str, token: str | None, room: str, out: Path, *,
                      seconds: float | None = 10.0, max_frames: int | None = None,
                      view: dict[str, float] | None = None, size: int = 512,
                      timeout: float = 30.0, max_stale: int = 8,
-                     reconnect: Backoff | None = None, voice: bool = False) -> dict[str, Any]:
+                     reconnect: Backoff | None = None,
+                     voice: bool | str = False) -> dict[str, Any]:
     """Join ``room`` as a viewer and save its frames in ``out`` until ``seconds`` have passed or
     ``max_frames`` arrived (whichever first; at least one of them must be given).
 
@@ -76,7 +77,8 @@ async def watch_room(server: str, token: str | None, room: str, out: Path, *,
     one that repeats the last saved (same drive seq, same bytes): one file per picture.
     ``reconnect``: rejoin the room by itself after a server restart (client/stream.py); the
     recording goes on, and the result lists each reconnection's downtime. ``voice``: also
-    record the seats' voices (voice-seat{N}.wav and voice.jsonl)."""
+    record the seats' voices (voice-seat{N}.wav and voice.jsonl); "mix": the room's one mix
+    instead (voice-mix.wav)."""
     from .images import save_frame
     from .stream import StreamClient
 

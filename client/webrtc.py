@@ -8,7 +8,8 @@
 
 It offers a recvonly video (VP8 and H.264, ``codec`` first when given) and the data channel
 ``telesplat``; ``voices=n`` adds n recvonly Opus audio m-lines (the room's seats 0..n-1, in
-the same MediaStream as the video: :meth:`next_audio`), ``microphone=track`` a sendonly one
+the same MediaStream as the video: :meth:`next_audio`; with ``voice_mix`` the first carries
+the room's one mix of them), ``microphone=track`` a sendonly one
 the server forwards to the viewers when this peer performs; the answer's ``Location`` is
 DELETEd by :meth:`close`. HTTP refusals raise :class:`WhepError` with the status and the
 server's ``detail``.
@@ -44,9 +45,11 @@ class WhepViewer:
                  fps: float | None = None, seat: int | None = None,
                  role: Literal["perform", "watch"] | None = None, stamp: bool = False,
                  codec: Literal["vp8", "h264"] | None = None, data_channel: bool = True,
-                 voices: int = 0, microphone: Any = None, timeout_s: float = 20.0) -> None:
+                 voices: int = 0, microphone: Any = None, voice_mix: bool = False,
+                 timeout_s: float = 20.0) -> None:
         query = {k: v for k, v in {"width": width, "height": height, "fps": fps, "seat": seat,
-                                   "role": role, "stamp": int(stamp) if stamp else None
+                                   "role": role, "stamp": int(stamp) if stamp else None,
+                                   "voice": "mix" if voice_mix else None,
                                    }.items() if v is not None}
         self.base_url = base_url.rstrip("/")
         self.url = f"{self.base_url}/v1/rooms/{room}/whep" + (

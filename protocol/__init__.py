@@ -36,6 +36,7 @@ from .messages import (
     Tracked,
     View,
     Voice,
+    VoiceBounds,
     Welcome,
 )
 from .params import FAMILIES
@@ -46,6 +47,6 @@ __all__ = [
     "CameraSpec", "Drive",
     "Error", "Frame", "Framing", "Hello", "Image", "Limits", "Orbit", "Ping", "Pong", "Presence",
     "ProtocolError", "Request", "RoomWelcome", "SeatPresence", "Stats", "Timings", "Tracked",
-    "View", "Voice", "Welcome", "decode_client", "decode_server", "encode", "pack_array",
-    "unpack_array",
+    "View", "Voice", "VoiceBounds", "Welcome", "decode_client", "decode_server", "encode",
+    "pack_array", "unpack_array",
 ]

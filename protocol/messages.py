@@ -9,7 +9,9 @@ adds only optional fields, left out of plain sessions' messages, so a client of 
 keeps working there. Minor version 2 adds ``hello.name``, ``avatar.expression_names`` (left out
 when the avatar names none), ``tracked``, which only a client that sends images gets, the
 ``voice`` message and the optional ``t_capture`` of drives and frames (one clock: the
-performer's).
+performer's). Minor version 4 adds ``welcome.voice`` (the voice bounds a performer encodes
+within), ``image.t_capture`` (a tracked webcam frame's drive carries it) and ``hello.voice_mix``
+(one mixed voice instead of each seat's).
 """
 
 from __future__ import annotations
@@ -33,10 +35,12 @@ from .names import display_name
 from .params import validate_family
 
 PROTOCOL_VERSION = 1
-PROTOCOL_MINOR = 3  # 1: rooms (hello.role/seat, welcome.room/minor, presence)
+PROTOCOL_MINOR = 4  # 1: rooms (hello.role/seat, welcome.room/minor, presence)
 #                     2: hello.name, avatar.expression_names, tracked, voice, t_capture,
 #                        avatar (a seat's avatar replaced in place)
 #                     3: presence seats' speaking, voice.level_dbov
+#                     4: welcome.voice (the server's voice bounds), image.t_capture,
+#                        hello.voice_mix
 MAX_SEATS = 16      # seat indices on the wire; server settings bound a room's seats further
 MAX_SEQ = 2**53 - 1  # exact in a JavaScript number
 MAX_EXPRESSION_NAMES = 100  # as many as an expression vector may hold (params.FAMILIES)
@@ -90,6 +94,8 @@ class Hello(_Message):
     seat: SeatIndex | None = None  # rooms: the seat to perform (or to follow, watching)
     name: str | None = None        # the display name others see (protocol/names.py)
     voice: bool | None = None      # rooms (minor 2): hear the other seats as `voice` messages
+    voice_mix: bool | None = None  # rooms (minor 4), watching: hear one mix of every seat
+    #                                instead (`voice` messages without a seat); implies voice
 
     @field_validator("name")
     @classmethod
@@ -264,6 +270,8 @@ class Image(_Message):
     seq: Seq
     format: Literal["jpeg", "png"] = "jpeg"
     data: bytes
+    t_capture: CaptureTime | None = None  # (minor 4) when the camera took it: the drive the
+    #                                       server tracks from it carries it (lip sync)
 
     @field_validator("data")
     @classmethod
@@ -327,6 +335,14 @@ class Framing(_Message):
     min_distance: float = Field(gt=0)
 
 
+class VoiceBounds(_Message):
+    """What a performer's voice may carry here (the server's voice_max_bitrate and
+    voice_max_packet_bytes): an encoder set within them loses no packet to the bounds."""
+
+    max_bitrate: int = Field(gt=0)       # bits/s of Opus payload per seat
+    max_packet_bytes: int = Field(gt=0)  # one Opus packet
+
+
 class Welcome(_Message):
     type: Literal["welcome"] = "welcome"
     version: int = PROTOCOL_VERSION
@@ -339,6 +355,7 @@ class Welcome(_Message):
     room: RoomWelcome | None = None
     encoders: EncodersInfo | None = None  # what encodes the frames (servers that report it)
     framing: Framing | None = None  # the default view of the scene at rest (servers that send it)
+    voice: VoiceBounds | None = None  # rooms (minor 4): the bounds on a performer's voice
 
 
 class SeatPresence(_Message):

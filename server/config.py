@@ -462,6 +462,14 @@ class Settings(BaseModel):
                                               "(RFC 6464 dBov, as the sender measured it) "
                                               "is at least this; packets without a level "
                                               "count as speech.")
+    voice_mix_max_seats: int = Field(
+        4, ge=1, le=16, description="Most seats one room's mixed voice (a viewer's "
+                                    "?voice=mix / hello.voice_mix) sums at once: the first "
+                                    "to speak; another seat's packets are dropped and "
+                                    "counted (unmixed) until one falls silent for 1 s.")
+    voice_mix_bitrate: int = Field(
+        48_000, ge=6_000, le=510_000, description="Bits per second the room's mixed voice is "
+                                                  "encoded at (Opus, 20 ms frames).")
     voice_presence_interval_s: float = Field(
         0.25, ge=0.05, le=10.0, description="Shortest time between two presence updates a "
                                             "room sends because who speaks changed.")

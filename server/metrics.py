@@ -56,7 +56,8 @@ class ServerMetrics:
             "telesplat_voice_packets", "Opus packets of performers' voices, by outcome "
             "(forwarded: to the seat's listeners; garbage: not a valid Opus packet; too_large: "
             "past voice_max_packet_bytes; rate: past voice_max_bitrate; refused: sent by a "
-            "peer that may not publish a voice; overflow: a listener's buffer was full)",
+            "peer that may not publish a voice; overflow: a listener's buffer was full; "
+            "unmixed: left out of a room's mix past voice_mix_max_seats)",
             ["outcome"], registry=r)
 
     def render_text(self) -> bytes:

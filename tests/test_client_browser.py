@@ -161,6 +161,7 @@ def test_webcam_toggle_shows_the_servers_answer(page):
     from tests.track_models import models_available
 
     wait_for(page, "window.telesplat.framesShown > 0", 60, "a frame")
+    started = page.execute_script("return performance.now() / 1000")
     page.find_element("id", "webcam").click()  # Chromium's fake camera stands in
     if models_available():  # the server tracks the images: frames keep coming, no error
         before = page.execute_script("return window.telesplat.framesShown")
@@ -170,6 +171,12 @@ def test_webcam_toggle_shows_the_servers_answer(page):
             "return window.telesplat.errors.filter(e => e.answers?.type === 'image')"
             ".map(e => e.code)")
         assert errors == [], errors
+        # Each image carries its capture time (the camera's, on the page's clock): the frames
+        # tracked from it carry it back, as a drive's do (the voice syncs to them).
+        captured = wait_for(page, f"window.telesplat.frameCapture > {started} && "
+                                  "window.telesplat.frameCapture", 30,
+                            "a frame carrying its image's capture time")
+        assert captured < page.execute_script("return performance.now() / 1000")
         # Chromium's built-in test pattern holds no person: the server's `tracked` says so
         # (tests/test_page_status_browser.py plays a person too).
         status = wait_for(page, "window.telesplat.tracked && document.getElementById("

@@ -34,6 +34,7 @@ from protocol import (
     Tracked,
     View,
     Voice,
+    VoiceBounds,
     Welcome,
     decode_client,
     decode_server,
@@ -64,6 +65,8 @@ CLIENT_EXAMPLES = [
     Hello(token="tsr_x", client="viewer", role="watch", seat=1),
     Hello(token="t", client="telesplat-web", name="Zoë O'Brien-2"),
     Voice(seq=4, data=b"\xf8\xff\xfe", t_capture=12.52),
+    Image(seq=9, data=b"\xff\xd8 a camera frame", t_capture=33.25),  # minor 4
+    Hello(token="t", client="viewer", role="watch", voice_mix=True),   # minor 4
     Drive(seq=8, flame={"jaw_pose": [0.2, 0, 0]}, t_capture=12.5),
 ]
 SERVER_EXAMPLES = [
@@ -80,7 +83,8 @@ SERVER_EXAMPLES = [
     Welcome(session="def", minor=1, avatar=AvatarInfo(id="demo", name="ada", num_gaussians=5,
                                                       sh_degree=3),
             limits=Limits(), codecs=["jpeg"], request=Request(width=512),
-            room=RoomWelcome(id="r1", name="demo", role="perform", seat=0)),
+            room=RoomWelcome(id="r1", name="demo", role="perform", seat=0),
+            voice=VoiceBounds(max_bitrate=128_000, max_packet_bytes=1276)),  # minor 4
     Presence(room="r1", seats=[SeatPresence(index=0, avatar="demo", performer="cam",
                                             holding=False)],
              viewers=3, event="join", who="viewer", role="watch"),

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.server_fixtures import server_fixture  # noqa: F401 (`server`)
+from tests.server_fixtures import server_fixture, wait_until  # noqa: F401 (`server`)
 from tests.test_client_browser import server_log, wait_for  # noqa: F401 (a fixture)
 from tests.test_client_units import node, run_node
 from tests.test_voice_browser import LOUD_S, room, voice_counts, with_microphone  # noqa: F401
@@ -134,6 +134,51 @@ def test_a_websocket_performer_speaks_and_a_websocket_viewer_hears_in_sync(serve
     finally:
         performer.quit()
         viewer.quit()
+
+
+@browser_test
+def test_the_page_encodes_within_the_servers_voice_bounds(server, room):  # noqa: F811
+    """The welcome (protocol minor 4) carries voice_max_bitrate and voice_max_packet_bytes;
+    a performer page set to a server bound below its 32 kbit/s encodes at that bound, and
+    nothing it sends is dropped for rate or size."""
+    room, links = room
+    settings = server.ctx.settings
+    before = settings.voice_max_bitrate, settings.voice_max_packet_bytes
+    settings.voice_max_bitrate, settings.voice_max_packet_bytes = 12_000, 400
+    performer = with_microphone()
+    try:
+        join_ws(performer, server, links["perform"], mic=True)
+        wait_for(performer, "document.getElementById('mic-status').textContent === 'speaking'",
+                 30, "the microphone on")
+        bounds = performer.execute_script("return window.telesplat.session.welcome.voice")
+        assert bounds == {"max_bitrate": 12_000, "max_packet_bytes": 400}
+        mic = wait_for(performer, "window.telesplat.wsMic?.sent > 150 && "
+                                  "({bitrate: window.telesplat.wsMic.bitrate, "
+                                  "sent: window.telesplat.wsMic.sent, "
+                                  "oversized: window.telesplat.wsMic.oversized})",
+                       LOUD_S, "3 s of packets sent")
+        assert mic["bitrate"] == 12_000 and mic["oversized"] == 0, mic
+        counts = wait_until(lambda: (c := voice_counts(server, room["id"])).get(
+            "forwarded", 0) > 150 and c, 10, what="the packets forwarded")
+        assert not {"garbage", "too_large", "rate"} & set(counts), counts
+    finally:
+        performer.quit()
+        settings.voice_max_bitrate, settings.voice_max_packet_bytes = before
+
+
+@pytest.mark.skipif(node() is None, reason="node is not installed")
+def test_the_bit_rate_within_the_servers_bounds_in_node():
+    url = Path(WEB, "voice_ws.js").resolve().as_uri()
+    out = json.loads(run_node(f"""
+        import {{ voiceBitrate }} from {json.dumps(url)};
+        console.log(JSON.stringify([
+          voiceBitrate(null), voiceBitrate({{max_bitrate: 128000, max_packet_bytes: 1276}}),
+          voiceBitrate({{max_bitrate: 12000, max_packet_bytes: 1276}}),
+          voiceBitrate({{max_bitrate: 128000, max_packet_bytes: 40}}),
+          voiceBitrate({{max_bitrate: 6000, max_packet_bytes: 2}})]));"""))
+    # default; the page's own 32k under a high bound; the server's bit rate; a packet bound
+    # of 40 B at 50 packets/s with 2x VBR headroom; never below Opus' 6 kbit/s
+    assert out == [32_000, 32_000, 12_000, 8_000, 6_000]
 
 
 @pytest.mark.skipif(node() is None, reason="node is not installed")

@@ -101,6 +101,7 @@ async function drawPending() {
       ctx.drawImage(bitmap, 0, 0);
       bitmap.close();
       state.framesShown += 1;
+      state.frameCapture = frame.t_capture ?? null;  // its drive's (or webcam image's) capture
       wsVoices.picture(frame.t_capture, performance.now());  // the picture's delay, for the voice
     }
   } catch (err) {
@@ -131,7 +132,10 @@ const capture = new Capture($("stage"), () => (canvas.hidden ? video : canvas),
 state.capture = capture;
 state.saved = [];  // what snapshots and recordings saved: {kind, blob, url, name, size, ...}
 capture.onSaved = (saved) => state.saved.push(saved);
-const webcam = new Webcam((bytes) => { state.stats.input(); state.session?.image(bytes); });
+const webcam = new Webcam((bytes, tCapture) => {
+  state.stats.input();
+  state.session?.image(bytes, "jpeg", tCapture);
+});
 const voices = new RoomVoices($("voices"));
 const wsVoices = new WsVoices($("voices"));  // the WebSocket's voices (voice_ws.js)
 let wsMic = null;  // the WebSocket performer's microphone, while on
@@ -224,7 +228,7 @@ async function wsMicrophone(session) {
   const mic = new WsMicrophone((data, tCapture, level) => session.voice(data, tCapture, level));
   mic.setMuted(voices.micMuted);
   try {
-    await mic.start(await openMicrophone());
+    await mic.start(await openMicrophone(), session.welcome?.voice);
   } catch (err) {
     mic.stop();
     $("mic").checked = false;

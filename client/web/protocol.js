@@ -8,7 +8,7 @@ import { decode as unpackMsgpack, encode as packMsgpack } from "./vendor/msgpack
 
 export const PROTOCOL_VERSION = Object.freeze(1);
 
-export const PROTOCOL_MINOR = Object.freeze(3);
+export const PROTOCOL_MINOR = Object.freeze(4);
 
 export const MAX_SEQ = Object.freeze(9007199254740991);
 
@@ -970,6 +970,18 @@ export const SCHEMA_DEFS = Object.freeze({
         ],
         "default": null,
         "title": "Voice"
+      },
+      "voice_mix": {
+        "anyOf": [
+          {
+            "type": "boolean"
+          },
+          {
+            "type": "null"
+          }
+        ],
+        "default": null,
+        "title": "Voice Mix"
       }
     },
     "title": "Hello",
@@ -998,6 +1010,20 @@ export const SCHEMA_DEFS = Object.freeze({
         "minimum": 0,
         "title": "Seq",
         "type": "integer"
+      },
+      "t_capture": {
+        "anyOf": [
+          {
+            "maximum": 1000000000.0,
+            "minimum": 0,
+            "type": "number"
+          },
+          {
+            "type": "null"
+          }
+        ],
+        "default": null,
+        "title": "T Capture"
       },
       "type": {
         "const": "image",
@@ -1782,6 +1808,28 @@ export const SCHEMA_DEFS = Object.freeze({
     "title": "Voice",
     "type": "object"
   },
+  "VoiceBounds": {
+    "additionalProperties": false,
+    "description": "What a performer's voice may carry here (the server's voice_max_bitrate and\nvoice_max_packet_bytes): an encoder set within them loses no packet to the bounds.",
+    "properties": {
+      "max_bitrate": {
+        "exclusiveMinimum": 0,
+        "title": "Max Bitrate",
+        "type": "integer"
+      },
+      "max_packet_bytes": {
+        "exclusiveMinimum": 0,
+        "title": "Max Packet Bytes",
+        "type": "integer"
+      }
+    },
+    "required": [
+      "max_bitrate",
+      "max_packet_bytes"
+    ],
+    "title": "VoiceBounds",
+    "type": "object"
+  },
   "Welcome": {
     "additionalProperties": false,
     "properties": {
@@ -1860,6 +1908,17 @@ export const SCHEMA_DEFS = Object.freeze({
         "default": 1,
         "title": "Version",
         "type": "integer"
+      },
+      "voice": {
+        "anyOf": [
+          {
+            "$ref": "#/$defs/VoiceBounds"
+          },
+          {
+            "type": "null"
+          }
+        ],
+        "default": null
       }
     },
     "required": [

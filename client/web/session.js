@@ -128,9 +128,13 @@ export class MessageSession extends EventTarget {
     return this._send({ type: "request", ...fields }, { validate: true });
   }
 
-  image(bytes, format = "jpeg") {
+  /** A webcam frame to track, captured at `tCapture` (s, captureTime()'s clock): the frames
+   *  of the drive tracked from it carry it, so the voice syncs to them (protocol minor 4). */
+  image(bytes, format = "jpeg", tCapture = null) {
     const seq = this._stamp();
-    return this._send({ type: "image", seq, format, data: bytes }) ? seq : null;
+    const message = { type: "image", seq, format, data: bytes };
+    if (tCapture !== null) message.t_capture = tCapture;
+    return this._send(message) ? seq : null;
   }
 
   ping() {

@@ -10,7 +10,10 @@ import { seatControls } from "./voice.js";
 
 export const SAMPLE_RATE = 48000;
 export const FRAME_US = 20000;         // one Opus frame: 20 ms
-export const VOICE_BITRATE = 32000;    // bits/s; the server drops past voice_max_bitrate (128k)
+export const VOICE_BITRATE = 32000;    // bits/s the page prefers; the server's welcome.voice
+//                                        bounds lower it (voiceBitrate)
+export const MIN_BITRATE = 6000;       // Opus' lowest (and the server's voice_max_bitrate's)
+export const PACKET_HEADROOM = 2;      // a VBR packet may be this many times its average size
 export const JITTER_MS = 40;           // ahead of the fastest packet: relay and network jitter
 export const MAX_DELAY_MS = 500;       // the longest a voice waits for the picture (as the
 //                                        server's WebRTC buffer once did): past it, lips lag
@@ -38,6 +41,17 @@ export function levelDbov(samples) {
   for (const s of samples) sum += s * s;
   const rms = Math.sqrt(sum / Math.max(1, samples.length));
   return rms > 0 ? Math.max(-127, Math.min(0, 20 * Math.log10(rms))) : -127;
+}
+
+/** The bit rate to encode at: the page's preference, within the server's bounds (welcome.voice,
+ *  protocol minor 4: max_bitrate, and max_packet_bytes with room for VBR's larger packets). */
+export function voiceBitrate(bounds, preferred = VOICE_BITRATE) {
+  let rate = preferred;
+  if (bounds?.max_bitrate) rate = Math.min(rate, bounds.max_bitrate);
+  if (bounds?.max_packet_bytes) {
+    rate = Math.min(rate, (bounds.max_packet_bytes * 8 * 1e6) / FRAME_US / PACKET_HEADROOM);
+  }
+  return Math.max(MIN_BITRATE, Math.floor(rate));
 }
 
 function median(values) {
@@ -73,9 +87,16 @@ export class WsMicrophone {
     this.muted = false;
     this.sent = 0;
     this.errors = 0;
+    this.oversized = 0;          // packets past the server's max_packet_bytes: not sent
+    this.bitrate = null;         // what the encoder was set to
+    this.maxPacketBytes = Infinity;
   }
 
-  async start(stream, bitrate = VOICE_BITRATE) {
+  /** `bounds`: the welcome's voice bounds (null from a server before protocol minor 4). */
+  async start(stream, bounds = null) {
+    const bitrate = voiceBitrate(bounds);
+    this.bitrate = bitrate;
+    this.maxPacketBytes = bounds?.max_packet_bytes ?? Infinity;
     const config = {
       codec: "opus", sampleRate: SAMPLE_RATE, numberOfChannels: 1, bitrate,
       opus: { frameDuration: FRAME_US },
@@ -137,6 +158,10 @@ export class WsMicrophone {
     chunk.copyTo(bytes);
     const frame = this.frames.shift();
     const capturedMs = frame?.capturedMs ?? chunk.timestamp / 1000;
+    if (bytes.length > this.maxPacketBytes) {  // the server would drop it: not sent
+      this.oversized += 1;
+      return;
+    }
     this.sent += 1;
     this.send(bytes, Math.max(0, capturedMs / 1000), this.muted ? -127 : frame?.level ?? -127);
   }

@@ -1,5 +1,6 @@
 // Webcam driving: grab camera frames, encode them as JPEG and send `image` messages at a
-// capped rate. The server tracks them into parameters and answers each with `tracked`
+// capped rate, each with its capture time (the clock of the page's drives and voice: the
+// frames tracked from it carry it back, and the voice waits for them). The server tracks them into parameters and answers each with `tracked`
 // (whether it found a person), or with error `unsupported` when its landmark models are
 // missing.
 
@@ -9,7 +10,8 @@ const JPEG_QUALITY = 0.7;
 
 export class Webcam {
   constructor(send) {
-    this.send = send;  // (Uint8Array) => void
+    this.send = send;  // (Uint8Array, tCaptureS) => void
+    this.frameCapturedMs = null;  // the shown camera frame's capture time (performance.now())
     this.stream = null;
     this.timer = null;
     this.busy = false;
@@ -32,6 +34,7 @@ export class Webcam {
     });
     this.video.srcObject = this.stream;
     await this.video.play();
+    this._followFrames();
     this.timer = setInterval(() => this._grab(), 1000 / MAX_FPS);
   }
 
@@ -41,6 +44,18 @@ export class Webcam {
     this.stream?.getTracks().forEach((track) => track.stop());
     this.stream = null;
     this.video.srcObject = null;
+    this.frameCapturedMs = null;
+  }
+
+  /** The camera's own capture time of each frame the video shows, where the browser gives it
+   *  (requestVideoFrameCallback); else the moment it is grabbed stands in. */
+  _followFrames() {
+    if (typeof this.video.requestVideoFrameCallback !== "function") return;
+    const onFrame = (now, meta) => {
+      this.frameCapturedMs = meta.captureTime ?? now;
+      if (this.running) this.video.requestVideoFrameCallback(onFrame);
+    };
+    this.video.requestVideoFrameCallback(onFrame);
   }
 
   _grab() {
@@ -50,10 +65,13 @@ export class Webcam {
     const height = Math.round((WIDTH * this.video.videoHeight) / this.video.videoWidth);
     this.canvas.width = WIDTH;
     this.canvas.height = height;
+    const capturedMs = this.frameCapturedMs ?? performance.now();
     this.canvas.getContext("2d").drawImage(this.video, 0, 0, WIDTH, height);
     this.canvas.toBlob(async (blob) => {
       try {
-        if (blob && this.running) this.send(new Uint8Array(await blob.arrayBuffer()));
+        if (blob && this.running) {
+          this.send(new Uint8Array(await blob.arrayBuffer()), Math.max(0, capturedMs / 1000));
+        }
       } finally {
         this.busy = false;
       }

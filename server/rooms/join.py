@@ -30,6 +30,7 @@ from protocol import (
     Request,
     RoomWelcome,
     View,
+    VoiceBounds,
     Welcome,
     encode,
 )
@@ -42,6 +43,7 @@ from ..stream.admission import Admitted, admit
 from ..stream.encoders import encoders_info
 from ..stream.framing import room_framing
 from ..stream.gate import (
+    CLOSE_BAD_HELLO,
     CLOSE_FORBIDDEN,
     CLOSE_INTERNAL,
     CLOSE_NOT_FOUND,
@@ -59,6 +61,7 @@ from ..stream.view_motion import MovingViewCost
 from .live import CLOSE_GONE, JoinRefused, LiveRoom
 from .registry import Invitation, Room, RoomError, SeatSpec
 from .voice import relay_voices
+from .voice_mix import relay_mix
 
 log = logging.getLogger(__name__)
 
@@ -149,12 +152,17 @@ async def join_stream(ws: WebSocket, ctx: ServerContext, avatar_id: str,
             room = _room(ctx, room_id)
             role, seat = choose_role(room, who.hello.role, who.hello.seat, who.principal,
                                      who.invitation)
+        mix = who.hello is not None and bool(who.hello.voice_mix)
+        if mix and role != "watch":
+            raise Refusal("invalid", "voice_mix is for viewers: a performer hears the other "
+                                     "seats each on its own (the one mix would hold its own "
+                                     "voice)", CLOSE_BAD_HELLO)
         admitted = admit(ctx, who.principal, who.invitation)
         name = None if who.hello is None else who.hello.name
         session, welcome = await seat_participant(ctx, room, role, seat, name,
                                                   WebSocketTransport(ws))
         hear = who.hello is not None and bool(who.hello.voice)
-        await serve(ctx, session, encode(welcome), hear_voices=hear)
+        await serve(ctx, session, encode(welcome), hear_voices=hear, voice_mix=mix)
     except Refusal as refusal:
         await refuse(ws, refusal, ctx)
     except WebSocketDisconnect:
@@ -234,13 +242,16 @@ def _welcome(session: Session, record: AvatarRecord, expression_names: tuple[str
     return Welcome(session=session.id, minor=PROTOCOL_MINOR, avatar=info, limits=s.limits,
                    codecs=list(CODECS), request=request, encoders=encoders_info(),
                    framing=framing, room=RoomWelcome(id=room.id, name=room.name, role=role,
-                                    seat=seat if role == "perform" else None))
+                                    seat=seat if role == "perform" else None),
+                   voice=VoiceBounds(max_bitrate=s.voice_max_bitrate,
+                                     max_packet_bytes=s.voice_max_packet_bytes))
 
 
 async def serve(ctx: ServerContext, session: Session, welcome: bytes | None = None,
-                hear_voices: bool = False) -> None:
+                hear_voices: bool = False, voice_mix: bool = False) -> None:
     """Send the welcome (where the transport has not) and run the session until it ends;
-    then out of its room. ``hear_voices``: the other seats' voices as ``voice`` messages."""
+    then out of its room. ``hear_voices``: the other seats' voices as ``voice`` messages;
+    ``voice_mix``: instead the room's one mix of them (server/rooms/voice_mix.py)."""
     live = session.live
     relay = None
     try:
@@ -248,7 +259,10 @@ async def serve(ctx: ServerContext, session: Session, welcome: bytes | None = No
             await session.transport.send(welcome)
         live.broadcast(live.presence("join", session))
         ctx.sessions[session.id] = session
-        if hear_voices:
+        if voice_mix:
+            relay = asyncio.get_running_loop().create_task(
+                relay_mix(session, live, ctx.settings, ctx.metrics))
+        elif hear_voices:
             relay = asyncio.get_running_loop().create_task(
                 relay_voices(session, live, ctx.settings, ctx.metrics))
         await session.run()

@@ -13,7 +13,7 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -73,6 +73,7 @@ class LiveRoom:
         self.closed = False
         self._closing: set[asyncio.Task] = set()
         self._speaking_task: asyncio.Task | None = None
+        self.voice_mix: Any = None  # the room's mixed voice, while someone asked (voice_mix.py)
         self._announced: tuple[bool, ...] = (False,) * len(self.seats)
         self._announced_at = -float("inf")
 

@@ -13,7 +13,10 @@ How it waits is ``voice_pacing``:
   to the frame that first shows it leaving for the encoder), then until the listener's
   picture shows the seat's drive of its instant (the newest drive that arrived before it, or
   up to ``DRIVE_SLACK_S`` after it), so the packets of one drive leave together with its
-  frame, in bursts.
+  frame, in bursts. A webcam image waiting or being tracked counts from its arrival, and a
+  packet that came meanwhile skips the median wait: it waits for the frame of the drive
+  tracked from that image only (tracking time varies by the image: a median would hold the
+  voice of a quickly tracked one too long).
 - ``even``: each packet leaves at its own cadence, its *paced* time (when it would typically
   arrive: its media time on the median arrival clock of the last ``ORIGIN_WINDOW_S``) plus
   the listener's picture delay, which follows the ``EVEN_LAG_QUANTILE`` of the recent lags
@@ -74,6 +77,7 @@ class VoicePacket:
     t_capture: float | None = None  # its capture time on the performer's clock, when sent
     drive_arrived: float | None = None  # the seat's newest drive's arrival when it came
     paced: float | None = None  # when it typically arrives (monotonic): its even cadence
+    tracking: bool = False  # came while its seat's webcam image was being tracked
     captured_at: float | None = None  # its capture instant on this server's clock (monotonic)
 
 
@@ -116,13 +120,15 @@ class Listener:
                 continue
             head, now = self._queue[0], time.monotonic()
             deadline = head.arrived + self.max_delay_s
+            # a packet spoken with an image being tracked knows its frame: no median wait
+            floor = 0.0 if head.tracking else self.delay_s
             if self.pacing == "even" and self._shown_arrival is not None:
                 wait = min(self._even_release(head, now), deadline) - now
                 if wait > 0:
                     await asyncio.sleep(wait)
                     continue
                 return self._queue.popleft()
-            wait = min(head.arrived + self.delay_s, deadline) - now
+            wait = min(head.arrived + floor, deadline) - now
             if wait > 0:
                 await asyncio.sleep(wait)
                 continue
@@ -180,9 +186,11 @@ class Listener:
 class SeatVoice:
     def __init__(self, settings: Any, metrics: Any = None,
                  on_speaking: Callable[[], None] | None = None,
-                 drive_arrived: Callable[[], float | None] = lambda: None) -> None:
+                 drive_arrived: Callable[[], float | None] = lambda: None,
+                 tracking: Callable[[], bool] = lambda: False) -> None:
         self.max_packet_bytes = settings.voice_max_packet_bytes
         self.drive_arrived = drive_arrived  # the seat's newest drive's arrival (monotonic)
+        self.tracking = tracking  # is its webcam image being tracked (its drive to come)?
         self.speaking_dbov = settings.voice_speaking_dbov
         self.on_speaking = on_speaking
         self.loud_at: float | None = None
@@ -229,7 +237,7 @@ class SeatVoice:
         if outcome == "forwarded":
             media_ts = self._timeline(publisher, rtp_ts, now)
             packet = VoicePacket(payload, media_ts, now, t_capture, self.drive_arrived(),
-                                 self._paced(media_ts, now),
+                                 self._paced(media_ts, now), self.tracking(),
                                  self._capture_clock.observe(media_ts / CLOCK_RATE, now))
             self.last_packet_at = now
             self._heard(level_dbov, now)
@@ -295,12 +303,22 @@ class SeatVoice:
         self.listeners.discard(listener)
 
 
+def input_arrived(seat: Any) -> float | None:
+    """When the seat's newest input arrived: its performer's (a webcam image still being
+    tracked counts: the drive it becomes is of that instant), else its drive's."""
+    performer = getattr(seat, "performer", None)
+    if performer is not None and hasattr(performer, "input_arrived"):
+        return performer.input_arrived
+    return seat.drive.arrived
+
+
 def seat_voice(seat: Any, settings: Any, metrics: Any = None) -> SeatVoice:
     """The seat's voice, made on first use (telling ``seat.on_speaking`` when it speaks; its
-    listeners wait for the frames of ``seat.drive``)."""
+    listeners wait for the frames of its newest input: :func:`input_arrived`)."""
     if seat.voice is None:
         seat.voice = SeatVoice(settings, metrics, getattr(seat, "on_speaking", None),
-                               lambda: seat.drive.arrived)
+                               lambda: input_arrived(seat),
+                               lambda: getattr(seat.performer, "tracking_input", False))
     return seat.voice
 
 

@@ -125,7 +125,7 @@ def _request(ctx: ServerContext, width: int | None, height: int | None,
 async def _open(kind: Literal["whep", "whip"], room_id: str, request: HttpRequest,
                 ctx: ServerContext, role: str | None, seat: int | None, width: int | None,
                 height: int | None, fps: float | None, stamp: bool,
-                name: str | None) -> Response:
+                name: str | None, voice_mix: bool = False) -> Response:
     from ..webrtc.negotiate import OfferRefused, check_offer  # aiortc: loaded on first use
     from ..webrtc.peer import WebRTCPeer
     from ..webrtc.registry import PeerRefused
@@ -137,6 +137,9 @@ async def _open(kind: Literal["whep", "whip"], room_id: str, request: HttpReques
         role, seat = choose_role(room, role, seat, principal, invitation)
     except Refusal as refusal:
         raise HTTPException(REFUSAL_STATUS.get(refusal.close_code, 403), refusal.message) from None
+    if voice_mix and role != "watch":
+        raise HTTPException(400, "voice=mix is for viewers: a performer hears the other seats "
+                                 "each on its own track (the one mix would hold its own voice)")
     text = await _read_offer(request, s.webrtc_max_sdp_bytes)
     try:
         offer = check_offer(text, kind)
@@ -170,7 +173,7 @@ async def _open(kind: Literal["whep", "whip"], room_id: str, request: HttpReques
         raise
     ctx.webrtc_peers.add(peer)
     try:  # from here on a failure closes the peer, which frees its slots
-        answer = await peer.start(offer, role, seat, frame_request, stamp, name)
+        answer = await peer.start(offer, role, seat, frame_request, stamp, name, voice_mix)
     except OfferRefused as exc:
         raise HTTPException(400, str(exc)) from None
     except ProtocolError as exc:
@@ -212,6 +215,10 @@ Fps = Annotated[float | None, Query(description="frame-rate cap (default default
 Stamp = Annotated[bool, Query(description="stamp each frame's drive seq into its top-left "
                                           "corner (protocol/stamp.py), for latency "
                                           "measurements")]
+VoiceChoice = Annotated[Literal["seats", "mix"], Query(
+    description="seats: each seat's voice on its own audio m-line (forwarded undecoded); mix: "
+                "the offer's first audio m-line carries one mix of every seat (decoded, summed "
+                "and encoded once per room; viewers only, at most voice_mix_max_seats)")]
 Name = Annotated[str | None, Query(description="the display name others see in the room's "
                                                "presence (limits.max_name_chars; letters, "
                                                "digits, spaces, . _ ' -); default "
@@ -223,11 +230,12 @@ Name = Annotated[str | None, Query(description="the display name others see in t
              responses={**ANSWER, **ERRORS})
 async def whep(room_id: str, request: HttpRequest, ctx: Context, role: Role = None,
                seat: Seat = None, width: Width = None, height: Height = None,
-               fps: Fps = None, stamp: Stamp = False, name: Name = None) -> Response:
+               fps: Fps = None, stamp: Stamp = False, name: Name = None,
+               voice: VoiceChoice = "seats") -> Response:
     """A WebRTC viewer (or, with a perform-capable token, a performer driving its seat over
     the data channel ``telesplat``): the avatar as a VP8 or H.264 video track."""
     return await _open("whep", room_id, request, ctx, role, seat, width, height, fps, stamp,
-                       name)
+                       name, voice == "mix")
 
 
 @router.post("/{room_id}/whip", status_code=201, response_class=Response,

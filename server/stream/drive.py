@@ -95,16 +95,18 @@ class DriveState:
     captured_at: float | None = None
 
     def apply(self, drive: Drive, fitted: dict[str, dict[str, np.ndarray]],
-              clock: ArrivalClock | None = None) -> None:
-        """Merge a drive (its families as :func:`fit_drive` returned them); ``clock`` maps
-        its t_capture to this server's clock."""
+              clock: ArrivalClock | None = None, arrived: float | None = None) -> None:
+        """Merge a drive (its families as :func:`fit_drive` returned them) that came at
+        ``arrived`` (monotonic; None: now); ``clock`` maps its t_capture to this server's
+        clock."""
         if drive.reset:
             self.families = {name: {} for name in FAMILY_NAMES}
         for name, values in fitted.items():
             self.families[name] = {**self.families[name], **values}
         self.seq = drive.seq
         self.version += 1
-        self.captured, self.arrived = drive.t_capture, time.monotonic()
+        self.captured = drive.t_capture
+        self.arrived = time.monotonic() if arrived is None else arrived
         self.captured_at = (self.arrived if clock is None or drive.t_capture is None
                             else clock.observe(drive.t_capture, self.arrived))
 

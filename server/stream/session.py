@@ -176,6 +176,7 @@ class Session:
         self._image: tuple[Image | DecodedImage, float] | None = None
         self._image_ready = asyncio.Event()
         self._track_inflight = None
+        self._tracking_at: float | None = None  # arrival of the image being tracked
         self._track_ms = 0.0
         self.closed = asyncio.Event()
 
@@ -271,6 +272,21 @@ class Session:
                 raise ProtocolError("version", f"this server speaks protocol version "
                                                f"{PROTOCOL_VERSION}, not {msg.version}",
                                     {"type": "hello", "seq": None})
+
+    @property
+    def input_arrived(self) -> float | None:
+        """When the newest input of this performer's seat arrived (monotonic): a webcam image
+        waiting or being tracked counts from its arrival (the drive it becomes is that
+        instant's: server/rooms/voice.py holds the voice for its frame), else the drive's."""
+        times = [t for t in (self.drive.arrived, self._tracking_at,
+                             self._image[1] if self._image is not None else None)
+                 if t is not None]
+        return max(times, default=None)
+
+    @property
+    def tracking_input(self) -> bool:
+        """Is an image of this performer waiting or being tracked (its drive yet to come)?"""
+        return self._tracking_at is not None or self._image is not None
 
     def offer_image(self, image: Image | DecodedImage, received_at: float) -> None:
         """The newest webcam image to track; it supersedes one not yet tracking."""
@@ -406,34 +422,44 @@ class Session:
             if pending is None:
                 continue
             image, received_at = pending
-            answers = {"type": "image", "seq": image.seq}
-            future = self.track_scheduler.submit(self.tracking.process, image, received_at,
-                                                 key=self.id)
-            self._track_inflight = future
+            self._tracking_at = received_at
             try:
-                tracked = await asyncio.wrap_future(future)
-                drive = Drive.model_validate({"seq": tracked.seq, "smplx": tracked.params},
-                                             context={"limits": self.limits})
-                self.drive.apply(drive, fit_drive(drive, self.shapes))
-                # the picture's lag counts tracking too; the image was taken as it came
-                self.drive.arrived = self.drive.captured_at = received_at
-            except TrackingUnavailable as exc:
-                self.send_error("unsupported", str(exc), answers)
-                continue
-            except (TrackingInputInvalid, ProtocolError, ValidationError) as exc:
-                self.send_error("invalid", f"cannot track this image: {exc}", answers)
-                continue
-            except Exception as exc:  # noqa: BLE001 - the session goes on
-                log.exception("tracking failed in session %s", self.id)
-                self.send_error("internal", f"tracking failed: {type(exc).__name__}", answers)
-                continue
-            self._track_ms = tracked.track_ms
-            # Found or not, the client hears it: a page says "no person found" instead of
-            # waiting for frames that an unchanged (held) pose never brings.
-            self.send_control(Tracked(seq=tracked.seq, found=any(tracked.seen.values()),
-                                      seen=tracked.seen))
-            self._pending_drives += 1
-            self._drive_changed()
+                await self._track_one(image, received_at)
+            finally:
+                self._tracking_at = None
+
+    async def _track_one(self, image: Image | DecodedImage, received_at: float) -> None:
+        """Track one image; its fit drives the seat (or the client hears why not)."""
+        answers = {"type": "image", "seq": image.seq}
+        future = self.track_scheduler.submit(self.tracking.process, image, received_at,
+                                             key=self.id)
+        self._track_inflight = future
+        try:
+            tracked = await asyncio.wrap_future(future)
+            # the image's capture time: its frames carry it, its seat's voice waits for them
+            drive = Drive.model_validate({"seq": tracked.seq, "smplx": tracked.params,
+                                          "t_capture": tracked.t_capture},
+                                         context={"limits": self.limits})
+            # arrived as the image came: the picture's lag counts tracking too
+            self.drive.apply(drive, fit_drive(drive, self.shapes), self.capture_clock,
+                             arrived=received_at)
+        except TrackingUnavailable as exc:
+            self.send_error("unsupported", str(exc), answers)
+            return
+        except (TrackingInputInvalid, ProtocolError, ValidationError) as exc:
+            self.send_error("invalid", f"cannot track this image: {exc}", answers)
+            return
+        except Exception as exc:  # noqa: BLE001 - the session goes on
+            log.exception("tracking failed in session %s", self.id)
+            self.send_error("internal", f"tracking failed: {type(exc).__name__}", answers)
+            return
+        self._track_ms = tracked.track_ms
+        # Found or not, the client hears it: a page says "no person found" instead of
+        # waiting for frames that an unchanged (held) pose never brings.
+        self.send_control(Tracked(seq=tracked.seq, found=any(tracked.seen.values()),
+                                  seen=tracked.seen))
+        self._pending_drives += 1
+        self._drive_changed()
 
     async def _send_watched(self, frame: Frame) -> None:
         """Send a frame; while its client does not take it, the session leaves the render

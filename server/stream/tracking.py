@@ -36,6 +36,7 @@ class DecodedImage:
     width: int
     height: int
     to_bgr: Callable[[], np.ndarray]  # -> [H, W, 3] uint8 BGR
+    t_capture: float | None = None    # when the camera took it, on the performer's clock
 
 
 @dataclass
@@ -44,6 +45,7 @@ class TrackedImage:
     params: dict[str, np.ndarray]  # SMPL-X fields for a drive (no transl)
     track_ms: float                 # decode + landmarks + fit
     seen: dict[str, bool]
+    t_capture: float | None = None  # the image's: the drive tracked from it carries it
 
 
 class SessionTracker:
@@ -90,7 +92,7 @@ class SessionTracker:
             raise TrackingInputInvalid(str(exc)) from exc
         out = self._fit.step(from_track_result(result), received_at)
         return TrackedImage(image.seq, drive_params(out.params),
-                            (time.perf_counter() - t0) * 1e3, out.seen)
+                            (time.perf_counter() - t0) * 1e3, out.seen, image.t_capture)
 
     def _decoded(self, image: DecodedImage) -> np.ndarray:
         from avatar_core.track.types import TrackingInputError

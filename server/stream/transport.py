@@ -8,7 +8,8 @@ message and every frame a msgpack message on the socket. The WebRTC transport
 
 from __future__ import annotations
 
-from typing import Protocol
+import time
+from typing import Any, Protocol
 
 from fastapi import WebSocket
 
@@ -41,6 +42,9 @@ class WebSocketTransport:
 
     def __init__(self, ws: WebSocket) -> None:
         self.ws = ws
+        # (seat position, a voice listener): each waits for the frames sent here (a viewer of
+        # the room's mixed voice: server/rooms/voice_mix.py); seats' own voices do not
+        self.voices: list[tuple[int, Any]] = []
 
     async def receive(self) -> bytes | str | None:
         message = await self.ws.receive()
@@ -59,6 +63,10 @@ class WebSocketTransport:
                                    timings=frame.timings, preview=frame.preview,
                                    t_capture=frame.captured))
         await self.ws.send_bytes(data)
+        now = time.monotonic()
+        for position, listener in self.voices:
+            if position < len(frame.seat_drives):
+                listener.follow_picture(frame.seat_drives[position][1], now)
         return len(data)
 
     async def close(self, code: int, reason: str) -> None:

@@ -25,6 +25,7 @@ from ..context import ServerContext
 from ..rooms.join import seat_participant, serve
 from ..rooms.registry import Room
 from ..rooms.voice import seat_voice
+from ..rooms.voice_mix import room_mix
 from ..stream.admission import Admitted
 from ..stream.session import Session, error_message
 from .audio import VoiceTrack, opus_payload_type, publish_voice, refuse_voice
@@ -68,7 +69,7 @@ class WebRTCPeer:
     # -- opening --------------------------------------------------------------------------------
 
     async def start(self, offer: Offer, role: str, seat: int, request: Request | None,
-                    stamp: bool, name: str | None = None) -> str:
+                    stamp: bool, name: str | None = None, voice_mix: bool = False) -> str:
         """Seat the participant, answer the offer, start everything; the answer SDP. Raises
         Refusal (seating) or OfferRefused (the SDP); the peer is closed then."""
         s = self.ctx.settings
@@ -87,10 +88,15 @@ class WebRTCPeer:
                 self.ctx, self.room, role, seat, name, transport, request=request)
             self.channel.welcome = encode(welcome)
             self._run = self._spawn(self._serve(), "serve")
-            self.voices = self._voices(offer, role, seat)
-            transport.voices = [(t.position, t.listener) for t in self.voices.values()]
+            if voice_mix:
+                self.voices, transport.voices = self._mix(offer)
+            else:
+                self.voices = self._voices(offer, role, seat)
+                transport.voices = [(t.position, t.listener) for t in self.voices.values()]
             # the browser syncs the video with one voice of its stream: the first seat heard
-            transport.clock_position = min((t.position for t in self.voices.values()),
+            # (a mix, or none: the participant's own seat)
+            transport.clock_position = min((t.position for t in self.voices.values()
+                                            if t.position >= 0),
                                            default=self.participant.position)
             speaks = role == "perform" and offer.microphone_mid is not None
             sdp, self.codec = await answer(self.pc, offer, self.track, self.guard,
@@ -125,6 +131,15 @@ class WebRTCPeer:
                                            self.ctx.metrics).subscribe(), i, self.epoch)
                 for i, mid in enumerate(offer.voice_mids[:len(seats)])
                 if not (role == "perform" and seats[i].index == seat)}
+
+    def _mix(self, offer: Offer) -> tuple[dict[str, VoiceTrack], list[tuple[int, Any]]]:
+        """The room's one mix on the offer's first received audio m-line, and the seat
+        listeners this peer's frames lead (server/rooms/voice_mix.py)."""
+        if not offer.voice_mids:
+            return {}, []
+        mix = room_mix(self.room.live, self.ctx.settings, self.ctx.metrics)
+        track = VoiceTrack(mix.subscribe(), -1, self.epoch)  # stamped when mixed
+        return {offer.voice_mids[0]: track}, mix.followers()
 
     def _hear(self, offer: Offer, sdp: str, speaks: bool, seat: int) -> None:
         """The performer's microphone feeds its seat's voice; any other audio a client
