@@ -30,7 +30,8 @@ pytest.importorskip("aiortc")
 SIZE = 128
 TIMEOUT_S = 30.0
 WARM_S = 2.5      # two sender reports of each track (every 0.5-1.5 s) before measuring
-LISTEN_S = 4.0
+LISTEN_S = 15.0   # at most: each listener stops once it has ENOUGH (a loaded machine renders
+ENOUGH = 12       # a few frames a second)
 DRIVE_HZ = 30
 CLICK_EVERY = 25  # 20 ms frames: a click every 0.5 s
 TOLERANCE_MS = 12.0  # a few ms of transit and scheduling on this shared machine, not a frame
@@ -114,7 +115,7 @@ async def video_errors(viewer: WhepViewer, reports: Reports, performers: list[Pe
     """For the first frame showing each drive: its wall time by the reports less its drive's
     capture on the wall clock (ms)."""
     errors, last = [], None
-    while time.monotonic() < until:
+    while time.monotonic() < until and len(errors) < ENOUGH:
         frame = await viewer.next_video_frame()
         seq = read_stamp(frame.to_ndarray(format="rgb24"))
         wall = reports.wall_time("video", frame.pts)
@@ -131,7 +132,7 @@ async def audio_errors(viewer: WhepViewer, reports: Reports, mics: list, until: 
     reports less the nearest click's media time (its capture instant: a stalled event loop
     hands a click over late, but its samples keep their time), on the wall clock (ms)."""
     errors, quiet = [], True
-    while time.monotonic() < until:
+    while time.monotonic() < until and len(errors) < ENOUGH:
         frame, _ = await viewer.next_audio()
         loud = peak(frame) > CLICK_LEVEL
         wall = reports.wall_time("audio", frame.pts)
@@ -311,8 +312,8 @@ def test_a_frame_and_a_packet_captured_together_map_to_one_ntp_time(srv):
             return video, audio
 
     video, audio = asyncio.run(run())
-    assert_on_capture(video, "video", least=15)
-    assert_on_capture(audio, "audio", least=LISTEN_S * 50 / CLICK_EVERY - 3)
+    assert_on_capture(video, "video", least=ENOUGH)
+    assert_on_capture(audio, "audio", least=ENOUGH)
     assert abs(np.median(video) - np.median(audio)) <= TOLERANCE_MS, (video, audio)
 
 
@@ -340,7 +341,7 @@ def test_video_alone_and_drives_without_a_capture_time(srv):
 
     video, reports = asyncio.run(run())
     assert not reports.reports["audio"]
-    assert_on_capture(video, "video without t_capture", least=15)
+    assert_on_capture(video, "video without t_capture", least=ENOUGH)
 
 
 def test_a_new_performer_on_another_clock_takes_the_seat(srv):
@@ -385,5 +386,5 @@ def test_a_new_performer_on_another_clock_takes_the_seat(srv):
     steps = np.diff(np.asarray(list(video_ts.values()), dtype=np.int64)[np.argsort(seqs)])
     steps = (steps + 2**31) % 2**32 - 2**31
     assert (steps >= 0).all(), steps[steps < 0]  # a frame's packets share one; never back
-    assert_on_capture(video, "video after the restart", least=15)
-    assert_on_capture(audio, "audio after the restart", least=LISTEN_S * 50 / CLICK_EVERY - 3)
+    assert_on_capture(video, "video after the restart", least=ENOUGH)
+    assert_on_capture(audio, "audio after the restart", least=ENOUGH)
