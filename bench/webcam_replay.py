@@ -24,6 +24,29 @@ def _conditions(args):
     return [Condition(i, f) for i in ids for f in framings]
 
 
+def parse_variants(text: str) -> dict[str, dict]:
+    """'a:hold_arms=1,edge_margin=0.02;b:fit.temporal_weight=2' -> {"": {}, "a": {...}}
+    (values parsed as Python literals; fit.X changes the FitConfig)."""
+    import ast
+    import dataclasses
+
+    from avatar_core.track.fit.sequence import SequenceFitConfig
+
+    out: dict[str, dict] = {"": {}}
+    base = SequenceFitConfig()
+    for item in filter(None, (t.strip() for t in text.split(";"))):
+        label, _, fields = item.partition(":")
+        changes, fit = {}, {}
+        for pair in filter(None, (f.strip() for f in fields.split(","))):
+            key, _, value = pair.partition("=")
+            (fit if key.startswith("fit.") else changes)[key.removeprefix("fit.")] = \
+                ast.literal_eval(value)
+        if fit:
+            changes["fit"] = dataclasses.replace(base.fit, **fit)
+        out[label.strip()] = changes
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--record", type=Path, help="folder to write one recording per condition")
@@ -34,6 +57,10 @@ def main() -> None:
     ap.add_argument("--max-frames", type=int, default=None)
     ap.add_argument("--drives", default="live", help="comma-separated protocol drives")
     ap.add_argument("--out", type=Path, help="replay: folder for the summary and runs.pkl")
+    ap.add_argument("--variants", default="",
+                    help="fit variants beside the base, fitted side by side: "
+                         "'label:field=value,field=value;label2:...' (SequenceFitConfig "
+                         "fields; FitConfig fields as fit.field)")
     ap.add_argument("--no-curve", action="store_true", help="skip the One Euro curve")
     args = ap.parse_args()
     from avatar_core.synth.tracking_eval import protocol as wp
@@ -53,13 +80,15 @@ def main() -> None:
     if not args.replay or not args.out:
         ap.error("give --record DIR, or --replay DIR --out DIR")
     drives = [d.strip() for d in args.drives.split(",") if d.strip()]
+    variants = parse_variants(args.variants)
     runs = []
     for cond in _conditions(args):
         path = args.replay / f"{cond.identity}_{cond.framing}.pkl"
         with open(path, "rb") as f:
             rec = pickle.load(f)  # noqa: S301 (our own file)
         t0 = time.perf_counter()
-        runs.append(wp.fit_recording(rec, drives=drives, curve=not args.no_curve))
+        runs.append(wp.fit_recording(rec, drives=drives, curve=not args.no_curve,
+                                     variants=variants))
         print(f"{path.name}: {time.perf_counter() - t0:.0f} s", flush=True)
     js, md = write_protocol(summarise(runs), args.out)
     with open(args.out / "runs.pkl", "wb") as f:

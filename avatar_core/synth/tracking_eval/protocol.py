@@ -31,6 +31,7 @@ the fit (`SequenceFit` warm-starts from its unsmoothed output).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -328,8 +329,11 @@ def drive_observations(rec: Recording, i: int, drive: str):
 def fit_recording(rec: Recording, *, drives: Sequence[str] = DEFAULT_DRIVES,
                   score_size: tuple[int, int] = (320, 240), model_dir=None,
                   fit_config=None, curve: bool = True,
+                  variants: dict[str, dict] | None = None,
                   progress: Progress | None = None) -> RunResult:
-    """Fit every drive on the recorded frames and score it (`run_condition`'s second half)."""
+    """Fit every drive on the recorded frames and score it (`run_condition`'s second half).
+    `variants`: label -> `SequenceFitConfig` fields to change; each drive is fitted once per
+    variant, frame by frame side by side, as "drive" (label "") or "drive+label"."""
     from avatar_core.gaussians.animate import synthetic_package
     from avatar_core.synth.actor import Actor
     from avatar_core.synth.model_writer import ensure_models
@@ -344,16 +348,22 @@ def fit_recording(rec: Recording, *, drives: Sequence[str] = DEFAULT_DRIVES,
     betas = np.asarray(actor.betas, dtype=np.float64)
     cfg = fit_config or SequenceFitConfig(fov_x_deg=FOV_X_DEG)
     body_model = synthetic_package(files.root, condition.identity)[1]  # the avatar's, as live
-    fits = {d: SequenceFit(body_model, betas, drive_config(d, cfg)) for d in drives}
-    res = RunResult(condition, rec.fps, truth, {d: [] for d in drives},
-                    {d: [] for d in drives}, {d: [] for d in drives}, list(rec.track_ms),
-                    {d: [] for d in drives}, rec.seen, rec.in_view, {}, dict(rec.placed))
+    variants = variants or {"": {}}
+    fits, inputs = {}, {}
+    for d in drives:
+        for label, changes in variants.items():
+            name = f"{d}+{label}" if label else d
+            config = drive_config(d, dataclasses.replace(cfg, **changes))
+            fits[name], inputs[name] = SequenceFit(body_model, betas, config), d
+    res = RunResult(condition, rec.fps, truth, {d: [] for d in fits},
+                    {d: [] for d in fits}, {d: [] for d in fits}, list(rec.track_ms),
+                    {d: [] for d in fits}, rec.seen, rec.in_view, {}, dict(rec.placed))
     for i, params in enumerate(truth):
         with torch.no_grad():
             reference = actor.render(actor.pose(params), score_cam, background=(0, 0, 0),
                                      supersample=1)
-        for d in drives:
-            obs = drive_observations(rec, i, d)
+        for d in fits:
+            obs = drive_observations(rec, i, inputs[d])
             t1 = time.perf_counter()
             out = fits[d].step(obs, (rec.start_frame + i) / rec.fps)
             res.fit_ms[d].append((time.perf_counter() - t1) * 1e3)
