@@ -333,13 +333,15 @@ def fit_recording(rec: Recording, *, drives: Sequence[str] = DEFAULT_DRIVES,
                   progress: Progress | None = None) -> RunResult:
     """Fit every drive on the recorded frames and score it (`run_condition`'s second half).
     `variants`: label -> `SequenceFitConfig` fields to change; each drive is fitted once per
-    variant, frame by frame side by side, as "drive" (label "") or "drive+label"."""
+    variant, frame by frame side by side, as "drive" (label "") or "drive+label"; or, where
+    `drives` names "drive+label" entries itself, just those."""
     from avatar_core.gaussians.animate import synthetic_package
     from avatar_core.synth.actor import Actor
     from avatar_core.synth.model_writer import ensure_models
     from avatar_core.track.fit.sequence import SequenceFit, SequenceFitConfig
 
-    check_drives(drives)
+    explicit = any("+" in d for d in drives)
+    check_drives([d.partition("+")[0] for d in drives])
     condition, truth = rec.condition, rec.truth
     files = ensure_models(model_dir)
     actor = Actor.load(files, condition.identity)
@@ -348,13 +350,17 @@ def fit_recording(rec: Recording, *, drives: Sequence[str] = DEFAULT_DRIVES,
     betas = np.asarray(actor.betas, dtype=np.float64)
     cfg = fit_config or SequenceFitConfig(fov_x_deg=FOV_X_DEG)
     body_model = synthetic_package(files.root, condition.identity)[1]  # the avatar's, as live
-    variants = variants or {"": {}}
+    variants = {"": {}, **(variants or {})}
+    pairs = [d.partition("+")[::2] for d in drives] if explicit else \
+        [(d, label) for d in drives for label in variants]
+    unknown = sorted({label for _, label in pairs if label not in variants})
+    if unknown:
+        raise ValueError(f"unknown fit variant(s) {unknown}; known: {sorted(variants)}")
     fits, inputs = {}, {}
-    for d in drives:
-        for label, changes in variants.items():
-            name = f"{d}+{label}" if label else d
-            config = drive_config(d, dataclasses.replace(cfg, **changes))
-            fits[name], inputs[name] = SequenceFit(body_model, betas, config), d
+    for d, label in pairs:
+        name = f"{d}+{label}" if label else d
+        config = drive_config(d, dataclasses.replace(cfg, **variants[label]))
+        fits[name], inputs[name] = SequenceFit(body_model, betas, config), d
     res = RunResult(condition, rec.fps, truth, {d: [] for d in fits},
                     {d: [] for d in fits}, {d: [] for d in fits}, list(rec.track_ms),
                     {d: [] for d in fits}, rec.seen, rec.in_view, {}, dict(rec.placed))

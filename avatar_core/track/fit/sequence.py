@@ -2,7 +2,9 @@
 the lost-track policy.
 
 Each part of the body belongs to one landmark group (face, left hand, right hand, pose), each
-wrist to its own (seen with its hand, or with the pose model's points of that hand). While a
+wrist to its own (seen with its hand, or with the pose model's points of that hand), and with
+`hold_arms` each arm (shoulder, elbow) to its own, seen while anything below the shoulder is
+(an arm out of view has nothing to fit, and the fit's free arm drifts). While a
 group is seen its parameters come from the fit; when it is lost they hold their last fitted
 value for `hold_s`, then ease to the neutral stance over `relax_s`: fingers lost while the
 pose still places the hand keep their last confident state, then ease to the relaxed hand,
