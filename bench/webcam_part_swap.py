@@ -34,13 +34,15 @@ def main() -> None:
     ap.add_argument("runs", nargs="+", type=Path, help="runs.pkl files (our own output)")
     ap.add_argument("--drives", default="true_all_depth")
     ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--parts", default=None,
+                    help="comma-separated parts to swap alone and all-but (default: all)")
     ap.add_argument("--stride", type=int, default=1,
                     help="score every n-th frame (the renders are the cost)")
     ap.add_argument("--score-size", type=int, default=320, help="as the runs used (4:3)")
     args = ap.parse_args()
     from avatar_core.synth.actor import Actor
     from avatar_core.synth.model_writer import ensure_models
-    from avatar_core.synth.tracking_eval.part_swap import score_swaps
+    from avatar_core.synth.tracking_eval.part_swap import score_swaps, swap_variants
     from avatar_core.synth.tracking_eval.protocol import (
         framed_transl,
         score_camera,
@@ -58,6 +60,8 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     drives = [d.strip() for d in args.drives.split(",") if d.strip()]
     framings = sorted({r.condition.framing for r in runs})
+    parts = tuple(p.strip() for p in args.parts.split(",")) if args.parts else None
+    variants = swap_variants(parts) if parts else None
     result, md = {}, []
     for drive in drives:
         per_cond = []
@@ -65,7 +69,7 @@ def main() -> None:
             actor = Actor.load(ensure_models(), res.condition.identity)
             cam = score_camera(framed_transl(actor, webcam_camera(), res.condition.framing),
                                actor, *size)
-            per_cond.append((res, score_swaps(actor, res, drive, cam)))
+            per_cond.append((res, score_swaps(actor, res, drive, cam, variants)))
             print(f"{drive} {res.condition}: done", flush=True)
         rows = {}
         for key, sel in [("all", None), *((f, f) for f in framings)]:
