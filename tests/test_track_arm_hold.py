@@ -63,6 +63,22 @@ def test_arm_points_on_the_border_are_dropped_and_nothing_else():
     assert out.weights[rows["r_elbow"]] == 1 and out.weights[rows["l_shoulder"]] == 1
     assert (obs.weights[list(rows.values())] == 1).all()  # the input untouched
     assert without_edge_arm_points(obs, 0.0) is obs
+    obs.pixels[rows["r_elbow"]] = np.nan  # a NaN point (unused) is no border point
+    obs.weights[rows["r_elbow"]] = 0.0
+    out = without_edge_arm_points(obs, 12.8)
+    assert out.weights[rows["r_elbow"]] == 0 and out.weights[rows["l_shoulder"]] == 1
+
+
+def test_bad_arm_settings_are_refused(setup):
+    from avatar_core.track.fit.fitter import FitConfig
+
+    model, betas = setup
+    with pytest.raises(ValueError, match="edge_margin"):
+        SequenceFit(model, betas, SequenceFitConfig(edge_margin=0.6))
+    with pytest.raises(ValueError, match="arm_prior"):
+        SequenceFit(model, betas, SequenceFitConfig(fit=FitConfig(arm_prior=float("nan"))))
+    with pytest.raises(ValueError, match="arm_prior"):
+        SequenceFit(model, betas, SequenceFitConfig(fit=FitConfig(arm_prior=-1.0)))
 
 
 @pytest.fixture(scope="module")

@@ -159,6 +159,9 @@ class FrameFitter:
     def __init__(self, model: SMPLXModel, betas: np.ndarray | None = None,
                  config: FitConfig | None = None) -> None:
         self.config = config or FitConfig()
+        if not (math.isfinite(self.config.arm_prior) and self.config.arm_prior >= 0):
+            raise ValueError(f"arm_prior must be a finite weight >= 0, got "
+                             f"{self.config.arm_prior}")
         self.keypoints = BodyKeypoints(model, dtype=self.config.dtype)  # the reference model
         self.num_expression = model.num_expression
         n_betas = self.keypoints.model.num_betas

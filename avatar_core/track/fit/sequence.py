@@ -107,6 +107,9 @@ class SequenceFit:
     def __init__(self, model: SMPLXModel, betas: np.ndarray | None = None,
                  config: SequenceFitConfig | None = None) -> None:
         self.config = config or SequenceFitConfig()
+        if not 0.0 <= self.config.edge_margin < 0.5:
+            raise ValueError(f"edge_margin is a fraction of the image's longer side in "
+                             f"[0, 0.5), got {self.config.edge_margin}")
         self.fitter = FrameFitter(model, betas, self.config.fit)
         self.gaze = gaze_solver(model) if self.config.gaze else None
         self.neutral = self.fitter.neutral
