@@ -193,3 +193,41 @@ def test_each_frame_is_labelled_with_the_motion_playing():
     assert labels[int(first * fps) + 2] == wp.TAKE[1]  # in the crossfade into the next
     assert wp.motion_of_frames(wp.TAKE, fps, 2, start_frame=int(first * fps) + 2) == \
         [wp.TAKE[1]] * 2
+
+
+def test_a_recording_is_fitted_once_per_drive_and_variant():
+    """Fit variants beside the base on the same recorded landmarks (`fit_recording`): here a
+    recording whose 'live' landmarks are the truth's, so no tracker is needed."""
+    from avatar_core.gaussians.animate import synthetic_package
+    from avatar_core.motion.rig import model_rig
+    from avatar_core.synth.model_writer import ensure_models
+    from avatar_core.track.fit.camera import WebcamCamera
+    from avatar_core.track.fit.fitter import FrameFitter
+
+    files = ensure_models()
+    from avatar_core.synth.actor import Actor
+
+    actor = Actor.load(files, 0)
+    cond = wp.Condition(0, "waist_up")
+    transl = wp.framed_transl(actor, wp.webcam_camera(), cond.framing)
+    truth = wp.take_params(actor, model_rig(files, actor.model), transl, 5.0, max_frames=2)
+    fitter = FrameFitter(synthetic_package(files.root, 0)[1], np.asarray(actor.betas))
+    cam = WebcamCamera(640, 480, wp.FOV_X_DEG)
+    obs = [wp._true_observations(fitter, p, cam)[0] for p in truth]
+    n = len(truth)
+    rec = wp.Recording(cond, 5.0, truth, obs, obs, [wp._true_pose_points(fitter, p)
+                                                     for p in truth], [1.0] * n,
+                       {g: np.ones(n, bool) for g in ("face", "left_hand", "right_hand",
+                                                      "pose")},
+                       {}, {"left_hand": np.zeros(n, bool), "right_hand": np.zeros(n, bool)})
+    variants = {"arms": {"hold_arms": True}}
+    crossed = wp.fit_recording(rec, drives=("live",), variants=variants, score_size=(80, 60),
+                               curve=False)
+    assert list(crossed.metrics) == ["live", "live+arms"]
+    assert all(len(crossed.fit_ms[d]) == n for d in crossed.metrics)
+    assert crossed.metrics["live"]["psnr"] > 20.0  # the truth's landmarks, refitted
+    named = wp.fit_recording(rec, drives=("true_all_depth+arms",), variants=variants,
+                             score_size=(80, 60), curve=False)
+    assert list(named.metrics) == ["true_all_depth+arms"]
+    with pytest.raises(ValueError, match="unknown fit variant"):
+        wp.fit_recording(rec, drives=("live+nope",), variants=variants, curve=False)

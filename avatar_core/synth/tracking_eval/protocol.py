@@ -31,6 +31,7 @@ the fit (`SequenceFit` warm-starts from its unsmoothed output).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -226,25 +227,30 @@ def _psnr(pred, truth) -> float:
     return float("inf") if mse == 0 else -10.0 * math.log10(mse)
 
 
-def run_condition(condition: Condition, fps: float, *, max_frames: int | None = None,
-                  score_size: tuple[int, int] = (320, 240),
-                  drives: Sequence[str] = DEFAULT_DRIVES, model_dir=None,
-                  take: Sequence[str] = TAKE, fit_config=None,
-                  curve: bool = True, start_frame: int = 0,
-                  progress: Progress | None = None) -> RunResult:
-    """Film, track, fit (every drive) and score one identity in one framing; `curve`: also
-    the One Euro jitter-vs-lag curve of the live drive (`temporal_curve`)."""
-    from avatar_core.gaussians.animate import synthetic_package
+@dataclass
+class Recording:
+    """One condition filmed and tracked once, so that every drive (and every fit variant)
+    is fitted on the very same landmarks: per frame the live observations, the truth in the
+    tracker's place and the true pose points (model frame)."""
+
+    condition: Condition
+    fps: float
+    truth: list[dict[str, np.ndarray]]
+    live: list                                       # Observations per frame
+    true_obs: list                                   # Observations per frame
+    true_points: list[np.ndarray]                    # [33, 3] per frame
+    track_ms: list[float]
+    seen: dict[str, np.ndarray]
+    placed: dict[str, np.ndarray]
+    in_view: dict[str, np.ndarray]
+    start_frame: int = 0
+
+
+def _actor_setup(condition: Condition, fps: float, max_frames, take, start_frame, model_dir):
     from avatar_core.motion.rig import model_rig
     from avatar_core.synth.actor import Actor
     from avatar_core.synth.model_writer import ensure_models
-    from avatar_core.track.fit.camera import WebcamCamera
-    from avatar_core.track.fit.observations import from_track_result, pose_hand_seen
-    from avatar_core.track.fit.sequence import SequenceFit, SequenceFitConfig
-    from avatar_core.track.image import decode_image
-    from avatar_core.track.tracker import LIVE_PALM_INTERVAL, Tracker
 
-    check_drives(drives)
     files = ensure_models(model_dir)
     actor = Actor.load(files, condition.identity)
     cam = webcam_camera()
@@ -253,18 +259,34 @@ def run_condition(condition: Condition, fps: float, *, max_frames: int | None = 
                         start_frame)
     if len(truth) < 2:
         raise ValueError(f"the protocol needs at least 2 frames, got {len(truth)}")
-    score_cam = score_camera(transl, actor, *score_size)
+    return files, actor, cam, transl, truth
+
+
+def record_condition(condition: Condition, fps: float, *, max_frames: int | None = None,
+                     model_dir=None, take: Sequence[str] = TAKE, start_frame: int = 0,
+                     progress: Progress | None = None) -> Recording:
+    """Film and track one identity in one framing (the live path's landmarks), with the
+    truth in the tracker's place beside them."""
+    from avatar_core.gaussians.animate import synthetic_package
+    from avatar_core.track.fit.camera import WebcamCamera
+    from avatar_core.track.fit.fitter import FrameFitter
+    from avatar_core.track.fit.observations import from_track_result, pose_hand_seen
+    from avatar_core.track.image import decode_image
+    from avatar_core.track.tracker import LIVE_PALM_INTERVAL, Tracker
+
+    files, actor, cam, transl, truth = _actor_setup(condition, fps, max_frames, take,
+                                                    start_frame, model_dir)
     bg = background(cam.width, cam.height)
     wcam = WebcamCamera(cam.width, cam.height, FOV_X_DEG)
     betas = np.asarray(actor.betas, dtype=np.float64)
-    cfg = fit_config or SequenceFitConfig(fov_x_deg=FOV_X_DEG)
-    body_model = synthetic_package(files.root, condition.identity)[1]  # the avatar's, as live
-    fits = {d: SequenceFit(body_model, betas, drive_config(d, cfg)) for d in drives}
+    fitter = FrameFitter(synthetic_package(files.root, condition.identity)[1], betas)
     tracker = Tracker(threads=1, palm_interval=LIVE_PALM_INTERVAL, iris=True)
     rng = np.random.default_rng([23, condition.identity, len(condition.framing)])
-    res = RunResult(condition, fps, truth, {d: [] for d in drives}, {d: [] for d in drives},
-                    {d: [] for d in drives}, [], {d: [] for d in drives},
-                    {g: np.zeros(len(truth), bool) for g in GROUPS}, {})
+    n = len(truth)
+    rec = Recording(condition, fps, truth, [], [], [], [],
+                    {g: np.zeros(n, bool) for g in GROUPS},
+                    {f"{s}_hand": np.zeros(n, bool) for s in ("left", "right")}, {},
+                    start_frame)
     try:
         for i, params in enumerate(truth):
             frame = render_frame(actor, params, cam, bg, SENSOR_NOISE, rng)
@@ -275,46 +297,111 @@ def run_condition(condition: Condition, fps: float, *, max_frames: int | None = 
             # With the pose's hand points: drives without them (`pose_hands`) drop them.
             live = from_track_result(tracker.track(decode_image(jpeg.tobytes())),
                                      pose_hands=True)
-            res.track_ms.append((time.perf_counter() - t0) * 1e3)
+            rec.track_ms.append((time.perf_counter() - t0) * 1e3)
             for g in GROUPS:
-                res.seen[g][i] = bool(live.seen.get(g))
+                rec.seen[g][i] = bool(live.seen.get(g))
             for side in ("left", "right"):
-                res.placed.setdefault(f"{side}_hand", np.zeros(len(truth), bool))[i] = bool(
-                    live.seen.get(f"{side}_hand")) or pose_hand_seen(live, side)
-            true_obs, true_points = None, None
-            with torch.no_grad():
-                reference = actor.render(actor.pose(params), score_cam, background=(0, 0, 0),
-                                         supersample=1)
-            for d in drives:
-                obs, drive = live, DRIVES[d]
-                if drive.true_2d or drive.true_depth:
-                    if true_obs is None:
-                        true_obs = _true_observations(fits[d].fitter, params, wcam)[0]
-                        true_points = _true_pose_points(fits[d].fitter, params)
-                    obs = mix_observations(live, true_obs, drive.true_2d)
-                    if drive.true_depth:
-                        obs.world = true_world(true_points, drive.true_depth)
-                t1 = time.perf_counter()
-                out = fits[d].step(obs, (start_frame + i) / fps)
-                res.fit_ms[d].append((time.perf_counter() - t1) * 1e3)
-                res.raw[d].append({k: np.array(v) for k, v in fits[d].current.items()})
-                driven = {**out.params, "transl": transl, "betas": betas}
-                res.smooth[d].append({k: np.array(v) for k, v in driven.items()})
-                with torch.no_grad():
-                    view = actor.render(actor.pose(driven), score_cam, background=(0, 0, 0),
-                                        supersample=1)
-                res.psnr[d].append(_psnr(view, reference))
+                rec.placed[f"{side}_hand"][i] = bool(live.seen.get(f"{side}_hand")) or \
+                    pose_hand_seen(live, side)
+            rec.live.append(live)
+            rec.true_obs.append(_true_observations(fitter, params, wcam)[0])
+            rec.true_points.append(_true_pose_points(fitter, params))
             if progress:
-                progress(f"{condition.identity}/{condition.framing}", i + 1, len(truth))
+                progress(f"{condition.identity}/{condition.framing}", i + 1, n)
     finally:
         tracker.close()
     truth_web = evaluate_params(actor, truth, cam)
-    res.in_view = {g: truth_web.visible[g].all(-1) for g in ("left_hand", "right_hand")}
-    res.start_frame = start_frame
+    rec.in_view = {g: truth_web.visible[g].all(-1) for g in ("left_hand", "right_hand")}
+    return rec
+
+
+def drive_observations(rec: Recording, i: int, drive: str):
+    """Frame i's observations as `drive` feeds them to the fit."""
+    spec = DRIVES[drive]
+    obs = rec.live[i]
+    if spec.true_2d or spec.true_depth:
+        obs = mix_observations(obs, rec.true_obs[i], spec.true_2d)
+        if spec.true_depth:
+            obs.world = true_world(rec.true_points[i], spec.true_depth)
+    return obs
+
+
+def fit_recording(rec: Recording, *, drives: Sequence[str] = DEFAULT_DRIVES,
+                  score_size: tuple[int, int] = (320, 240), model_dir=None,
+                  fit_config=None, curve: bool = True,
+                  variants: dict[str, dict] | None = None,
+                  progress: Progress | None = None) -> RunResult:
+    """Fit every drive on the recorded frames and score it (`run_condition`'s second half).
+    `variants`: label -> `SequenceFitConfig` fields to change; each drive is fitted once per
+    variant, frame by frame side by side, as "drive" (label "") or "drive+label"; or, where
+    `drives` names "drive+label" entries itself, just those."""
+    from avatar_core.gaussians.animate import synthetic_package
+    from avatar_core.synth.actor import Actor
+    from avatar_core.synth.model_writer import ensure_models
+    from avatar_core.track.fit.sequence import SequenceFit, SequenceFitConfig
+
+    explicit = any("+" in d for d in drives)
+    check_drives([d.partition("+")[0] for d in drives])
+    condition, truth = rec.condition, rec.truth
+    files = ensure_models(model_dir)
+    actor = Actor.load(files, condition.identity)
+    transl = np.asarray(truth[0]["transl"])
+    score_cam = score_camera(transl, actor, *score_size)
+    betas = np.asarray(actor.betas, dtype=np.float64)
+    cfg = fit_config or SequenceFitConfig(fov_x_deg=FOV_X_DEG)
+    body_model = synthetic_package(files.root, condition.identity)[1]  # the avatar's, as live
+    variants = {"": {}, **(variants or {})}
+    pairs = [d.partition("+")[::2] for d in drives] if explicit else \
+        [(d, label) for d in drives for label in variants]
+    unknown = sorted({label for _, label in pairs if label not in variants})
+    if unknown:
+        raise ValueError(f"unknown fit variant(s) {unknown}; known: {sorted(variants)}")
+    fits, inputs = {}, {}
+    for d, label in pairs:
+        name = f"{d}+{label}" if label else d
+        config = drive_config(d, dataclasses.replace(cfg, **variants[label]))
+        fits[name], inputs[name] = SequenceFit(body_model, betas, config), d
+    res = RunResult(condition, rec.fps, truth, {d: [] for d in fits},
+                    {d: [] for d in fits}, {d: [] for d in fits}, list(rec.track_ms),
+                    {d: [] for d in fits}, rec.seen, rec.in_view, {}, dict(rec.placed))
+    for i, params in enumerate(truth):
+        with torch.no_grad():
+            reference = actor.render(actor.pose(params), score_cam, background=(0, 0, 0),
+                                     supersample=1)
+        for d in fits:
+            obs = drive_observations(rec, i, inputs[d])
+            t1 = time.perf_counter()
+            out = fits[d].step(obs, (rec.start_frame + i) / rec.fps)
+            res.fit_ms[d].append((time.perf_counter() - t1) * 1e3)
+            res.raw[d].append({k: np.array(v) for k, v in fits[d].current.items()})
+            driven = {**out.params, "transl": transl, "betas": betas}
+            res.smooth[d].append({k: np.array(v) for k, v in driven.items()})
+            with torch.no_grad():
+                view = actor.render(actor.pose(driven), score_cam, background=(0, 0, 0),
+                                    supersample=1)
+            res.psnr[d].append(_psnr(view, reference))
+        if progress:
+            progress(f"{condition.identity}/{condition.framing}", i + 1, len(truth))
+    res.start_frame = rec.start_frame
     res.metrics = run_metrics(actor, res, score_cam)
     if curve and "live" in drives:
-        res.curve = temporal_curve(actor, res, score_cam, start_frame)
+        res.curve = temporal_curve(actor, res, score_cam, rec.start_frame)
     return res
+
+
+def run_condition(condition: Condition, fps: float, *, max_frames: int | None = None,
+                  score_size: tuple[int, int] = (320, 240),
+                  drives: Sequence[str] = DEFAULT_DRIVES, model_dir=None,
+                  take: Sequence[str] = TAKE, fit_config=None,
+                  curve: bool = True, start_frame: int = 0,
+                  progress: Progress | None = None) -> RunResult:
+    """Film, track, fit (every drive) and score one identity in one framing; `curve`: also
+    the One Euro jitter-vs-lag curve of the live drive (`temporal_curve`)."""
+    check_drives(drives)
+    rec = record_condition(condition, fps, max_frames=max_frames, model_dir=model_dir,
+                           take=take, start_frame=start_frame)
+    return fit_recording(rec, drives=drives, score_size=score_size, model_dir=model_dir,
+                         fit_config=fit_config, curve=curve, progress=progress)
 
 
 # -- metrics ---------------------------------------------------------------------------------

@@ -120,6 +120,8 @@ class FitConfig:
     # The learned landmark embedding (`embedding.py`: where each landmark lies on the model);
     # None: today's correspondence (joint centres, vertices, the iBUG triangles).
     embedding: LandmarkEmbedding | None = None
+    # Shoulders, elbows and wrists toward the rest stance (`RELAXED_ARMS`), per rad^2.
+    arm_prior: float = ARM_PRIOR
     # BlazePose's metric world z and its image z, against the model's depth differences
     # (`world_cues.py`; 0: off). Set on held-out renders (docs/tracking.md).
     world_weight: float = 0.0
@@ -157,6 +159,9 @@ class FrameFitter:
     def __init__(self, model: SMPLXModel, betas: np.ndarray | None = None,
                  config: FitConfig | None = None) -> None:
         self.config = config or FitConfig()
+        if not (math.isfinite(self.config.arm_prior) and self.config.arm_prior >= 0):
+            raise ValueError(f"arm_prior must be a finite weight >= 0, got "
+                             f"{self.config.arm_prior}")
         self.keypoints = BodyKeypoints(model, dtype=self.config.dtype)  # the reference model
         self.num_expression = model.num_expression
         n_betas = self.keypoints.model.num_betas
@@ -181,7 +186,7 @@ class FrameFitter:
             [np.arange(n)[lay[name][0]] for name in POSED_VARIABLES])
         # Quadratic priors as sqrt-weights toward a rest value, per variable.
         prior = np.zeros(n)
-        prior[lay["body"][0]] = np.repeat([np.sqrt(BODY_PRIOR.get(j, ARM_PRIOR))
+        prior[lay["body"][0]] = np.repeat([np.sqrt(BODY_PRIOR.get(j, self.config.arm_prior))
                                            for j in FREE_BODY_JOINTS], 3)
         prior[lay["global_orient"][0]] = math.sqrt(GLOBAL_PRIOR)
         prior[lay["left_hand_pose"][0].start:lay["right_hand_pose"][0].stop] = \

@@ -103,6 +103,37 @@ def pose_hand_seen(obs: Observations, side: str) -> bool:
     return int((obs.weights[rows] > 0).sum()) >= MIN_POSE_HAND_POINTS
 
 
+# BlazePose's arm points below the shoulder, per side: elbow, wrist, pinky, index, thumb.
+POSE_ARM_POINTS = {"left": (13, 15, 17, 19, 21), "right": (14, 16, 18, 20, 22)}
+
+
+def arm_seen(obs: Observations, side: str) -> bool:
+    """Something below this shoulder is observed: the pose model's elbow, wrist or hand
+    points, or the hand's own landmarks. Otherwise the arm is out of view (or unread) and
+    nothing in the frame tells where it is."""
+    rows = [cor.POSE_SLICE.start + i for i in POSE_ARM_POINTS[side]]
+    return bool(obs.seen.get(f"{side}_hand")) or bool((obs.weights[rows] > 0).any())
+
+
+def without_edge_arm_points(obs: Observations, margin_px: float) -> Observations:
+    """A copy of `obs` whose arm points (`POSE_ARM_POINTS`) within `margin_px` of the image's
+    border are unused: BlazePose puts a joint that is out of view on the border itself
+    (docs/tracking.md: elbows below the frame 3-11 px above its bottom, visibility 0.55-0.68),
+    which pulls the arm up into the picture. 0: `obs` as it is."""
+    if margin_px <= 0:
+        return obs
+    w, h = obs.image_size
+    rows = np.array([cor.POSE_SLICE.start + i for ids in POSE_ARM_POINTS.values() for i in ids])
+    px = obs.pixels[rows]
+    near = (px[:, 0] < margin_px) | (px[:, 0] >= w - margin_px) | (px[:, 1] < margin_px) | \
+        (px[:, 1] >= h - margin_px)
+    if not (near & (obs.weights[rows] > 0)).any():
+        return obs
+    weights = obs.weights.copy()
+    weights[rows[near]] = 0.0
+    return dataclasses.replace(obs, weights=weights)
+
+
 def hand_sides(result: TrackResult) -> dict[str, np.ndarray]:
     """Each hand's landmarks [21, 3] by the person's side. The hand model's handedness label
     is wrong on ~20% of detections (docs/tracking.md: 58% while clapping), so when the body's

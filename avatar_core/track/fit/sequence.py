@@ -2,7 +2,9 @@
 the lost-track policy.
 
 Each part of the body belongs to one landmark group (face, left hand, right hand, pose), each
-wrist to its own (seen with its hand, or with the pose model's points of that hand). While a
+wrist to its own (seen with its hand, or with the pose model's points of that hand), and with
+`hold_arms` each arm (shoulder, elbow) to its own, seen while anything below the shoulder is
+(an arm out of view has nothing to fit, and the fit's free arm drifts). While a
 group is seen its parameters come from the fit; when it is lost they hold their last fitted
 value for `hold_s`, then ease to the neutral stance over `relax_s`: fingers lost while the
 pose still places the hand keep their last confident state, then ease to the relaxed hand,
@@ -22,7 +24,13 @@ from ...body.skeleton import JOINT
 from .camera import WebcamCamera
 from .fitter import FitConfig, FitResult, FrameFitter
 from .gaze import gaze_solver
-from .observations import Observations, pose_hand_seen, without_pose_hands
+from .observations import (
+    Observations,
+    arm_seen,
+    pose_hand_seen,
+    without_edge_arm_points,
+    without_pose_hands,
+)
 from .one_euro import ParamSmoother
 from .palm import rotation_angle_deg
 
@@ -31,12 +39,17 @@ GROUP_OF_PARAM = {"expression": "face", "jaw_pose": "face", "leye_pose": "face",
                   "reye_pose": "face", "left_hand_pose": "left_hand",
                   "right_hand_pose": "right_hand", "global_orient": "pose", "transl": "pose"}
 GROUP_OF_BODY_JOINT = {"neck": "face", "head": "face", "left_wrist": "left_wrist",
-                       "right_wrist": "right_wrist"}  # other body joints: "pose"
+                       "right_wrist": "right_wrist", "left_shoulder": "left_arm",
+                       "left_elbow": "left_arm", "right_shoulder": "right_arm",
+                       "right_elbow": "right_arm"}  # other body joints: "pose"
 GROUPS = ("face", "left_hand", "right_hand", "pose")  # the landmark groups
 # What is held and relaxed on its own: the landmark groups, and each wrist, which is seen
 # while its hand is, or while the pose model's points of that hand are (`POSE_HAND_POINTS`:
 # the hand landmark model declines many hands that BlazePose still places).
-HOLD_GROUPS = ("face", "left_hand", "right_hand", "left_wrist", "right_wrist", "pose")
+# Each arm (shoulder, elbow) is seen while anything below its shoulder is (`arm_seen`): an
+# arm out of view has nothing to fit, and the fit's free arm drifts (docs/tracking.md).
+HOLD_GROUPS = ("face", "left_hand", "right_hand", "left_wrist", "right_wrist", "left_arm",
+               "right_arm", "pose")
 
 
 @dataclass
@@ -61,6 +74,12 @@ class SequenceFitConfig:
     # on the studio protocol it made the wrists worse (docs/tracking.md, "Hands the landmark
     # model declines").
     pose_hands: bool = False
+    # Arm points this close to the image's border (fraction of its longer side) are unused
+    # (`without_edge_arm_points`); 0: off.
+    edge_margin: float = 0.0
+    # Each arm held, then eased to rest, while nothing below its shoulder is observed
+    # (`arm_seen`); False: the arms belong to the pose group and follow the fit.
+    hold_arms: bool = False
     fit: FitConfig = field(default_factory=FitConfig)
 
 
@@ -88,6 +107,9 @@ class SequenceFit:
     def __init__(self, model: SMPLXModel, betas: np.ndarray | None = None,
                  config: SequenceFitConfig | None = None) -> None:
         self.config = config or SequenceFitConfig()
+        if not 0.0 <= self.config.edge_margin < 0.5:
+            raise ValueError(f"edge_margin is a fraction of the image's longer side in "
+                             f"[0, 0.5), got {self.config.edge_margin}")
         self.fitter = FrameFitter(model, betas, self.config.fit)
         self.gaze = gaze_solver(model) if self.config.gaze else None
         self.neutral = self.fitter.neutral
@@ -152,6 +174,7 @@ class SequenceFit:
         seen = {g: bool(obs.seen.get(g)) for g in GROUPS}
         if not self.config.pose_hands:
             obs = without_pose_hands(obs)
+        obs = without_edge_arm_points(obs, self.config.edge_margin * max(obs.image_size))
         fit = None
         if any(seen.values()):
             stale = not self.last_seen or t - max(self.last_seen.values()) > self.config.hold_s
@@ -165,6 +188,8 @@ class SequenceFit:
         for side in ("left", "right"):
             held[f"{side}_wrist"] = seen[f"{side}_hand"] or (
                 seen["pose"] and pose_hand_seen(obs, side))
+            held[f"{side}_arm"] = seen["pose"] and (
+                arm_seen(obs, side) or not self.config.hold_arms)
         params = self._compose(None if fit is None else fit.params, held, t)
         self.current = params
         if self.config.smoothing:
