@@ -203,8 +203,8 @@ class Worker:
                 continue
             try:
                 if job.cancel_requested:
+                    self.cleanup(job.id)  # before the state: whoever sees it sees the disk freed
                     self.store.transition(job.id, "cancelled", error="cancelled")
-                    self.cleanup(job.id)
                 else:
                     self._retry_or_fail(job, "the server restarted")
             except (InvalidTransition, JobNotFound):  # changed meanwhile: leave it
@@ -336,8 +336,8 @@ class Worker:
             self.store.transition(job.id, "succeeded", avatar_id=avatar_id)
             self.cleanup(job.id)
         elif rc == EXIT_CANCELLED or job.cancel_requested or run.killed_for_cancel:
+            self.cleanup(job.id)  # before the state: whoever sees it sees the disk freed
             self.store.transition(job.id, "cancelled", error="cancelled")
-            self.cleanup(job.id)
         elif self._stopping.is_set():
             # a planned stop is no fault of the job: re-queued whatever its attempts, the
             # next start resumes it from its checkpoint
