@@ -117,9 +117,10 @@ def _check_rate_limit(srv):
 
 
 async def _drive_for(ws, seconds: float, stop: asyncio.Event | None = None) -> int:
-    """Send a drive every 10 ms for ``seconds``; the last seq sent."""
+    """Send a drive every 10 ms for ``seconds``, or until ``stop`` is set when given
+    (``seconds`` then bounds it); the last seq sent."""
     seq, end = 0, time.monotonic() + seconds
-    while time.monotonic() < end:
+    while time.monotonic() < end and not (stop is not None and stop.is_set()):
         await ws.send(drive(seq))
         seq += 1
         await asyncio.sleep(0.01)
@@ -169,11 +170,15 @@ def test_slow_client_builds_no_lag_and_slows_nobody(srv):
             solo = await count_frames(fast, 1.0)
             await solo_task
             # The slow client keeps driving but stops reading.
-            slow_sender = asyncio.create_task(_drive_for(slow, 2.5))
-            fast_sender = asyncio.create_task(_drive_for(fast, 2.5))
+            # Both drive until the counting ends: on a loaded machine the stall takes longer
+            # than any fixed drive time, and an undriven session renders nothing new.
+            counted = asyncio.Event()
+            slow_sender = asyncio.create_task(_drive_for(slow, 60.0, counted))
+            fast_sender = asyncio.create_task(_drive_for(fast, 60.0, counted))
             await count_frames(fast, 1.0)  # until the slow connection's buffers are full
-            await _until_stalled(srv, fast, "png")  # on a loaded machine that takes longer
+            await _until_stalled(srv, fast, "png")
             shared = await count_frames(fast, 1.5) / 1.5
+            counted.set()
             last = await slow_sender
             await fast_sender
             assert shared > 0.6 * solo, (shared, solo)  # the stalled session takes no slot
