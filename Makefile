@@ -61,7 +61,8 @@ test: $(VENV)/.installed-dev browser
 	$(PY) -m ruff check .
 	# Two workers on two cores: one thread each, or the torch / numba pools oversubscribe.
 	# loadgroup: tests marked xdist_group (a module's one Ray cluster) stay on one worker.
-	OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 NUMBA_NUM_THREADS=1 $(PY) -m pytest -q -n 2 --dist loadgroup
+	# --durations=25: the slowest tests in the log, so CI shows where the time goes.
+	OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 NUMBA_NUM_THREADS=1 $(PY) -m pytest -q -n 2 --dist loadgroup --durations=25
 
 lint: $(VENV)/.installed-dev
 	$(PY) -m ruff check .

@@ -36,6 +36,19 @@ def mano_data(synthetic_files):
     return {side: load_mano(synthetic_files.mano_pkl(side)) for side in ("left", "right")}
 
 
+@pytest.fixture(scope="session")
+def shared_chromium():
+    """The worker's one plain headless Chromium (tests/browser_fixtures.py), started on first
+    use."""
+    from tests.browser_fixtures import SharedChromium
+
+    shared = SharedChromium()
+    try:
+        yield shared
+    finally:
+        shared.close()
+
+
 def random_smplx_params(batch: int, seed: int, *, scale: float = 0.3, num_betas: int = 10,
                         num_expression: int = 10) -> dict[str, np.ndarray]:
     rng = np.random.default_rng(seed)
