@@ -70,10 +70,16 @@ def as_torch(params: dict, dtype=torch.float64) -> dict[str, torch.Tensor]:
     return {k: torch.as_tensor(v, dtype=dtype) for k, v in params.items()}
 
 
-@pytest.hookimpl(trylast=True)  # after pytest-xdist's own, which adds the "@group" suffix
+@pytest.hookimpl(wrapper=True)  # around pytest-xdist's, which reads the groups
 def pytest_collection_modifyitems(config, items):
-    """Tests marked ``gpu`` need a CUDA device (``make gpu-check`` runs them): without one
-    they skip and say so."""
+    """A test module without an ``xdist_group`` is a group of its own: under ``-n 2 --dist
+    loadgroup`` its module-scoped fixtures (servers, trained avatars, browsers) are built on
+    one worker, not on both. Tests marked ``gpu`` need a CUDA device (``make gpu-check`` runs
+    them): without one they skip and say so."""
+    for item in items:
+        if item.get_closest_marker("xdist_group") is None:
+            item.add_marker(pytest.mark.xdist_group(item.nodeid.split("::")[0]))
+    yield
     check_xdist_groups(config, items)
     gpu_items = [item for item in items if item.get_closest_marker("gpu") is not None]
     if not gpu_items or torch.cuda.is_available():
