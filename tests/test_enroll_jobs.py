@@ -236,7 +236,9 @@ def test_a_studio_take_becomes_an_avatar_the_server_lists(srv, studio_take, tmp_
     steps = [e["iteration"] for e in events(srv, job_id) if e["type"] == "progress"]
     assert steps == sorted(steps) and steps[-1] == PROGRESS_STEPS  # one bar, never back
     folder = srv.ctx.jobs.worker.job_dir(job_id)
-    assert not (folder / "dataset").exists() and not (folder / "out" / "dataset").exists()
+    assert not (folder / "out" / "dataset").exists()
+    # the worker deletes the upload just after it records the end (not before): wait for it
+    wait_for(lambda: not (folder / "dataset").exists(), TIMEOUT_S, what="the video deleted")
 
 
 def test_a_body_of_skipped_parts_is_bounded_too(srv, videos):
@@ -273,4 +275,5 @@ def test_cancelling_an_enrollment_stops_it_at_its_next_progress_call(srv, studio
     folder = srv.ctx.jobs.worker.job_dir(job_id)
     # the process saw the cancel itself (not killed after the grace period) ...
     assert f"job {job_id} cancelled" in (folder / "log.txt").read_text()
-    assert not (folder / "dataset").exists()  # ... and the video is gone
+    # ... and the video is gone (deleted just after the end is recorded: waited for)
+    wait_for(lambda: not (folder / "dataset").exists(), TIMEOUT_S, what="the video deleted")
