@@ -60,8 +60,10 @@ test: $(VENV)/.installed-dev browser
 	@$(MAKE) --no-print-directory models || echo "tracking models unavailable: their tests will skip"
 	$(PY) -m ruff check .
 	# Two workers on two cores: one thread each, or the torch / numba pools oversubscribe.
-	# loadgroup: tests marked xdist_group (a module's one Ray cluster) stay on one worker.
-	OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 NUMBA_NUM_THREADS=1 $(PY) -m pytest -q -n 2 --dist loadgroup
+	# loadgroup: a test module, or an xdist_group across modules, stays on one worker, so its
+	# module fixtures (servers, Ray clusters) are built once (tests/conftest.py).
+	# --durations=25: the slowest tests in the log, so CI shows where the time goes.
+	OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 NUMBA_NUM_THREADS=1 $(PY) -m pytest -q -n 2 --dist loadgroup --durations=25
 
 lint: $(VENV)/.installed-dev
 	$(PY) -m ruff check .

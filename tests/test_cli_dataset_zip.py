@@ -1,4 +1,4 @@
-"""`telesplat dataset zip` (as a subprocess): the archive unpacks through the server's own
+"""`telesplat dataset zip` (its `main`, in process): the archive unpacks through the server's own
 archive reader to the same dataset; an incomplete dataset is refused with a clear message.
 The default held-out camera is never the front one; `telesplat train` warns for a schedule too
 short for a usable avatar."""
@@ -7,34 +7,25 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import shutil
-import subprocess
-import sys
-from pathlib import Path
 
 import pytest
 
+from avatar_core.cli import main
 from avatar_core.dataset.loader import load_dataset
 from avatar_core.synth.capture import default_holdout
 from avatar_core.synth.studio import StudioConfig, studio_rig
 from server.jobs.archive import UploadLimits, extract_archive
 
 from . import test_jobs_support as support
+from .cli_run import run_main
 
 capture_dir = support.capture_dir  # the shared session fixture
-ROOT = Path(__file__).resolve().parent.parent
 
 
-def _telesplat(*args: str, timeout: float = 240.0) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "avatar_core.cli", *args],
-                          capture_output=True, text=True, timeout=timeout, cwd=ROOT,
-                          env=dict(os.environ), check=False)
-
-
-def test_zip_is_what_the_server_unpacks(capture_dir, tmp_path):
+def test_zip_is_what_the_server_unpacks(capture_dir, tmp_path, capsys):
     out = tmp_path / "up" / "take.zip"
-    done = _telesplat("dataset", "zip", str(capture_dir), "--out", str(out))
+    done = run_main(main, ["dataset", "zip", capture_dir, "--out", out], capsys)
     assert done.returncode == 0, done.stderr
     assert "100%" in done.stderr.replace("\r", "\n")  # the progress bar ran to the end
     assert f"wrote {out}" in done.stdout and "jobs submit --archive" in done.stdout
@@ -47,13 +38,13 @@ def test_zip_is_what_the_server_unpacks(capture_dir, tmp_path):
     assert load_dataset(root, validate=True).sequences == load_dataset(capture_dir).sequences
 
 
-def test_an_incomplete_dataset_is_refused(capture_dir, tmp_path):
+def test_an_incomplete_dataset_is_refused(capture_dir, tmp_path, capsys):
     broken = tmp_path / "broken"
     shutil.copytree(capture_dir, broken)
     image = next(p for p in sorted(broken.rglob("*.png")) if "images" in p.parts)
     image.unlink()
     out = tmp_path / "broken.zip"
-    done = _telesplat("dataset", "zip", str(broken), "--out", str(out))
+    done = run_main(main, ["dataset", "zip", broken, "--out", out], capsys)
     assert done.returncode == 2
     assert "is not a complete dataset" in done.stderr and "dataset validate" in done.stderr
     assert "missing_image" in done.stderr
@@ -77,13 +68,13 @@ def test_the_default_holdout_is_never_the_front_camera(n):
     assert _azimuth(by_name[held[0]]) == pytest.approx(min(right))
 
 
-def test_train_warns_when_the_schedule_is_too_short(capture_dir, synthetic_files, tmp_path):
+def test_train_warns_when_the_schedule_is_too_short(capture_dir, synthetic_files, tmp_path,
+                                                    capsys):
     config = tmp_path / "tiny.json"
     config.write_text(json.dumps({"preset": "test", "iterations": 2, "progress_interval": 1,
                                   "checkpoint_interval": 2}))
-    done = _telesplat("train", str(capture_dir), "--out", str(tmp_path / "out"), "--config",
-                      str(config), "--device", "cpu", "--body-models",
-                      str(synthetic_files.root))
+    done = run_main(main, ["train", capture_dir, "--out", tmp_path / "out", "--config", config,
+                           "--device", "cpu", "--body-models", synthetic_files.root], capsys)
     assert done.returncode == 0, done.stderr
     assert "2 iterations is too few for a usable avatar" in done.stderr
     assert "wrote avatar" in done.stdout

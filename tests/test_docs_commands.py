@@ -8,12 +8,13 @@ exist on that subcommand, and a concrete value of an option with choices, of ``-
 (built-in clips), ``--camera`` / ``--view`` (camera presets) and ``--config`` (training
 presets) must be a known one. Synopsis lines are understood: ``[...]`` optional parts, ``a|b``
 alternatives, `` | `` between sibling subcommands, UPPER-CASE placeholders, files. Then every
-distinct subcommand path runs as a subprocess with ``--help`` appended and must exit 0.
+distinct subcommand path runs with ``--help`` appended (all in one subprocess) and must exit 0.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import re
 import shlex
@@ -223,18 +224,41 @@ def test_the_checker_catches_drift(tmp_path):
     assert len(problems) == 7, text  # the last two lines are fine
 
 
+# One interpreter for every path (a subprocess each cost seconds of imports on a busy CI): it
+# runs each program's main with ``--help`` as ``python -m`` would, and reports exit code and
+# output per path as JSON. The ``python -m`` entries run in test_help_names_every_preset_and_camera.
+HELP_RUNNER = """
+import contextlib, importlib, io, json, sys
+out = []
+for module, path in json.loads(sys.stdin.read()):
+    main = importlib.import_module(module).main
+    stdout, stderr = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+        try:
+            code = main([*path, "--help"])
+        except SystemExit as exc:
+            code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+        except Exception as exc:  # that path's failure, reported with the others
+            print(repr(exc), file=sys.stderr)
+            code = 1
+    out.append([code, stdout.getvalue(), stderr.getvalue()])
+print(json.dumps(out))
+"""
+
+
 def test_every_documented_command_runs_with_help():
     paths = sorted(check_docs(doc_lines()).paths)
     assert len(paths) >= 20
+    asked = [(PROGRAMS[program][0], list(path)) for program, path in paths]
+    done = subprocess.run([sys.executable, "-c", HELP_RUNNER], input=json.dumps(asked),
+                          capture_output=True, text=True, timeout=300, cwd=ROOT,
+                          env=dict(os.environ), check=False)
+    assert done.returncode == 0, done.stderr[-2000:]
     failures = []
-    for program, path in paths:
-        module = PROGRAMS[program][0]
-        done = subprocess.run([sys.executable, "-m", module, *path, "--help"],
-                              capture_output=True, text=True, timeout=120, cwd=ROOT,
-                              env=dict(os.environ), check=False)
-        if done.returncode != 0 or "usage:" not in done.stdout:
-            failures.append(f"{program} {' '.join(path)} --help: rc {done.returncode}\n"
-                            f"{done.stderr[-2000:]}")
+    for (program, path), (code, stdout, stderr) in zip(paths, json.loads(done.stdout),
+                                                        strict=True):
+        if code != 0 or "usage:" not in stdout:
+            failures.append(f"{program} {' '.join(path)} --help: rc {code}\n{stderr[-2000:]}")
     assert not failures, "\n".join(failures)
 
 

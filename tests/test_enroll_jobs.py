@@ -199,14 +199,21 @@ TINY_ENROLL = {"iterations": 6, "resolution": 64, "min_frames": 8, "fit_iteratio
                "preflight_frames": 4}
 
 
-@needs_models
-def test_a_studio_take_becomes_an_avatar_the_server_lists(srv, tmp_path):
+@pytest.fixture(scope="module")
+def studio_take(tmp_path_factory) -> Path:
     """The studio's one-camera take (the synthetic actor turning and gesturing, 2 s at
-    320 x 240), submitted and watched with the client, enrolled end to end by the job."""
+    320 x 240), filmed once for the module: the jobs only read it."""
     from avatar_core.synth.enroll_video import EnrollVideoSpec, film_enroll_video
 
-    take = film_enroll_video(tmp_path / "take.mp4",
+    return film_enroll_video(tmp_path_factory.mktemp("studio") / "take.mp4",
                              EnrollVideoSpec(seconds=2.0, fps=10.0, width=320, height=240))
+
+
+@needs_models
+def test_a_studio_take_becomes_an_avatar_the_server_lists(srv, studio_take, tmp_path):
+    """The studio take, submitted and watched with the client, enrolled end to end by the
+    job."""
+    take = studio_take
     config = tmp_path / "tiny.json"
     config.write_text(json.dumps(TINY_ENROLL))
     done = _client("jobs", "submit", "--video", str(take), "--config", str(config), "--name",
@@ -229,7 +236,9 @@ def test_a_studio_take_becomes_an_avatar_the_server_lists(srv, tmp_path):
     steps = [e["iteration"] for e in events(srv, job_id) if e["type"] == "progress"]
     assert steps == sorted(steps) and steps[-1] == PROGRESS_STEPS  # one bar, never back
     folder = srv.ctx.jobs.worker.job_dir(job_id)
-    assert not (folder / "dataset").exists() and not (folder / "out" / "dataset").exists()
+    assert not (folder / "out" / "dataset").exists()
+    # the worker deletes the upload just after it records the end (not before): wait for it
+    wait_for(lambda: not (folder / "dataset").exists(), TIMEOUT_S, what="the video deleted")
 
 
 def test_a_body_of_skipped_parts_is_bounded_too(srv, videos):
@@ -251,12 +260,8 @@ def test_a_body_of_skipped_parts_is_bounded_too(srv, videos):
 
 
 @needs_models
-def test_cancelling_an_enrollment_stops_it_at_its_next_progress_call(srv, tmp_path):
-    from avatar_core.synth.enroll_video import EnrollVideoSpec, film_enroll_video
-
-    take = film_enroll_video(tmp_path / "take.mp4",
-                             EnrollVideoSpec(seconds=2.0, fps=10.0, width=320, height=240))
-    r = post_video(srv, take, config={**TINY_ENROLL, "iterations": 30_000},
+def test_cancelling_an_enrollment_stops_it_at_its_next_progress_call(srv, studio_take):
+    r = post_video(srv, studio_take, config={**TINY_ENROLL, "iterations": 30_000},
                    content_type="video/mp4")
     assert r.status_code == 201, r.text
     job_id = r.json()["id"]
@@ -270,4 +275,5 @@ def test_cancelling_an_enrollment_stops_it_at_its_next_progress_call(srv, tmp_pa
     folder = srv.ctx.jobs.worker.job_dir(job_id)
     # the process saw the cancel itself (not killed after the grace period) ...
     assert f"job {job_id} cancelled" in (folder / "log.txt").read_text()
-    assert not (folder / "dataset").exists()  # ... and the video is gone
+    # ... and the video is gone (deleted just after the end is recorded: waited for)
+    wait_for(lambda: not (folder / "dataset").exists(), TIMEOUT_S, what="the video deleted")

@@ -14,6 +14,7 @@ import cv2
 import pytest
 
 from avatar_core.enroll.video import probe_video, read_video
+from tests.browser_fixtures import browser_fixture  # noqa: F401 (`browser`)
 from tests.server_fixtures import run_server
 from tests.test_client_browser import wait_for
 from tests.test_client_units import chromium_missing, make_chromium, node, run_node
@@ -56,15 +57,6 @@ def studio_camera(tmp_path_factory) -> str:
     take = film_enroll_video(d / "take.mp4", EnrollVideoSpec(seconds=4.0, fps=10.0,
                                                              width=320, height=240))
     return write_y4m(d / "take.y4m", read_video(take).frames)
-
-
-@pytest.fixture()
-def browser():
-    driver = make_chromium()
-    try:
-        yield driver
-    finally:
-        driver.quit()
 
 
 def open_page(driver, server, **query) -> None:

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from avatar_core.synth.humanoid.build import EXPRESSION_NAMES
+from tests.browser_fixtures import browser_fixture  # noqa: F401 (`browser`)
 from tests.server_fixtures import is_type, recv_until, server_fixture  # noqa: F401 (`server`)
 from tests.test_client_browser import wait_for
 from tests.test_client_units import chromium_missing, make_chromium, node, run_node
@@ -39,15 +40,6 @@ def set_slider(driver, param: str, value: float) -> int:
         input.value = {value};
         input.dispatchEvent(new Event('input'));
         return window.telesplat.session.seq;""")
-
-
-@pytest.fixture()
-def browser():
-    driver = make_chromium()
-    try:
-        yield driver
-    finally:
-        driver.quit()
 
 
 def open_page(driver, server, query: str = "transport=ws") -> None:  # noqa: F811

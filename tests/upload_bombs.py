@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import io
 import zipfile
+import zlib
 
 import numpy as np
 from numpy.lib import format as npy_format
@@ -21,6 +22,26 @@ def npy_header(shape: tuple[int, ...], dtype: str = "<f4") -> bytes:
     return buf.getvalue()
 
 
+class _FlushedDeflate:
+    """zlib's deflate with a full flush after every write: after one the compressor starts
+    afresh, so a repeated chunk (the zeros) deflates to the same bytes, computed once. A GiB
+    bomb then costs a CRC pass instead of deflating a GiB (tens of seconds on a busy CI)."""
+
+    def __init__(self, level: int):
+        self._deflate = zlib.compressobj(level, zlib.DEFLATED, -15)  # zipfile's raw stream
+        self._seen: dict[bytes, bytes] = {}
+
+    def compress(self, data: bytes) -> bytes:
+        if data not in self._seen:
+            self._seen.clear()  # one repeated chunk at a time
+            self._seen[data] = self._deflate.compress(data) + self._deflate.flush(
+                zlib.Z_FULL_FLUSH)
+        return self._seen[data]
+
+    def flush(self) -> bytes:
+        return self._deflate.flush()
+
+
 def zeros_member(z: zipfile.ZipFile, name: str, nbytes: int, *, header: bytes | None = None
                  ) -> None:
     """A deflated member: ``header`` (default: a float32 .npy header of the right shape)
@@ -29,6 +50,9 @@ def zeros_member(z: zipfile.ZipFile, name: str, nbytes: int, *, header: bytes | 
     info = zipfile.ZipInfo(name)
     info.compress_type = zipfile.ZIP_DEFLATED
     with z.open(info, "w", force_zip64=True) as out:
+        # zipfile has no public way to give a member's compressor; its writer calls
+        # compress() per write and flush() at the end, as _FlushedDeflate does
+        out._compressor = _FlushedDeflate(zlib.Z_DEFAULT_COMPRESSION)
         out.write(header)
         zeros = bytes(CHUNK)
         left = nbytes
