@@ -16,37 +16,17 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import fractions
 import sys
 import time
 from pathlib import Path
 from types import SimpleNamespace
 
-import av
-import numpy as np
-
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from server.config import Settings  # noqa: E402
-from server.rooms.voice import CLOCK_RATE, seat_voice  # noqa: E402
-from server.rooms.voice_mix import FRAME, FRAME_S, MixCodec, room_mix  # noqa: E402
+from server.rooms.voice import seat_voice  # noqa: E402
+from server.rooms.voice_mix import FRAME, FRAME_S, MixCodec, room_mix, tone_packets  # noqa: E402
 from server.stream.drive import DriveState  # noqa: E402
-
-
-def tone_packets(freq: float, count: int) -> list[bytes]:
-    codec = av.CodecContext.create("libopus", "w")
-    codec.sample_rate, codec.layout, codec.format = CLOCK_RATE, "mono", "s16"
-    codec.bit_rate, codec.options = 32000, {"frame_duration": "20"}
-    out = []
-    for i in range(count + 1):
-        t = (np.arange(FRAME) + i * FRAME) / CLOCK_RATE
-        frame = av.AudioFrame.from_ndarray((np.sin(2 * np.pi * freq * t) * 8000)
-                                           .astype(np.int16)[None], format="s16",
-                                           layout="mono")
-        frame.sample_rate, frame.pts = CLOCK_RATE, i * FRAME
-        frame.time_base = fractions.Fraction(1, CLOCK_RATE)
-        out += [bytes(p) for p in codec.encode(frame)]
-    return out[:count]
 
 
 def room(seats: int) -> SimpleNamespace:

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from protocol import Voice, encode
-from server.rooms.voice_mix import FRAME, PREBUFFER_FRAMES, MixCodec, SeatDecoder
+from server.rooms.voice_mix import FRAME, PREBUFFER_FRAMES, MixCodec, SeatDecoder, tone_packets
 from tests.server_fixtures import is_type, recv_until, run_server, wait_until
 from tests.test_server_rooms import create_room, invite, join, live, rest
 from tests.voice_fixtures import RATE
@@ -182,24 +182,6 @@ def test_a_performer_cannot_ask_the_websocket_for_the_mix(srv):
     error = asyncio.run(run())
     assert error.code == "invalid" and "viewers" in error.message
     assert live(srv, room["id"]) is None or live(srv, room["id"]).voice_mix is None
-
-
-def tone_packets(freq: float, count: int) -> list[bytes]:
-    """``count`` 20 ms Opus packets of a sine tone."""
-    codec = av.CodecContext.create("libopus", "w")
-    codec.sample_rate, codec.layout, codec.format = RATE, "mono", "s16"
-    codec.bit_rate = 32000
-    codec.options = {"frame_duration": "20"}
-    packets = []
-    for i in range(count + 1):  # one more: the encoder's look-ahead
-        t = (np.arange(FRAME) + i * FRAME) / RATE
-        frame = av.AudioFrame.from_ndarray((np.sin(2 * np.pi * freq * t) * 8000)
-                                           .astype(np.int16)[None], format="s16",
-                                           layout="mono")
-        frame.sample_rate, frame.pts = RATE, i * FRAME
-        frame.time_base = fractions.Fraction(1, RATE)
-        packets += [bytes(p) for p in codec.encode(frame)]
-    return packets[:count]
 
 
 def test_the_mix_codec_sums_seats_cushions_and_bounds_their_backlog():

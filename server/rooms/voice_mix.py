@@ -75,14 +75,39 @@ class SeatDecoder:
         return np.pad(out, (0, FRAME - len(out)))
 
 
+def opus_encoder(bitrate: int) -> av.CodecContext:
+    """A mono 48 kHz libopus encoder of 20 ms packets."""
+    encoder = av.CodecContext.create("libopus", "w")
+    encoder.sample_rate, encoder.layout = CLOCK_RATE, "mono"
+    encoder.format, encoder.bit_rate = "s16", bitrate
+    encoder.options = {"frame_duration": "20"}
+    return encoder
+
+
+def encode_samples(encoder: av.CodecContext, samples: np.ndarray, pts: int) -> list[bytes]:
+    """Encode one 20 ms frame of ``samples`` ([FRAME] floats in [-1, 1]) at ``pts``; the
+    packets it gives (none while the encoder fills its look-ahead)."""
+    frame = av.AudioFrame.from_ndarray((np.clip(samples, -1.0, 1.0) * 32767)
+                                       .astype(np.int16)[None], format="s16", layout="mono")
+    frame.sample_rate, frame.pts = CLOCK_RATE, pts
+    frame.time_base = fractions.Fraction(1, CLOCK_RATE)
+    return [bytes(p) for p in encoder.encode(frame)]
+
+
+def tone_packets(freq: float, count: int, amplitude: float = 0.25) -> list[bytes]:
+    """``count`` 20 ms Opus packets of a sine tone (tests and benches speak with it)."""
+    encoder, packets = opus_encoder(32000), []
+    for i in range(count + 1):  # one more: the encoder's look-ahead
+        t = (np.arange(FRAME) + i * FRAME) / CLOCK_RATE
+        packets += encode_samples(encoder, amplitude * np.sin(2 * np.pi * freq * t), i * FRAME)
+    return packets[:count]
+
+
 class MixCodec:
     """Decode, sum and encode: the mix's work, called from one thread at a time."""
 
     def __init__(self, bitrate: int, max_frames: int) -> None:
-        self.encoder = av.CodecContext.create("libopus", "w")
-        self.encoder.sample_rate, self.encoder.layout = CLOCK_RATE, "mono"
-        self.encoder.format, self.encoder.bit_rate = "s16", bitrate
-        self.encoder.options = {"frame_duration": "20"}
+        self.encoder = opus_encoder(bitrate)
         self.max_samples = max_frames * FRAME
         self.seats: dict[int, SeatDecoder] = {}
         self.pts = 0
@@ -98,13 +123,9 @@ class MixCodec:
         parts = [p for p in (d.take() for d in self.seats.values()) if p is not None]
         if not parts:
             return None
-        mixed = np.clip(np.sum(parts, axis=0), -1.0, 1.0)
-        frame = av.AudioFrame.from_ndarray((mixed * 32767).astype(np.int16)[None],
-                                           format="s16", layout="mono")
-        frame.sample_rate, frame.pts = CLOCK_RATE, self.pts
-        frame.time_base = fractions.Fraction(1, CLOCK_RATE)
+        packets = encode_samples(self.encoder, np.sum(parts, axis=0), self.pts)
         self.pts += FRAME
-        return [bytes(p) for p in self.encoder.encode(frame)]
+        return packets
 
 
 class MixSubscriber:
