@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import asyncio
 import fractions
-import statistics
 import time
 
 import numpy as np
@@ -192,5 +191,10 @@ def test_a_webrtc_viewer_hears_a_webcam_performer_with_the_frame_of_its_image(sr
     # -45/+125 ms bounds: the voice leaves as the frame goes to the encoder, and on two loaded
     # cores the VP8 encode and this process's own receiving lag 0-140 ms behind (measured
     # here); bench/voice_sync.py measures the bounds.
-    assert statistics.median(tracking) > 4 * SAME_FRAME_MS, tracking
+    # The voice waited for the frame: a click that had not waited would come about the
+    # tracking time ahead of its frame (offset ~ -tracking). How long tracking takes depends
+    # on the machine (a quiet one ~170 ms, a loaded one 0.9-2.3 s), so the check is relative.
+    assert min(tracking) > 50.0, tracking  # the frame did lag its image
+    waited = [x > -0.5 * t for x, t in zip(offsets, tracking, strict=True)]
+    assert all(waited), (offsets, tracking)
     assert all(abs(x) <= SAME_FRAME_MS for x in offsets), offsets
