@@ -64,8 +64,13 @@ def test_a_performer_page_speaks_and_a_viewer_page_hears_it(server, room):  # no
         viewer.get(f"{server.url}{links['watch']}")
         wait_playing(viewer)
         # The viewer hears seat 0: packets arrive, and a beep lifts the level.
-        heard = wait_for(viewer, "(window.telesplat.voices || []).find(v => v.seat === 0 && "
-                                 "v.packets > 50 && v.speaking)", LOUD_S, "seat 0 speaking")
+        try:
+            heard = wait_for(viewer, "(window.telesplat.voices || []).find(v => v.seat === 0 "
+                                     "&& v.packets > 50 && v.speaking)", LOUD_S, "seat 0 speaking")
+        except TimeoutError as missed:  # say what the page and the server did have
+            voices = viewer.execute_script("return JSON.stringify(window.telesplat.voices)")
+            raise AssertionError(f"{missed}; page voices {voices}; server "
+                                 f"{voice_counts(server, room['id'])}") from missed
         assert heard["volume"] == 1 and heard["muted"] is False
         assert "speaking: seat 0" in viewer.find_element("id", "speaking").text
         # Presence says so too (the server's flag, from the level Chromium puts in each packet).
