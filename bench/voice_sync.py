@@ -428,6 +428,30 @@ async def run(url: str, token: str, viewers: int, events: int, size: int,
             "overflow": after.get("overflow", 0) - before.get("overflow", 0)}
 
 
+def add_server_voice_args(parser: argparse.ArgumentParser) -> None:
+    """The server's voice settings a run may set, each a comma list run side by side."""
+    parser.add_argument("--pacing", default="frames", help="the server's voice_pacing per "
+                        "run, side by side: even, frames or even,frames")
+    parser.add_argument("--sender-clock", default="capture,send", help="the server's "
+                        "webrtc_sender_clock per run: capture, send or capture,send")
+    parser.add_argument("--max-delay-s", default="default", help="the server's "
+                        "voice_max_delay_s per run (default: unset), e.g. default,0")
+
+
+def server_voice_runs(args: argparse.Namespace):
+    """Each (pacing, sender clock, max delay) of ``args`` in turn, set in the environment the
+    server reads; yields the three."""
+    for pacing, clock, delay in itertools.product(args.pacing.split(","),
+                                                  args.sender_clock.split(","),
+                                                  args.max_delay_s.split(",")):
+        os.environ["TELESPLAT_VOICE_PACING"] = pacing
+        os.environ["TELESPLAT_WEBRTC_SENDER_CLOCK"] = clock
+        os.environ.pop("TELESPLAT_VOICE_MAX_DELAY_S", None)
+        if delay != "default":
+            os.environ["TELESPLAT_VOICE_MAX_DELAY_S"] = delay
+        yield pacing, clock, delay
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -447,12 +471,7 @@ def main() -> int:
                         "(a webcam performer's rate; 0: only at the jaw's edges), e.g. 0,30")
     parser.add_argument("--mouth-clock", default="arrival", help="arrival (the frame's last "
                         "RTP packet, as the click's), decode, or arrival,decode")
-    parser.add_argument("--pacing", default="frames", help="the server's voice_pacing per "
-                        "run, side by side: even, frames or even,frames")
-    parser.add_argument("--sender-clock", default="capture,send", help="the server's "
-                        "webrtc_sender_clock per run: capture, send or capture,send")
-    parser.add_argument("--max-delay-s", default="default", help="the server's "
-                        "voice_max_delay_s per run (default: unset), e.g. default,0")
+    add_server_voice_args(parser)
     args = parser.parse_args()
     print("| pacing | sender clock | voice_max_delay_s | viewers | processes | mouth clock | "
           "drives/s | cap bit/s | events | paired | "
@@ -464,14 +483,10 @@ def main() -> int:
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     most = max(int(v) for v in args.viewers.split(","))
     os.environ["TELESPLAT_WEBRTC_MAX_PEERS"] = str(most + 2)  # the viewers and the performer
-    for pacing, sender_clock, delay, cap in itertools.product(
-            args.pacing.split(","), args.sender_clock.split(","), args.max_delay_s.split(","),
-            (int(c) for c in args.caps.split(","))):
-        os.environ["TELESPLAT_VOICE_PACING"] = pacing
-        os.environ["TELESPLAT_WEBRTC_SENDER_CLOCK"] = sender_clock
-        os.environ.pop("TELESPLAT_VOICE_MAX_DELAY_S", None)
-        if delay != "default":
-            os.environ["TELESPLAT_VOICE_MAX_DELAY_S"] = delay
+    caps = [int(c) for c in args.caps.split(",")]
+    # lazily: each run's settings are in the environment while its caps run
+    for (pacing, sender_clock, delay), cap in ((run, cap) for run in server_voice_runs(args)
+                                               for cap in caps):
         os.environ.pop("TELESPLAT_WEBRTC_MAX_BITRATE", None)
         os.environ.pop("TELESPLAT_WEBRTC_MIN_BITRATE", None)
         if cap:

@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import itertools
 import os
 import sys
 import tempfile
@@ -43,7 +42,14 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
 from stream import start_server, stop_server  # noqa: E402
-from voice_sync import EVENT_EVERY_S, JAW_OPEN, OPEN_S, click_microphone  # noqa: E402
+from voice_sync import (  # noqa: E402
+    EVENT_EVERY_S,
+    JAW_OPEN,
+    OPEN_S,
+    add_server_voice_args,
+    click_microphone,
+    server_voice_runs,
+)
 
 from client.webrtc import WhepViewer  # noqa: E402
 from protocol import Drive  # noqa: E402
@@ -303,12 +309,7 @@ def main() -> int:
     parser.add_argument("--open-pixels", type=int, default=8)
     parser.add_argument("--drive-hz", type=float, default=30.0)
     parser.add_argument("--avatar", default="synthetic")
-    parser.add_argument("--pacing", default="frames", help="the server's voice_pacing per "
-                        "run, side by side: even, frames or even,frames")
-    parser.add_argument("--sender-clock", default="capture,send", help="the server's "
-                        "webrtc_sender_clock per run: capture, send or capture,send")
-    parser.add_argument("--max-delay-s", default="default", help="the server's "
-                        "voice_max_delay_s per run (default: unset), e.g. default,0")
+    add_server_voice_args(parser)
     args = parser.parse_args()
 
     os.environ["TELESPLAT_WEBRTC_MAX_PEERS"] = "4"
@@ -316,14 +317,7 @@ def main() -> int:
           "median ms | p5 / p95 ms | min / max ms | within -45/+125 | jitter buffer ms: "
           "audio (target) / video (target) |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
-    for pacing, clock, delay in itertools.product(args.pacing.split(","),
-                                                  args.sender_clock.split(","),
-                                                  args.max_delay_s.split(",")):
-        os.environ["TELESPLAT_VOICE_PACING"] = pacing
-        os.environ["TELESPLAT_WEBRTC_SENDER_CLOCK"] = clock
-        os.environ.pop("TELESPLAT_VOICE_MAX_DELAY_S", None)
-        if delay != "default":
-            os.environ["TELESPLAT_VOICE_MAX_DELAY_S"] = delay
+    for pacing, clock, delay in server_voice_runs(args):
         rec = run_once(args)
         arr = np.asarray(offsets(rec))
         print(f"# {pacing} {clock} {delay}: frames {rec['frames']}, audio blocks "
