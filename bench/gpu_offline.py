@@ -345,7 +345,7 @@ STAGES = (
     Stage("pytest-gpu", stage_pytest, cap_s=240, min_s=60, after=("gpu", "imports")),
     Stage("bench", stage_bench, cap_s=200, min_s=90, cuda=True,
           after=("gpu", "imports", "gsplat-build")),
-    Stage("profile", stage_profile, cap_s=150, min_s=30, cuda=True,
+    Stage("profile", stage_profile, cap_s=240, min_s=60, cuda=True,
           after=("gpu", "imports", "gsplat-build")),
 )
 

@@ -102,6 +102,34 @@ def profile_table(fn: Callable[[], object], device: torch.device, rows: int = 14
     return "\n".join(out)
 
 
+def compiled_mask_ms(g: GaussianSet, cam, req: RenderRequest, device: torch.device,
+                     reps: int) -> dict:
+    """The mask under ``torch.compile`` (fused kernels; ``reduce-overhead`` adds CUDA graphs):
+    ms per call, first-call compile seconds, and whether it equals the eager mask exactly. The
+    measured remedy for a launch-bound mask (docs/gpu.md), tried before it is wired in."""
+    out: dict = {}
+    want, want_n = _mask_culled(g, cam, req)
+    for mode in ("default", "reduce-overhead"):
+        name = f"mask compiled ({mode})"
+        try:
+            torch._dynamo.reset()
+            fn = torch.compile(_mask_culled, mode=mode, dynamic=False)
+            t0 = time.perf_counter()
+            got, got_n = fn(g, cam, req)
+            sync(device)
+            out[f"{name} compile s"] = time.perf_counter() - t0
+            same = int(got_n) == int(want_n) and all(
+                torch.equal(getattr(got, f.name), getattr(want, f.name))
+                for f in dataclasses.fields(want))
+            out[f"{name} equals eager"] = float(same)
+            out[name] = median_ms(lambda fn=fn: fn(g, cam, req), device, reps)
+        except Exception as exc:  # noqa: BLE001 - a compile failure is a finding, not a crash
+            print(f"## {name}: {type(exc).__name__}: {exc}", flush=True)
+            out[name] = -1.0
+    torch._dynamo.reset()
+    return out
+
+
 def single(g: GaussianSet, device: torch.device, backend: str, reps: int,
            size: tuple[int, int]) -> tuple[dict, str]:
     cam = avatar_camera(*size)
@@ -118,6 +146,7 @@ def single(g: GaussianSet, device: torch.device, backend: str, reps: int,
             **gsplat_arguments(g, cam, req, 3))
     with torch.no_grad():
         ms = {k: median_ms(f, device, reps) for k, f in parts.items()}
+        ms.update(compiled_mask_ms(g, cam, req, device, reps))
         ms["host syncs in rasterize"] = host_syncs(parts["rasterize"], device)
         table = profile_table(parts["rasterize"], device)
     return ms, table
