@@ -191,7 +191,10 @@ def start_server(data_dir: Path, render_threads: int | None, max_sessions: int, 
         found = re.search(r"serving at (http://[^/\s]+)/[?#]token=(\S+)", line)
         if found:
             # Keep reading what the server prints, or a long run fills the pipe and blocks it.
-            threading.Thread(target=collections.deque, args=(proc.stdout, 0),
+            # The last lines stay readable (``proc.tail``): a bench may report the server's
+            # warnings, such as the event loop's stall stacks (loop_stall_log_ms).
+            proc.tail = collections.deque(maxlen=400)
+            threading.Thread(target=proc.tail.extend, args=(proc.stdout,),
                              daemon=True).start()
             return proc, found.group(1), found.group(2)
     proc.kill()

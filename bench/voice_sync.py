@@ -295,7 +295,21 @@ def server_voice_counts(url: str, token: str) -> dict[str, float]:
         if line.startswith("telesplat_voice_packets_total{"):
             label = line.split('outcome="')[1].split('"')[0]
             out[label] = float(line.rsplit(" ", 1)[1])
+        elif line.startswith("telesplat_event_loop_lag_ms_bucket{"):
+            le = line.split('le="')[1].split('"')[0]
+            out[f"loop lag <= {le}"] = float(line.rsplit(" ", 1)[1])
     return out
+
+
+def loop_lag_text(before: dict[str, float], after: dict[str, float]) -> str:
+    """How often the server's event loop woke later than 50, 100 and 250 ms during a run."""
+    def late(le: str) -> float:
+        inf, within = "loop lag <= +Inf", f"loop lag <= {le}"
+        return (after.get(inf, 0) - before.get(inf, 0)) - (after.get(within, 0)
+                                                             - before.get(within, 0))
+    wakes = after.get("loop lag <= +Inf", 0) - before.get("loop lag <= +Inf", 0)
+    return (f"{wakes:.0f} wakes, later than 50 / 100 / 250 ms: {late('50.0'):.0f} / "
+            f"{late('100.0'):.0f} / {late('250.0'):.0f}")
 
 
 async def run(url: str, token: str, viewers: int, events: int, size: int,
@@ -408,7 +422,8 @@ async def run(url: str, token: str, viewers: int, events: int, size: int,
           f"{[r['frames'] for r in records]}, viewer CPU s/s each "
           f"{[round(r['cpu'], 3) for r in records]}, clicks without an arrival "
           f"{sum(r['missed_arrivals'] for r in records)}, server voice packets "
-          f"{ {k: after.get(k, 0) - before.get(k, 0) for k in after} }; first viewer, ms "
+          f"{ {k: after.get(k, 0) - before.get(k, 0) for k in after if 'lag' not in k} }; "
+          f"server event loop {loop_lag_text(before, after)}; first viewer, ms "
           f"after each event: mouth "
           f"{[round((m - f) * 1e3) for f, m in zip(fired, first['mouth'], strict=False)]}, "
           f"click {[round((c - f) * 1e3) for f, c in zip(fired, first['clicks'], strict=False)]}",
@@ -513,6 +528,10 @@ def main() -> int:
                           f"{r['cpu']:.2f} |", flush=True)
             finally:
                 stop_server(proc)
+                stalls = [line for line in proc.tail if "event loop held" in line]
+                if stalls:  # loop_stall_log_ms: each stall's stack follows its line
+                    print(f"# server event loop stalls logged: {len(stalls)}; the log's "
+                          "tail:\n" + "".join(proc.tail), file=sys.stderr, flush=True)
     return 0
 
 

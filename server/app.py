@@ -34,6 +34,7 @@ from .config import Settings
 from .context import ServerContext
 from .jobs.demo_build import DemoBuild
 from .logsafe import install_log_redaction
+from .loop_watch import LoopWatch
 from .metrics import ServerMetrics
 from .private import private_dir
 from .registry import DEMO_ID, AvatarRecord, AvatarRegistry
@@ -204,6 +205,9 @@ def create_app(settings: Settings) -> FastAPI:
             ctx.warmed.set()
         await ctx.render.start()  # render_backend ray: connects, starts the render workers
         sweeper = asyncio.create_task(_sweep_rooms(ctx), name="rooms:sweep")
+        loop_watch = LoopWatch(ctx.metrics, settings.loop_lag_interval_s,
+                               settings.loop_stall_log_ms)
+        loop_watch.start()
         try:
             async with jobs.lifespan(ctx):  # the training worker
                 # the trained demo, when not built yet: its job trains while we serve
@@ -216,6 +220,7 @@ def create_app(settings: Settings) -> FastAPI:
                     await asyncio.to_thread(ctx.demo_build.stop)
         finally:
             sweeper.cancel()
+            await loop_watch.stop()
             # Whoever is still in (RestartingServer told the rest before uvicorn closed them)
             await announce_restart(ctx, settings.restart_notice_s)
             await ctx.webrtc_peers.close_all(RESTART_MESSAGE)

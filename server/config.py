@@ -470,6 +470,13 @@ class Settings(BaseModel):
     voice_mix_bitrate: int = Field(
         48_000, ge=6_000, le=510_000, description="Bits per second the room's mixed voice is "
                                                   "encoded at (Opus, 20 ms frames).")
+    loop_lag_interval_s: float = Field(
+        0.05, ge=0.01, le=5.0, description="How often the event loop's lag is sampled (a "
+                                           "short sleep; telesplat_event_loop_lag_ms).")
+    loop_stall_log_ms: float = Field(
+        0.0, ge=0.0, le=60_000.0, description="Log the event loop's stack when it is held "
+                                              "this long (ms); 0: off. A diagnostic: one "
+                                              "sleeping thread.")
     voice_presence_interval_s: float = Field(
         0.25, ge=0.05, le=10.0, description="Shortest time between two presence updates a "
                                             "room sends because who speaks changed.")

@@ -60,5 +60,13 @@ class ServerMetrics:
             "unmixed: left out of a room's mix past voice_mix_max_seats)",
             ["outcome"], registry=r)
 
+        self.loop_lag_ms = Histogram(
+            "telesplat_event_loop_lag_ms", "How late the event loop woke from a "
+            "loop_lag_interval_s sleep (ms): time the loop was held by other work",
+            buckets=LATENCY_BUCKETS_MS, registry=r)
+        self.loop_stalls = Counter(
+            "telesplat_event_loop_stalls", "Stalls past loop_stall_log_ms whose stack was "
+            "logged", registry=r)
+
     def render_text(self) -> bytes:
         return generate_latest(self.registry)
