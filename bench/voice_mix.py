@@ -73,7 +73,7 @@ def codec_step_ms(seats: int, packets: list[list[bytes]], frames: int = 500) -> 
     codec = MixCodec(48_000, 64)
     start = time.process_time()
     for i in range(frames):
-        codec.step([(k, packets[k][i % len(packets[k])]) for k in range(seats)])
+        codec.step([(k, packets[k][i % len(packets[k])], None) for k in range(seats)])
     return (time.process_time() - start) / frames * 1e3
 
 

@@ -317,6 +317,31 @@ def test_a_frame_and_a_packet_captured_together_map_to_one_ntp_time(srv):
     assert abs(np.median(video) - np.median(audio)) <= TOLERANCE_MS, (video, audio)
 
 
+def test_the_mix_maps_to_its_sounds_capture_not_its_own_latency(srv):
+    """A mix viewer's clicks (decoded, summed, encoded again, cushioned 40 ms) map through the
+    sender reports to the instants they were captured, as a seat's own track does."""
+    room = create_room(srv)
+    perform, watch = invite(srv, room["id"], "perform"), invite(srv, room["id"], "watch")
+
+    async def run():
+        mic = click_track(click_every=CLICK_EVERY)
+        async with WhepViewer(srv.url, room["id"], perform["token"], microphone=mic,
+                              width=SIZE, height=SIZE, timeout_s=TIMEOUT_S) as pv, \
+                WhepViewer(srv.url, room["id"], watch["token"], voices=1, voice_mix=True,
+                           width=SIZE, height=SIZE, timeout_s=TIMEOUT_S) as v:
+            reports = Reports(v)
+            await pv.wait_open()
+            performer = Performer(pv, lambda now: now)
+            driving = asyncio.create_task(performer.drive())
+            await asyncio.sleep(WARM_S)
+            audio = await audio_errors(v, reports, [mic], time.monotonic() + LISTEN_S)
+            performer.running = False
+            await driving
+            return audio
+
+    assert_on_capture(asyncio.run(run()), "mixed audio", least=ENOUGH)
+
+
 def test_video_alone_and_drives_without_a_capture_time(srv):
     """No audio track: the video's reports alone are on the capture clock; a drive with no
     t_capture counts its arrival as its capture (its send time here, give or take transit)."""

@@ -188,11 +188,11 @@ def test_the_mix_codec_sums_seats_cushions_and_bounds_their_backlog():
     codec = MixCodec(48_000, max_frames=8)
     a, b = tone_packets(TONES[0], 40), tone_packets(TONES[1], 40)
     assert codec.step([]) is None  # nothing to mix: nothing encoded
-    assert codec.step([(0, a[0])]) is None  # one frame decoded: still cushioning
-    out = codec.step([(0, a[1]), (1, b[0]), (1, b[1])])
-    assert out and all(isinstance(p, bytes) for p in out)
+    assert codec.step([(0, a[0], None)]) is None  # one frame decoded: still cushioning
+    out = codec.step([(0, a[1], None), (1, b[0], None), (1, b[1], None)])
+    assert out is not None and all(isinstance(p, bytes) for p, _ in out)
     for i in range(2, 40):
-        codec.step([(0, a[i]), (1, b[i])])
+        codec.step([(0, a[i], None), (1, b[i], None)])
     # a seat far ahead of the mix keeps at most max_frames of backlog
     for packet in a[:20]:
         codec.seats[0].add(packet)
@@ -201,6 +201,30 @@ def test_the_mix_codec_sums_seats_cushions_and_bounds_their_backlog():
     decoder = SeatDecoder(4 * FRAME)
     decoder.add(b"\xff\xff\xff")
     assert decoder.take() is None and PREBUFFER_FRAMES >= 1
+
+
+def test_each_mixed_packet_carries_its_loudest_seats_capture_instant():
+    """The mix is stamped with the capture of the sound it holds (not its own send time), so
+    capture-clock sender reports count the mix's latency out: the loud seat's instants, one
+    20 ms frame apart, through the cushion and the encoder's one-frame look-ahead."""
+    codec = MixCodec(48_000, max_frames=16)
+    loud, quiet = tone_packets(TONES[0], 30, 0.5), tone_packets(TONES[1], 30, 0.02)
+    t0, skew = 1000.0, 0.3  # the quiet seat's sound was captured 300 ms later
+    stamps = []
+    for i in range(30):
+        out = codec.step([(0, loud[i], t0 + i * 0.02), (1, quiet[i], t0 + skew + i * 0.02)])
+        stamps += [at for _, at in out or ()]
+    assert len(stamps) >= 25
+    # in order, 20 ms apart, from the loud seat's first frame on (none from the quiet seat)
+    assert stamps[0] == pytest.approx(t0, abs=1e-6)
+    assert np.allclose(np.diff(stamps), 0.02, atol=1e-6)
+    # a seat without capture instants leaves the stamp to the one that has them
+    codec = MixCodec(48_000, max_frames=16)
+    stamps = []
+    for i in range(10):
+        out = codec.step([(0, loud[i], None), (1, quiet[i], t0 + i * 0.02)])
+        stamps += [at for _, at in out or ()]
+    assert stamps and stamps[0] == pytest.approx(t0, abs=1e-6)
 
 
 def test_the_whep_query_names_the_choice(srv):

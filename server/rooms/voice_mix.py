@@ -39,7 +39,8 @@ HOLD_S = 1.0           # a seat keeps its place among the mixed this long after 
 
 
 class SeatDecoder:
-    """One seat's Opus decoded into a bounded backlog of samples (float32, full scale 1)."""
+    """One seat's Opus decoded into a bounded backlog of samples (float32, full scale 1), and
+    the capture instant (monotonic) of the backlog's first sample."""
 
     def __init__(self, max_samples: int) -> None:
         self.codec = av.CodecContext.create("libopus", "r")
@@ -48,8 +49,10 @@ class SeatDecoder:
         self.max_samples = max_samples
         self.playing = False
         self.dropped = 0  # samples dropped past max_samples (the seat ran ahead of the mix)
+        self.captured_at: float | None = None  # of samples[0]
 
-    def add(self, payload: bytes) -> None:
+    def add(self, payload: bytes, captured_at: float | None = None) -> None:
+        """Decode ``payload``, captured at ``captured_at`` (its first sample's instant)."""
         try:
             frames = self.codec.decode(av.Packet(payload))
         except av.FFmpegError:
@@ -57,22 +60,32 @@ class SeatDecoder:
         for frame in frames:
             pcm = frame.to_ndarray().reshape(-1)
             scale = 32768.0 if pcm.dtype == np.int16 else 1.0
+            if len(self.samples) == 0:  # a new run starts at this packet's instant
+                self.captured_at = captured_at
             self.samples = np.concatenate([self.samples, pcm.astype(np.float32) / scale])
         excess = len(self.samples) - self.max_samples
         if excess > 0:
             self.samples = self.samples[excess:]
             self.dropped += excess
+            self._advance(excess)
 
-    def take(self) -> np.ndarray | None:
-        """The next 20 ms (zero-padded), or None while it has too little to play."""
+    def _advance(self, samples: int) -> None:
+        if self.captured_at is not None:
+            self.captured_at += samples / CLOCK_RATE
+
+    def take(self) -> tuple[np.ndarray, float | None] | None:
+        """The next 20 ms (zero-padded) and its first sample's capture instant, or None while
+        it has too little to play."""
         if not self.playing and len(self.samples) >= PREBUFFER_FRAMES * FRAME:
             self.playing = True
         if not self.playing:
             return None
+        at = self.captured_at
         out, self.samples = self.samples[:FRAME], self.samples[FRAME:]
+        self._advance(len(out))
         if len(self.samples) == 0:
             self.playing = False  # ran dry: cushion again before the next word
-        return np.pad(out, (0, FRAME - len(out)))
+        return np.pad(out, (0, FRAME - len(out))), at
 
 
 def opus_encoder(bitrate: int) -> av.CodecContext:
@@ -103,6 +116,13 @@ def tone_packets(freq: float, count: int, amplitude: float = 0.25) -> list[bytes
     return packets[:count]
 
 
+def loudest_capture(parts: list[tuple[np.ndarray, float | None]]) -> float | None:
+    """The capture instant a mixed frame is stamped with: its loudest seat's (the voice a
+    viewer lip-reads), else any seat's that has one."""
+    timed = [(float(np.square(pcm).sum()), at) for pcm, at in parts if at is not None]
+    return max(timed, key=lambda t: t[0])[1] if timed else None
+
+
 class MixCodec:
     """Decode, sum and encode: the mix's work, called from one thread at a time."""
 
@@ -111,21 +131,28 @@ class MixCodec:
         self.max_samples = max_frames * FRAME
         self.seats: dict[int, SeatDecoder] = {}
         self.pts = 0
+        # each frame fed to the encoder, its capture instant: the encoder's look-ahead puts out
+        # a frame's packet a step later, one packet per 20 ms frame, in order
+        self._fed: collections.deque[float | None] = collections.deque(maxlen=max_frames + 4)
 
-    def step(self, packets: list[tuple[int, bytes]]) -> list[bytes] | None:
-        """Decode ``packets`` ((seat, payload), in arrival order), mix the next 20 ms of
-        every seat that has some, encode it; None when no seat had anything to play."""
-        for seat, payload in packets:
+    def step(self, packets: list[tuple[int, bytes, float | None]]
+             ) -> list[tuple[bytes, float | None]] | None:
+        """Decode ``packets`` ((seat, payload, capture instant), in arrival order), mix the
+        next 20 ms of every seat that has some, encode it; the packets out, each with the
+        capture instant of the frame it holds; None when no seat had anything to play."""
+        for seat, payload, captured_at in packets:
             decoder = self.seats.get(seat)
             if decoder is None:
                 decoder = self.seats[seat] = SeatDecoder(self.max_samples)
-            decoder.add(payload)
+            decoder.add(payload, captured_at)
         parts = [p for p in (d.take() for d in self.seats.values()) if p is not None]
         if not parts:
             return None
-        packets = encode_samples(self.encoder, np.sum(parts, axis=0), self.pts)
+        self._fed.append(loudest_capture(parts))
+        out = encode_samples(self.encoder, np.sum([pcm for pcm, _ in parts], axis=0),
+                             self.pts)
         self.pts += FRAME
-        return packets
+        return [(payload, self._fed.popleft() if self._fed else None) for payload in out]
 
 
 class MixSubscriber:
@@ -166,7 +193,7 @@ class RoomMix:
         self.subscribers: set[MixSubscriber] = set()
         self.counts: collections.Counter[str] = collections.Counter()
         self._sources: list[tuple[int, Listener]] = []  # (seat position, its listener)
-        self._inbox: list[tuple[int, bytes]] = []
+        self._inbox: list[tuple[int, bytes, float]] = []  # (seat, payload, captured at)
         self._arrived = asyncio.Event()
         self._heard: dict[int, float] = {}  # seat position -> its last packet (mixed seats)
         self._task: asyncio.Task | None = None
@@ -222,7 +249,8 @@ class RoomMix:
                 if self.metrics is not None:
                     self.metrics.voice_packets.labels("unmixed").inc()
                 continue
-            self._inbox.append((position, packet.payload))
+            at = packet.arrived if packet.captured_at is None else packet.captured_at
+            self._inbox.append((position, packet.payload, at))
             self._arrived.set()
 
     async def _run(self) -> None:
@@ -248,19 +276,21 @@ class RoomMix:
             packets, self._inbox = self._inbox, []
             out = await loop.run_in_executor(thread, codec.step, packets)
             idle = 0 if out is not None else idle + 1
-            for payload in out or ():
-                self._send(payload)
+            for payload, captured_at in out or ():
+                self._send(payload, captured_at)
             ticks += 1
             await asyncio.sleep(max(0.0, start + ticks * FRAME_S - time.monotonic()))
 
-    def _send(self, payload: bytes) -> None:
+    def _send(self, payload: bytes, captured_at: float | None = None) -> None:
         now = time.monotonic()
         # the timeline goes on with the wall clock across pauses (never back, never stalls)
         gap = 0.0 if self._last_at is None else now - self._last_at
         self._media_ts += FRAME if gap < 3 * FRAME_S else max(FRAME, round(gap * CLOCK_RATE))
         self._last_at = now
         self.counts["mixed"] += 1
-        packet = VoicePacket(payload, self._media_ts, now)
+        # stamped with its sound's capture instant: the sender reports of a capture-clock
+        # peer (webrtc_sender_clock) then count the mix's own latency out
+        packet = VoicePacket(payload, self._media_ts, now, captured_at=captured_at)
         for subscriber in list(self.subscribers):
             subscriber.put(packet)
 
