@@ -77,11 +77,19 @@ class WhepViewer:
 
     async def start(self) -> WhepViewer:
         """Offer, POST, apply the answer; WhepError on a refusal."""
-        from aiortc import RTCConfiguration, RTCPeerConnection, RTCSessionDescription
+        from aiortc import (
+            RTCBundlePolicy,
+            RTCConfiguration,
+            RTCPeerConnection,
+            RTCSessionDescription,
+        )
         from aiortc.rtcrtpsender import RTCRtpSender
 
         loop = asyncio.get_running_loop()
-        self.pc = pc = RTCPeerConnection(RTCConfiguration(iceServers=[]))
+        # max-bundle: with aiortc's default a second voice line stays on a transport that
+        # never connects (server/webrtc/negotiate.py's configuration says how)
+        self.pc = pc = RTCPeerConnection(RTCConfiguration(
+            iceServers=[], bundlePolicy=RTCBundlePolicy.MAX_BUNDLE))
         self._track = loop.create_future()
         self._channel_open = asyncio.Event()
         transceiver = pc.addTransceiver("video", direction="recvonly")

@@ -82,6 +82,36 @@ def two_seat_room(srv):
     return room, performers, invite(srv, room["id"], "watch")
 
 
+def test_without_the_mix_a_viewer_hears_each_seat_on_its_own_line(srv):
+    """Two seats, two voice lines, each seat's tone on its own: the second line used to stay
+    silent (aiortc's balanced bundling left it on a transport that never connected)."""
+    from client.webrtc import WhepViewer
+
+    room, performers, watch = two_seat_room(srv)
+
+    def peer(token: str, **kwargs) -> WhepViewer:
+        return WhepViewer(srv.url, room["id"], token, width=SIZE, height=SIZE,
+                          timeout_s=TIMEOUT_S, **kwargs)
+
+    async def heard(viewer: WhepViewer, seat: int) -> np.ndarray:
+        frames = []
+        while len(frames) * FRAME < LISTEN_S * RATE:
+            frame, _ = await viewer.next_audio(seat)
+            frames.append(mono(frame))
+        return np.concatenate(frames)
+
+    async def run():
+        async with peer(performers[0]["token"], microphone=tone_track(TONES[0])), \
+                peer(performers[1]["token"], microphone=tone_track(TONES[1])), \
+                peer(watch["token"], voices=2) as viewer:
+            await viewer.next_frame()
+            return await asyncio.gather(heard(viewer, 0), heard(viewer, 1))
+
+    lines = [tone_levels(samples[len(samples) // 2:]) for samples in asyncio.run(run())]
+    for seat, levels in enumerate(lines):  # its own tone, not the other seat's
+        assert levels[TONES[seat]] > 0.3 and levels[TONES[1 - seat]] < 0.05, (seat, lines)
+
+
 def test_a_viewer_asking_for_the_mix_hears_both_seats_in_one_track(srv):
     from client.webrtc import WhepError, WhepViewer
 

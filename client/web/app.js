@@ -258,11 +258,18 @@ async function whepSession(target) {
     state.privateRoom = roomId = room.id;
     query = { seat: 0 };
   }
+  if (watchesMix(target)) query = { ...query, voice: "mix" };
   const size = Number($("size").value);
   const media = await voiceMedia(target);
   return new WhepSession(roomId, token, {
     video, stamps: true, query: { width: size, height: size, name: myName, ...query }, media,
   });
+}
+
+/** A viewer of a room who ticked #voice-mix (?mix=1) hears one mix of every seat: WHEP
+ *  `?voice=mix`, `hello.voice_mix` (its first voice line, or seatless `voice` messages). */
+function watchesMix(target) {
+  return typeof target !== "string" && target.role === "watch" && $("voice-mix").checked;
 }
 
 /** WebRTC refused or failed where the WebSocket may work (its limits, codecs, ICE): say so,
@@ -353,7 +360,8 @@ async function connect(target, { retrying = false } = {}) {
   try {
     session = state.transport === "webrtc" ? await whepSession(target)
       : new Session(streamUrl(target), token,
-        inRoom ? { ...target, voice: !voiceUnsupported() } : {}, myName);
+        inRoom ? { ...target, voice: !voiceUnsupported(), voiceMix: watchesMix(target) } : {},
+        myName);
   } catch (err) {
     if (retrying && sessionEnded(target, { failure: err })) return;
     if (!fallBack(err, target)) $("status").textContent = `could not connect: ${err.message}`;
@@ -623,6 +631,18 @@ function wire() {
     if (state.transport !== "webrtc") wsMicrophone(state.session);  // the WebSocket can
     else if (state.room) connect({ room: state.room.id, role: state.room.role, seat: state.room.seat });
   });
+  $("voice-mix").checked = params.get("mix") === "1";
+  $("voice-mix").addEventListener("change", () => {  // the server mixes per join: join again
+    if (state.room && state.room.role !== "watch") {
+      $("voice-mix").checked = false;
+      notify("the mixed voice is for viewers: a performer hears each seat on its own", "error");
+    }
+    voices.mixed = wsVoices.mixed = $("voice-mix").checked;
+    if (state.room?.role === "watch") {
+      connect({ room: state.room.id, role: state.room.role, seat: state.room.seat });
+    }
+  });
+  voices.mixed = wsVoices.mixed = $("voice-mix").checked;
   document.addEventListener("pointerdown", () => wsVoices.resume());  // autoplay rules
   $("mic-mute").addEventListener("click", () => {
     voices.setMicMuted(!voices.micMuted);
@@ -668,7 +688,9 @@ function useTransport(choice) {
 
 async function joinRoom(roomId) {
   // A viewer may ask to watch with a perform link (?role=watch); otherwise the token decides.
-  const role = params.get("role") === "watch" ? "watch" : undefined;
+  // ?mix=1 (the room's one mixed voice) is for viewers: it watches too.
+  const watches = params.get("role") === "watch" || params.get("mix") === "1";
+  const role = watches ? "watch" : undefined;
   await connect({ room: roomId, role });
   const info = state.session?.welcome?.avatar;
   if (info) $("avatar").replaceChildren(new Option(`${info.name || info.id} (${info.id})`, info.id));

@@ -144,8 +144,9 @@ export class MessageSession extends EventTarget {
 
 export class Session extends MessageSession {
   /** `token` goes in the first message, the hello, which the server reads before anything;
-   *  `join` ({role, seat, voice}) too, in a room (voice: hear the other seats' `voice`
-   *  messages); `name`: the display name others see. */
+   *  `join` ({role, seat, voice, voiceMix}) too, in a room (voice: hear the other seats'
+   *  `voice` messages; voiceMix: one mix of them instead); `name`: the display name others
+   *  see. */
   constructor(url, token = null, join = {}, name = null) {
     super();
     this.url = url;
@@ -161,6 +162,7 @@ export class Session extends MessageSession {
       if (join.role) hello.role = join.role;
       if (Number.isInteger(join.seat)) hello.seat = join.seat;
       if (join.voice) hello.voice = true;
+      if (join.voiceMix) hello.voice_mix = true;  // watching: one mix of every seat
       if (name) hello.name = name;
       this._send(hello);
     });

@@ -13,19 +13,32 @@ export function openMicrophone() {
   return navigator.mediaDevices.getUserMedia({ audio: true, video: false });
 }
 
+/** What a voice line is called: its seat, or the room's mix (a viewer's #voice-mix). */
+export function voiceName(index, mixed = false) {
+  return mixed ? "all seats (mix)" : `seat ${index}`;
+}
+
+/** "speaking: seat 0, seat 2" (or the mix) for the voices in `seats` (index -> {speaking}). */
+export function speakingText(seats, mixed = false) {
+  const names = [...seats].filter(([, s]) => s.speaking).map(([i]) => voiceName(i, mixed));
+  return names.length ? `speaking: ${names.join(", ")}` : "";
+}
+
 /** A row in `panel` for seat `index`: its label (returned), a volume slider and a mute box
- *  calling `on.volume(0..1)` and `on.mute(bool)`; `extra`: an element to add (its <audio>). */
-export function seatControls(panel, index, on, extra = null) {
+ *  calling `on.volume(0..1)` and `on.mute(bool)`; `extra`: an element to add (its <audio>);
+ *  `mixed`: the line is the room's mix. */
+export function seatControls(panel, index, on, extra = null, mixed = false) {
   const row = document.createElement("div");
   row.className = "voice";
   const volume = Object.assign(document.createElement("input"), {
-    type: "range", min: "0", max: "1", step: "0.05", value: "1", title: `seat ${index} volume`,
+    type: "range", min: "0", max: "1", step: "0.05", value: "1",
+    title: `${voiceName(index, mixed)} volume`,
   });
   volume.addEventListener("input", () => on.volume(Number(volume.value)));
   const mute = Object.assign(document.createElement("input"), { type: "checkbox" });
   mute.addEventListener("change", () => on.mute(mute.checked));
   const label = document.createElement("span");
-  label.textContent = `seat ${index}`;
+  label.textContent = voiceName(index, mixed);
   const muteLabel = document.createElement("label");
   muteLabel.append(mute, " mute");
   row.append(label, volume, muteLabel, ...(extra ? [extra] : []));
@@ -41,6 +54,7 @@ export class RoomVoices {
     this.micMuted = false;
     this.lines = [];        // recvonly transceivers, seat order
     this.seats = new Map(); // seat index -> {audio, receiver, speaking, level}
+    this.mixed = false;     // asked for the room's mix: the first line carries it
   }
 
   /** Before the offer: the microphone (if any) and one recvonly line per seat. */
@@ -68,7 +82,7 @@ export class RoomVoices {
     const label = seatControls(this.panel, index, {
       volume: (v) => { audio.volume = v; },
       mute: (m) => { audio.muted = m; },
-    }, audio);
+    }, audio, this.mixed);
     this.seats.set(index, { audio, receiver: event.receiver, label, speaking: false, level: 0 });
     audio.play().catch(() => { /* autoplay refused until a click: the page says so */ });
   }
@@ -101,17 +115,16 @@ export class RoomVoices {
       } catch { /* closed meanwhile */ }
       seat.level = level;
       seat.speaking = level > SPEAKING_LEVEL;
-      seat.label.textContent = `seat ${index}${seat.speaking ? " (speaking)" : ""}`;
-      out.push({ seat: index, level, packets, speaking: seat.speaking,
+      seat.label.textContent = `${voiceName(index, this.mixed)}${seat.speaking ? " (speaking)" : ""}`;
+      out.push({ seat: index, level, packets, speaking: seat.speaking, mixed: this.mixed,
                  volume: seat.audio.volume, muted: seat.audio.muted });
     }
     return out;
   }
 
-  /** Who speaks, for the presence line: "seat 0 speaks" or "". */
+  /** Who speaks, for the presence line: "speaking: seat 0" or "". */
   speakingText() {
-    const seats = [...this.seats].filter(([, s]) => s.speaking).map(([i]) => i);
-    return seats.length ? `speaking: seat ${seats.join(", seat ")}` : "";
+    return speakingText(this.seats, this.mixed);
   }
 
   stop() {

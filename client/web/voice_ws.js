@@ -6,7 +6,7 @@
 // its drives' t_capture use; frames carry their drive's t_capture, so the viewer plays a
 // sound captured at T when the picture of T shows: at T + the picture's delay.
 
-import { seatControls } from "./voice.js";
+import { seatControls, speakingText, voiceName } from "./voice.js";
 
 export const SAMPLE_RATE = 48000;
 export const FRAME_US = 20000;         // one Opus frame: 20 ms
@@ -194,6 +194,7 @@ export class WsVoices {
     this.pictureLags = [];        // ms: shown - t_capture of each drive's first frame shown
     this.lastPicture = null;      // the t_capture of the last frame that measured
     this.log = { packets: [], frames: [] };  // [seat, t_capture s, played at ms] / [t_capture s, shown at ms]
+    this.mixed = false;           // asked for the room's mix: its packets come without a seat
   }
 
   /** A frame was drawn at `shownMs` (performance.now()); it showed the drive of `tCapture`. */
@@ -232,7 +233,7 @@ export class WsVoices {
     seat.label = seatControls(this.panel, index, {
       volume: (v) => this.setSeatVolume(index, v, seat.muted),
       mute: (m) => this.setSeatVolume(index, seat.volume, m),
-    });
+    }, null, this.mixed);
     this.seats.set(index, seat);
     return seat;
   }
@@ -329,19 +330,19 @@ export class WsVoices {
     const out = [];
     for (const [index, seat] of this.seats) {
       seat.speaking = seat.level > SPEAKING_LEVEL;
-      seat.label.textContent = `seat ${index}${seat.speaking ? " (speaking)" : ""}`;
+      seat.label.textContent = `${voiceName(index, this.mixed)}${seat.speaking ? " (speaking)" : ""}`;
       const { packets, decoded, played, late, dropped, errors, level, peak, volume, muted,
               speaking, offsetMs } = seat;
       out.push({ seat: index, packets, decoded, played, late, dropped, errors, level, peak,
-                 volume, muted, speaking, delayMs: offsetMs, state: this.ctx?.state });
+                 volume, muted, speaking, delayMs: offsetMs, state: this.ctx?.state,
+                 mixed: this.mixed });
       seat.level = 0;
     }
     return out;
   }
 
   speakingText() {
-    const seats = [...this.seats].filter(([, s]) => s.speaking).map(([i]) => i);
-    return seats.length ? `speaking: seat ${seats.join(", seat ")}` : "";
+    return speakingText(this.seats, this.mixed);
   }
 
   /** A page may not start audio before a click: resume then. */

@@ -20,7 +20,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Literal
 
-from aiortc import RTCConfiguration, RTCIceServer, RTCPeerConnection, RTCSessionDescription
+from aiortc import (
+    RTCBundlePolicy,
+    RTCConfiguration,
+    RTCIceServer,
+    RTCPeerConnection,
+    RTCSessionDescription,
+)
 from aiortc import sdp as aiortc_sdp
 
 VIDEO_CODECS = ("video/vp8", "video/h264")
@@ -93,12 +99,18 @@ def check_offer(text: str, kind: Kind) -> Offer:
 
 def configuration(settings) -> RTCConfiguration:
     """ICE servers from the settings; an empty list (not aiortc's default, a public STUN
-    server) when none are set: host candidates only."""
+    server) when none are set: host candidates only.
+
+    Max-bundle: every m-line on the first one's transport. aiortc's default (balanced) gives
+    a second audio m-line the first audio line's own transport and marks it bundled, so the
+    offer's BUNDLE moves the first audio line to the shared transport but not the second: a
+    viewer's second seat's voice then never left (its sender waited on a transport that
+    never connected)."""
     servers = [RTCIceServer(urls=url, username=settings.webrtc_turn_username,
                             credential=settings.webrtc_turn_credential)
                if url.startswith("turn") else RTCIceServer(urls=url)
                for url in settings.webrtc_ice_servers]
-    return RTCConfiguration(iceServers=servers)
+    return RTCConfiguration(iceServers=servers, bundlePolicy=RTCBundlePolicy.MAX_BUNDLE)
 
 
 async def answer(pc: RTCPeerConnection, offer: Offer, track: Any, guard: Any = None,
