@@ -144,13 +144,14 @@ async def audio_errors(viewer: WhepViewer, reports: Reports, mics: list, until: 
     return errors
 
 
-def assert_on_capture(errors: list[float], what: str, least: int) -> None:
+def assert_on_capture(errors: list[float], what: str, least: int,
+                      tolerance_ms: float = TOLERANCE_MS) -> None:
     assert len(errors) >= least, (what, errors)
     median = float(np.median(errors))
-    assert abs(median) <= TOLERANCE_MS, (what, median, errors)
+    assert abs(median) <= tolerance_ms, (what, median, errors)
     # each one too (a stalled render or packet moves its arrival, never its capture stamp);
     # most of them: a drive sent late by a stalled loop is stamped when sent
-    close = [abs(e) <= TOLERANCE_MS for e in errors]
+    close = [abs(e) <= tolerance_ms for e in errors]
     assert sum(close) >= 0.8 * len(errors), (what, errors)
 
 
@@ -339,7 +340,10 @@ def test_the_mix_maps_to_its_sounds_capture_not_its_own_latency(srv):
             await driving
             return audio
 
-    assert_on_capture(asyncio.run(run()), "mixed audio", least=ENOUGH)
+    # The mix decodes and encodes again: its 20 ms frames need not start where the mic's did
+    # (the decoders' delays), so a click falls anywhere within one: a frame of tolerance.
+    # Stamped at mix time instead, this measured +49.6 ms (its cushion and look-ahead).
+    assert_on_capture(asyncio.run(run()), "mixed audio", least=ENOUGH, tolerance_ms=20.0)
 
 
 def test_video_alone_and_drives_without_a_capture_time(srv):

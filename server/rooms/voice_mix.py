@@ -199,6 +199,7 @@ class RoomMix:
         self._task: asyncio.Task | None = None
         self._media_ts = 0
         self._last_at: float | None = None
+        self._last_captured: float | None = None  # the last mixed packet's capture instant
 
     # -- subscribers ------------------------------------------------------------------------------
 
@@ -283,10 +284,19 @@ class RoomMix:
 
     def _send(self, payload: bytes, captured_at: float | None = None) -> None:
         now = time.monotonic()
-        # the timeline goes on with the wall clock across pauses (never back, never stalls)
-        gap = 0.0 if self._last_at is None else now - self._last_at
-        self._media_ts += FRAME if gap < 3 * FRAME_S else max(FRAME, round(gap * CLOCK_RATE))
+        # The timeline follows the sound's capture instants where they are known (its RTP
+        # timestamps then agree with the sender reports' stamps), else the wall clock across
+        # pauses; never back, never stalls.
+        if captured_at is not None and self._last_captured is not None:
+            gap = captured_at - self._last_captured
+            contiguous = abs(gap - FRAME_S) < FRAME_S / 2
+        else:
+            gap = 0.0 if self._last_at is None else now - self._last_at
+            contiguous = gap < 3 * FRAME_S
+        self._media_ts += FRAME if contiguous else max(FRAME, round(gap * CLOCK_RATE))
         self._last_at = now
+        if captured_at is not None:
+            self._last_captured = captured_at
         self.counts["mixed"] += 1
         # stamped with its sound's capture instant: the sender reports of a capture-clock
         # peer (webrtc_sender_clock) then count the mix's own latency out
