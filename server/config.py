@@ -435,6 +435,14 @@ class Settings(BaseModel):
                                "instants, one clock for both tracks: a browser lip-syncs "
                                "them) or send (aiortc's: the moment each was sent; "
                                "docs/benchmarks.md has both measured).")
+    webrtc_max_sync_lag_s: float = Field(
+        1.0, ge=0.05, le=10.0, description="With webrtc_sender_clock = capture: the most a "
+                                           "viewer's picture is stamped behind its sending. A "
+                                           "picture lagging more (a loaded server) is stamped "
+                                           "as if captured this long before it left, so a "
+                                           "browser holds the voice at most this long to "
+                                           "lip-sync it (a jitter buffer asked to hold seconds "
+                                           "plays silence).")
     voice_max_packet_bytes: int = Field(
         1276, ge=2, le=8192, description="Largest Opus packet a performer's voice may carry "
                                          "(bytes; 1276 is one largest Opus frame and its "

@@ -201,7 +201,7 @@ def test_video_timestamps_follow_captures_and_never_go_back():
 
     async def run():
         epoch = CaptureEpoch(time.monotonic() - 10.0, 0)
-        track = LatestFrameTrack(repeat_after_s=0.05, epoch=epoch)
+        track = LatestFrameTrack(repeat_after_s=0.05, epoch=epoch, max_lag_s=60.0)
         out = []
         for captured in (epoch.monotonic - 5.0, epoch.monotonic + 9.0, None,
                          epoch.monotonic + 9.5, epoch.monotonic + 9.2):
@@ -223,6 +223,35 @@ def test_video_timestamps_follow_captures_and_never_go_back():
     assert pts[5] / 90_000 == pytest.approx(9.5, abs=0.2)
     assert all(b > a for a, b in zip(pts, pts[1:], strict=False))
     assert track.stamps.captured_at(pts[1]) == pytest.approx(epoch.monotonic + 9.0)
+
+
+def test_a_picture_lagging_past_the_bound_is_stamped_at_the_bound():
+    """A loaded server's picture 5 s behind its drive is stamped max_lag_s before its sending,
+    so a browser syncing the voice to it holds the voice at most that long; a frame within the
+    bound keeps its drive's capture instant, and frames of no new drive keep the bounded lag."""
+    from server.webrtc.sender_clock import CaptureEpoch
+    from server.webrtc.track import LatestFrameTrack
+
+    rgb = np.zeros((8, 8, 3), np.uint8)
+
+    async def run():
+        epoch = CaptureEpoch(time.monotonic() - 10.0, 0)
+        track = LatestFrameTrack(repeat_after_s=0.05, epoch=epoch, max_lag_s=0.5)
+        out = []
+        for captured in (time.monotonic() - 5.0, None, time.monotonic() - 0.1):
+            delivered = asyncio.create_task(track.deliver(rgb, captured))
+            sent = time.monotonic()
+            out.append(((await track.recv()).pts, sent, captured))
+            await delivered
+        track.stop()
+        return epoch, track, out
+
+    epoch, track, out = asyncio.run(run())
+    at = [epoch.monotonic + pts / 90_000 for pts, _, _ in out]
+    assert out[0][1] - at[0] == pytest.approx(0.5, abs=0.05)  # 5 s behind: stamped 0.5 s
+    assert out[1][1] - at[1] == pytest.approx(0.5, abs=0.05)  # no new drive: the same lag
+    assert at[2] == pytest.approx(out[2][2], abs=1e-4)         # within the bound: as captured
+    assert track.lag_clamped == 1  # the lagging frame; the next one already keeps the bound
 
 
 def test_voice_timestamps_stay_continuous_from_the_first_capture():

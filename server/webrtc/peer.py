@@ -76,7 +76,8 @@ class WebRTCPeer:
         # capture clock: both tracks' timestamps and sender reports count from this epoch
         self.epoch = CaptureEpoch.now() if s.webrtc_sender_clock == "capture" else None
         if offer.watch_mid is not None:
-            self.track = LatestFrameTrack(epoch=self.epoch)
+            self.track = LatestFrameTrack(epoch=self.epoch,
+                                          max_lag_s=s.webrtc_max_sync_lag_s)
         self.pc.on("datachannel", self.channel.attach)
         if not offer.data_channel:
             self.channel.absent()

@@ -6,7 +6,9 @@ frame waits here and a slow encoder (or link) means fewer, fresh frames, as on a
 still: nothing renders) it repeats the last one, so a late keyframe request or a new receiver
 still gets a picture. Timestamps (90 kHz) are strictly increasing: with a
 :class:`~.sender_clock.CaptureEpoch` each frame's is the capture instant of the drive it shows
-(a repeat, or a frame of no new drive, the moment of sending less the last picture lag), else
+(a repeat, or a frame of no new drive, the moment of sending less the last picture lag), at
+most ``max_lag_s`` before the moment of sending (``webrtc_max_sync_lag_s``: a browser delays
+the voice by the picture's lag to lip-sync, and a lag of seconds would silence it), else
 the moment the encoder took it (aiortc's clock: ``webrtc_sender_clock = send``).
 """
 
@@ -24,15 +26,18 @@ from aiortc.mediastreams import VIDEO_CLOCK_RATE, VIDEO_TIME_BASE, MediaStreamEr
 from .sender_clock import CaptureEpoch, CaptureStamps
 
 REPEAT_AFTER_S = 0.5
+MAX_LAG_S = 1.0  # the default of webrtc_max_sync_lag_s
 
 
 class LatestFrameTrack(MediaStreamTrack):
     kind = "video"
 
     def __init__(self, repeat_after_s: float = REPEAT_AFTER_S,
-                 epoch: CaptureEpoch | None = None) -> None:
+                 epoch: CaptureEpoch | None = None, max_lag_s: float = MAX_LAG_S) -> None:
         super().__init__()
         self.repeat_after_s = repeat_after_s
+        self.max_lag_s = max_lag_s
+        self.lag_clamped = 0  # frames stamped at max_lag_s because their picture lagged more
         self._pending: tuple[np.ndarray, asyncio.Future, float | None] | None = None
         self._new = asyncio.Event()
         self._last: np.ndarray | None = None  # [H, W, 3] uint8, the newest taken
@@ -95,6 +100,10 @@ class LatestFrameTrack(MediaStreamTrack):
             self._captured_at, self._lag = captured_at, max(0.0, now - captured_at)
         else:  # no new drive in it: as if captured one picture lag ago
             captured_at = now - self._lag
+        if now - captured_at > self.max_lag_s:  # the voice waits within bounds
+            captured_at = now - self.max_lag_s
+            self._lag = min(self._lag, self.max_lag_s)
+            self.lag_clamped += 1
         # never back (a capture older than the last frame's: a held frame, a restarted
         # performer, or the peer's first frame showing a drive from before the epoch)
         self._pts = max(self.epoch.ticks(captured_at, VIDEO_CLOCK_RATE), self._pts + 1, 0)
