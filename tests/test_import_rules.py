@@ -333,7 +333,8 @@ def test_known_lazy_cycle_edges_still_close_a_cycle():
 # encoders, drive, tracking) lives in server/stream/.
 SERVER_ROOT = {"server", "server.__main__", "server.app", "server.auth", "server.cli",
                "server.cluster", "server.config", "server.context", "server.dependencies",
-               "server.logsafe", "server.metrics", "server.private", "server.quotas",
+               "server.logsafe", "server.loop_watch", "server.metrics", "server.private",
+               "server.quotas",
                "server.registry", "server.sqlite", "server.uploads"}
 BUILT_ON_STREAM = ("server.rooms", "server.webrtc", "server.cluster_render")
 ENCODERS = "server.stream.encoders"
