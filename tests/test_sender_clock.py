@@ -319,7 +319,11 @@ def test_aiortc_sender_still_has_what_the_capture_clock_reads():
 # -- real peers ----------------------------------------------------------------------------------
 
 
-def test_a_frame_and_a_packet_captured_together_map_to_one_ntp_time(srv):
+def clicking_performer_errors(srv, video: bool = True, voice_mix: bool = False
+                              ) -> tuple[list[float], list[float]]:
+    """A performer clicking and driving, a viewer (of its seat's voice, or of the mix): each
+    frame's and each click's offset from its capture by the viewer's sender reports (ms);
+    ``video`` False: the clicks only."""
     room = create_room(srv)
     perform, watch = invite(srv, room["id"], "perform"), invite(srv, room["id"], "watch")
 
@@ -328,20 +332,26 @@ def test_a_frame_and_a_packet_captured_together_map_to_one_ntp_time(srv):
         async with WhepViewer(srv.url, room["id"], perform["token"], microphone=mic,
                               width=SIZE, height=SIZE, timeout_s=TIMEOUT_S) as pv, \
                 WhepViewer(srv.url, room["id"], watch["token"], voices=1, stamp=True,
-                           width=SIZE, height=SIZE, timeout_s=TIMEOUT_S) as v:
+                           voice_mix=voice_mix, width=SIZE, height=SIZE,
+                           timeout_s=TIMEOUT_S) as v:
             reports = Reports(v)
             await pv.wait_open()
             performer = Performer(pv, lambda now: now)
             driving = asyncio.create_task(performer.drive())
             await asyncio.sleep(WARM_S)
             until = time.monotonic() + LISTEN_S
-            video, audio = await asyncio.gather(video_errors(v, reports, [performer], until),
-                                                audio_errors(v, reports, [mic], until))
+            frames = video_errors(v, reports, [performer], until) if video else asyncio.sleep(
+                0, result=[])
+            errors = await asyncio.gather(frames, audio_errors(v, reports, [mic], until))
             performer.running = False
             await driving
-            return video, audio
+            return errors
 
-    video, audio = asyncio.run(run())
+    return asyncio.run(run())
+
+
+def test_a_frame_and_a_packet_captured_together_map_to_one_ntp_time(srv):
+    video, audio = clicking_performer_errors(srv)
     assert_on_capture(video, "video", least=ENOUGH)
     assert_on_capture(audio, "audio", least=ENOUGH)
     assert abs(np.median(video) - np.median(audio)) <= TOLERANCE_MS, (video, audio)
@@ -350,29 +360,11 @@ def test_a_frame_and_a_packet_captured_together_map_to_one_ntp_time(srv):
 def test_the_mix_maps_to_its_sounds_capture_not_its_own_latency(srv):
     """A mix viewer's clicks (decoded, summed, encoded again, cushioned 40 ms) map through the
     sender reports to the instants they were captured, as a seat's own track does."""
-    room = create_room(srv)
-    perform, watch = invite(srv, room["id"], "perform"), invite(srv, room["id"], "watch")
-
-    async def run():
-        mic = click_track(click_every=CLICK_EVERY)
-        async with WhepViewer(srv.url, room["id"], perform["token"], microphone=mic,
-                              width=SIZE, height=SIZE, timeout_s=TIMEOUT_S) as pv, \
-                WhepViewer(srv.url, room["id"], watch["token"], voices=1, voice_mix=True,
-                           width=SIZE, height=SIZE, timeout_s=TIMEOUT_S) as v:
-            reports = Reports(v)
-            await pv.wait_open()
-            performer = Performer(pv, lambda now: now)
-            driving = asyncio.create_task(performer.drive())
-            await asyncio.sleep(WARM_S)
-            audio = await audio_errors(v, reports, [mic], time.monotonic() + LISTEN_S)
-            performer.running = False
-            await driving
-            return audio
-
+    _, audio = clicking_performer_errors(srv, video=False, voice_mix=True)
     # The mix decodes and encodes again: its 20 ms frames need not start where the mic's did
     # (the decoders' delays), so a click falls anywhere within one: a frame of tolerance.
     # Stamped at mix time instead, this measured +49.6 ms (its cushion and look-ahead).
-    assert_on_capture(asyncio.run(run()), "mixed audio", least=ENOUGH, tolerance_ms=20.0)
+    assert_on_capture(audio, "mixed audio", least=ENOUGH, tolerance_ms=20.0)
 
 
 def test_video_alone_and_drives_without_a_capture_time(srv):
