@@ -39,8 +39,8 @@ HOLD_S = 1.0           # a seat keeps its place among the mixed this long after 
 
 
 class SeatDecoder:
-    """One seat's Opus decoded into a bounded backlog of samples (float32, full scale 1), and
-    the capture instant (monotonic) of the backlog's first sample."""
+    """One seat's Opus decoded into a bounded backlog of samples (float32, full scale 1), each
+    packet's capture instant kept beside its samples."""
 
     def __init__(self, max_samples: int) -> None:
         self.codec = av.CodecContext.create("libopus", "r")
@@ -49,7 +49,18 @@ class SeatDecoder:
         self.max_samples = max_samples
         self.playing = False
         self.dropped = 0  # samples dropped past max_samples (the seat ran ahead of the mix)
-        self.captured_at: float | None = None  # of samples[0]
+        # [samples left, capture instant of its first sample, samples] per decoded frame, in
+        # backlog order: each packet keeps its own instant (a run's first one would keep the
+        # transit estimate of its time, which the seat's own stamps move on from)
+        self._segments: collections.deque[list] = collections.deque()
+
+    @property
+    def captured_at(self) -> float | None:
+        """The capture instant of the backlog's first sample (None: unknown or empty)."""
+        if not self._segments or self._segments[0][1] is None:
+            return None
+        left, at, length = self._segments[0]
+        return at + (length - left) / CLOCK_RATE
 
     def add(self, payload: bytes, captured_at: float | None = None) -> None:
         """Decode ``payload``, captured at ``captured_at`` (its first sample's instant)."""
@@ -57,21 +68,28 @@ class SeatDecoder:
             frames = self.codec.decode(av.Packet(payload))
         except av.FFmpegError:
             return  # checked Opus that libopus still refuses: skipped, the seat goes on
+        offset = 0
         for frame in frames:
             pcm = frame.to_ndarray().reshape(-1)
             scale = 32768.0 if pcm.dtype == np.int16 else 1.0
-            if len(self.samples) == 0:  # a new run starts at this packet's instant
-                self.captured_at = captured_at
+            at = None if captured_at is None else captured_at + offset / CLOCK_RATE
+            self._segments.append([len(pcm), at, len(pcm)])
+            offset += len(pcm)
             self.samples = np.concatenate([self.samples, pcm.astype(np.float32) / scale])
         excess = len(self.samples) - self.max_samples
         if excess > 0:
             self.samples = self.samples[excess:]
             self.dropped += excess
-            self._advance(excess)
+            self._consume(excess)
 
-    def _advance(self, samples: int) -> None:
-        if self.captured_at is not None:
-            self.captured_at += samples / CLOCK_RATE
+    def _consume(self, samples: int) -> None:
+        while samples > 0 and self._segments:
+            head = self._segments[0]
+            used = min(samples, head[0])
+            head[0] -= used
+            samples -= used
+            if head[0] == 0:
+                self._segments.popleft()
 
     def take(self) -> tuple[np.ndarray, float | None] | None:
         """The next 20 ms (zero-padded) and its first sample's capture instant, or None while
@@ -82,7 +100,7 @@ class SeatDecoder:
             return None
         at = self.captured_at
         out, self.samples = self.samples[:FRAME], self.samples[FRAME:]
-        self._advance(len(out))
+        self._consume(len(out))
         if len(self.samples) == 0:
             self.playing = False  # ran dry: cushion again before the next word
         return np.pad(out, (0, FRAME - len(out))), at
