@@ -193,3 +193,18 @@ def test_serve_command_is_wired_lazily():
     help_text = subprocess.run([sys.executable, "-m", "avatar_core.cli", "serve", "--help"],
                                capture_output=True, text=True, timeout=60, check=True).stdout
     assert "--port" in help_text and "--config" in help_text
+
+
+def test_the_announced_socket_already_listens():
+    """The address is printed before uvicorn's start-up ends: a client connecting then waits
+    in the backlog (it was refused: a performer started beside the server lost its session)."""
+    import socket
+
+    from server.stream.net import listen_socket
+
+    sock = listen_socket("127.0.0.1", 0)
+    try:
+        with socket.create_connection(sock.getsockname(), timeout=5) as client:
+            assert client.getpeername() == sock.getsockname()
+    finally:
+        sock.close()

@@ -29,14 +29,21 @@ from ..auth import bearer_token
 PREAUTH_EXTENSION = "telesplat.preauth"  # scope["extensions"][...]["lift"]() -> full size
 
 
+LISTEN_BACKLOG = 2048  # uvicorn's own default
+
+
 def listen_socket(host: str, port: int, send_buffer_bytes: int = 0) -> socket.socket:
-    """A bound TCP socket for ``uvicorn.Server.run(sockets=[...])`` (uvicorn listens on it)."""
+    """A bound, listening TCP socket for ``uvicorn.Server.run(sockets=[...])``. Listening
+    from the start: the address is announced before uvicorn's start-up ends, and a client
+    that connects then (a performer started with the server, a loaded machine) waits in the
+    backlog instead of being refused."""
     family = socket.AF_INET6 if ":" in host else socket.AF_INET
     sock = socket.socket(family, socket.SOCK_STREAM)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     if send_buffer_bytes > 0:
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, send_buffer_bytes)
     sock.bind((host, port))
+    sock.listen(LISTEN_BACKLOG)
     return sock
 
 
