@@ -7,6 +7,7 @@ instead of stalling, and the encoder's target comes down with the receiver's est
 from __future__ import annotations
 
 import asyncio
+import collections
 import re
 
 import httpx
@@ -37,6 +38,7 @@ class Shaper:
         self.rate = rate
         self.free_at = 0.0
         self.sent = self.dropped = 0
+        self.queued: collections.deque[asyncio.TimerHandle] = collections.deque()  # FIFO
 
     def send(self, transport, data: bytes, addr) -> None:
         loop = asyncio.get_running_loop()
@@ -47,7 +49,19 @@ class Shaper:
             return
         self.free_at = start + len(data) * 8 / self.rate
         self.sent += 1
-        loop.call_at(self.free_at, transport.sendto, data, addr)
+        handle = loop.call_at(self.free_at, self._send_now, transport, data, addr)
+        self.queued.append(handle)
+
+    def _send_now(self, transport, data: bytes, addr) -> None:
+        self.queued.popleft()  # this one: they fire in the order they were queued
+        if not transport.is_closing():
+            transport.sendto(data, addr)
+
+    def close(self) -> None:
+        """Drops what still waits (no send on a closed socket after the test)."""
+        for handle in self.queued:
+            handle.cancel()
+        self.queued.clear()
 
 
 class Relay:
@@ -81,9 +95,24 @@ class Relay:
         return side.get_extra_info("sockname")[1]
 
     def close(self) -> None:
+        self.shaper.close()
         for side in (self.client_side, self.server_side):
             if side is not None:
                 side.close()
+
+
+def record_handed_stamps(track) -> list[int | None]:
+    """The stamp of each frame the server's ``track`` is handed, in order (the track itself
+    is unchanged: this wraps its ``deliver``)."""
+    handed: list[int | None] = []
+    deliver = track.deliver
+
+    async def noting(rgb, captured_at=None):
+        handed.append(read_stamp(rgb))
+        await deliver(rgb, captured_at)
+
+    track.deliver = noting
+    return handed
 
 
 def only_candidate(sdp: str, host: str, port: int) -> str:
@@ -134,6 +163,7 @@ def test_a_150_kbit_link_slows_the_stream_but_frames_keep_coming(tmp_path):
             video = await asyncio.wait_for(track, TIMEOUT_S)
             peer = server.ctx.webrtc_peers.peers()[0]
             start_rate = peer.encoder.target_bitrate
+            handed = record_handed_stamps(peer.track)
             seq = 0
 
             async def drive() -> None:
@@ -162,19 +192,26 @@ def test_a_150_kbit_link_slows_the_stream_but_frames_keep_coming(tmp_path):
             await http.delete(r.headers["location"], headers=server.headers())
         await pc.close()
         relay.close()
-        return stamps, targets, shaper, seq, start_rate
+        return stamps, targets, shaper, seq, start_rate, handed
 
     with run_server(tmp_path, default_width=SIZE, default_height=SIZE, default_max_fps=30,
                     webrtc_min_bitrate=50_000) as server:  # the floor below the link's rate
-        stamps, targets, shaper, sent, start_rate = asyncio.run(run(server))
+        stamps, targets, shaper, sent, start_rate, handed = asyncio.run(run(server))
     readable = [[s for s in w if s is not None and s != NO_DRIVE] for w in stamps]
-    # Frames come in order (latest wins never goes back) ...
+    # The server hands its frames to the encoder in order (latest wins never goes back) ...
+    handed = [s for s in handed if s != NO_DRIVE]  # frames before the first drive
+    assert handed and handed == sorted(handed), handed
+    # ... every stamp the viewer reads is one the server sent ...
     flat = [s for w in readable for s in w]
-    assert flat == sorted(flat), stamps
+    assert set(flat) <= set(handed), (stamps, handed)
     # ... and fresh ones keep coming: the picture follows the drives through the slow link
     # (a window whose stamps all drowned in the codec's noise tells nothing either way).
+    # Not asserted: each read frame newer than the last. One CI run of many read 17 then 16
+    # (after an unreadable frame) while this relay dropped packets: a picture decoded
+    # across a loss may show what an older reference frame held.
     newest = [max(w) for w in readable if w]
     assert len(newest) >= 3 and newest[-1] > newest[0], (stamps, targets)
+    assert newest == sorted(newest), stamps
     assert newest[-1] <= sent
     assert shaper.sent > 0, "the media went through the relay"
     # The receiver's estimate (REMB) brought the encoder down to about the link's rate.
