@@ -19,6 +19,7 @@ import pytest
 
 from server.app import create_app
 from server.auth import LOCAL_SUBJECT, TokenStore, local_admin_token, read_local_token
+from server.cli import main as cli_main
 from server.config import Settings
 from tests.server_fixtures import run_server, wait_until
 
@@ -134,14 +135,15 @@ def test_a_file_others_may_read_is_made_private_with_a_warning(tmp_path, caplog)
 
 @pytest.mark.parametrize("content", [b"", b"hello\n", b"tsk_short\n", b"tsk_" + b"a" * 300,
                                      b"tsk_" + b"\xff" * 43, b"tsk_" + b"a" * 43 + b" extra"])
-def test_a_damaged_file_is_a_clear_error_that_rotation_mends(tmp_path, content):
+def test_a_damaged_file_is_a_clear_error_that_rotation_mends(tmp_path, content, capsys):
     path = tmp_path / "local_token"
     path.write_bytes(content)
     with pytest.raises(ValueError, match="does not hold a Telesplat token.*rotate-local-token"):
         _app(tmp_path)
-    done = rotate(tmp_path)
-    assert done.returncode == 0, done.stderr
-    assert _app(tmp_path).state.ctx.local_token == done.stdout.strip()
+    # the CLI's own entry, in this process (a subprocess costs 5 s of imports; the one in
+    # test_rotation_revokes_the_old_token_also_in_a_running_server runs it as users do)
+    assert cli_main(["--data-dir", str(tmp_path), "--rotate-local-token"]) == 0
+    assert _app(tmp_path).state.ctx.local_token == capsys.readouterr().out.strip()
 
 
 def test_a_link_or_a_folder_in_its_place_is_refused(tmp_path):

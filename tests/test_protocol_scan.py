@@ -25,7 +25,7 @@ def objects(value) -> int:
     return 1
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=100, deadline=None)
 @given(values, st.booleans())
 def test_counts_what_msgpack_unpacks(value, single_float):
     data = msgpack.packb(value, use_bin_type=True, use_single_float=single_float)
