@@ -265,8 +265,9 @@ def test_cancelling_an_enrollment_stops_it_at_its_next_progress_call(srv, studio
                    content_type="video/mp4")
     assert r.status_code == 201, r.text
     job_id = r.json()["id"]
-    wait_for(lambda: any(e.get("stage") == "train" for e in events(srv, job_id)), 300,
-             what="training to start")
+    # cancelled while it tracks the video (a training job's cancel: tests/test_jobs_worker.py)
+    wait_for(lambda: any(e.get("stage") == "track" for e in events(srv, job_id)), 300,
+             what="tracking to start")
     assert httpx.post(f"{srv.url}/v1/jobs/{job_id}/cancel", headers=srv.headers()
                       ).status_code == 202
     job = wait_for(lambda: (j := srv.ctx.jobs.store.get(job_id)).done and j, TIMEOUT_S,
