@@ -26,11 +26,8 @@ pytest.importorskip("aiortc")
 SIZE = 64
 TIMESTAMP_MAPPER = "_RTCRtpReceiver__timestamp_mapper"  # aiortc 1.16's, RTP -> frame pts
 EVENTS = 5
-# a camera's images (latest wins: the tracker takes what it can). Not faster: one tracking
-# takes 0.2 s of a core here when quiet, and at 5 a second the tracker's own load under a
-# loaded CI pushed the images past MAX_DELAY_S (2 events of 5 left)
-IMAGE_EVERY_S = 0.4
-EVENT_EVERY = 15     # images: every 6 s one goes with a click (more than the voice may
+IMAGE_EVERY_S = 0.2  # a camera's images (latest wins: the tracker takes what it can)
+EVENT_EVERY = 30     # images: every 6 s one goes with a click (more than the voice may
 #                      wait, so each click is told from the last)
 SAME_FRAME_MS = 250.0  # a click this close to its frame came with it
 MAX_DELAY_S = 5.0    # the most voice_max_delay_s allows: tracking takes seconds here
