@@ -263,7 +263,8 @@ def test_record_saves_a_webm_and_stops_at_its_length_limit(page, server):  # noq
     page.find_element("id", "record").click()
     assert page.find_element("id", "record").text == "Stop recording"
     wheel(page, -100, 2)  # something changes while it records
-    time.sleep(1.5)
+    # its first chunk comes a second in: past the 1 s the length check below needs
+    wait_for(page, "window.telesplat.capture.recordedChunks >= 1", 15, "a second recorded")
     page.find_element("id", "record").click()
     wait_for(page, f"window.telesplat.saved.filter(s => s.kind === 'recording').length > {n}",
              15, "the recording")

@@ -57,6 +57,7 @@ export class Capture {
     this.maxSeconds = maxSeconds;
     this.onSaved = onSaved;
     this.recorder = null;
+    this.recordedChunks = 0;  // of the current (or last) recording
     this.onRecording = () => {};  // (recording: bool) for the button
   }
 
@@ -111,10 +112,14 @@ export class Capture {
     if (!mimeType) throw new Error("this browser cannot record WebM");
     const recorder = new MediaRecorder(stream, { mimeType, videoBitsPerSecond: RECORD_BITS_PER_S });
     const chunks = [];
+    this.recordedChunks = 0;
     const started = performance.now();
     this.recorder = recorder;
     const done = new Promise((resolve, reject) => {
-      recorder.addEventListener("dataavailable", (e) => { if (e.data.size) chunks.push(e.data); });
+      recorder.addEventListener("dataavailable", (e) => {
+        if (e.data.size) chunks.push(e.data);
+        this.recordedChunks = chunks.length;  // one a second while it records
+      });
       recorder.addEventListener("error", (e) => reject(e.error ?? new Error("recording failed")));
       recorder.addEventListener("stop", () => {
         clearTimeout(limit);
