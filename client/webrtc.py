@@ -238,3 +238,14 @@ def answered_codec(answer_sdp: str) -> str | None:
         if media.kind == "video" and media.rtp.codecs:
             return media.rtp.codecs[0].mimeType
     return None
+
+
+TIMESTAMP_MAPPER = "_RTCRtpReceiver__timestamp_mapper"  # aiortc 1.16's: RTP -> frame pts
+
+
+def rtp_timestamp(receiver: Any, pts: int) -> int | None:
+    """The RTP timestamp of the frame ``receiver`` (an aiortc ``RTCRtpReceiver``) decoded
+    with ``pts``: aiortc counts a track's pts from the first frame it decoded, which need not
+    be the first packet a hook saw. None before its first frame (or if aiortc moved it)."""
+    origin = getattr(getattr(receiver, TIMESTAMP_MAPPER, None), "_origin", None)
+    return None if origin is None else (pts + origin) % 2**32

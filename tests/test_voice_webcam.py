@@ -8,7 +8,6 @@ from __future__ import annotations
 import asyncio
 import fractions
 import time
-from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -19,12 +18,18 @@ from tests.server_fixtures import is_type, recv_until, run_server
 from tests.test_server_rooms import create_room, invite, join
 from tests.test_track_drive import astronaut_jpeg
 from tests.track_models import needs_models
-from tests.voice_fixtures import CLICK_LEVEL, CLICK_SAMPLES, FRAME_SAMPLES, RATE, peak
+from tests.voice_fixtures import (
+    CLICK_LEVEL,
+    CLICK_SAMPLES,
+    FRAME_SAMPLES,
+    RATE,
+    note_rtp_arrivals,
+    peak,
+)
 
 pytest.importorskip("aiortc")
 
 SIZE = 64
-TIMESTAMP_MAPPER = "_RTCRtpReceiver__timestamp_mapper"  # aiortc 1.16's, RTP -> frame pts
 EVENTS = 5
 IMAGE_EVERY_S = 0.2  # a camera's images (latest wins: the tracker takes what it can)
 EVENT_EVERY = 30     # images: every 6 s one goes with a click (more than the voice may
@@ -66,31 +71,6 @@ class Microphone:
         frame.time_base = fractions.Fraction(1, RATE)
         self.sent += 1
         return b"".join(bytes(p) for p in self.codec.encode(frame))
-
-
-def note_rtp_arrivals(v) -> dict[str, Callable[[int], float | None]]:
-    """Each track's RTP arrival times, looked up by a decoded frame's pts: when a frame or a
-    click reached the viewer, before its decoding (the viewer shares this process with the
-    server, so decode times wander). aiortc's pts is the RTP timestamp less that of the first
-    frame it decoded (its timestamp mapper's origin), which is read, not assumed: a packet
-    before this hook, or a first frame never completed, would shift every key, and on the
-    capture clock frames one tick apart would then pair with others seconds away."""
-    arrivals: dict[str, dict[int, float]] = {"audio": {}, "video": {}}
-    lookups = {}
-    for receiver in v.pc.getReceivers():
-        kind, original = receiver.track.kind, receiver._handle_rtp_packet
-
-        async def note(packet, arrival_time_ms=0, kind=kind, original=original):
-            arrivals[kind].setdefault(packet.timestamp, time.monotonic())
-            await original(packet, arrival_time_ms=arrival_time_ms)
-
-        def lookup(pts: int, kind=kind, receiver=receiver) -> float | None:
-            origin = getattr(receiver, TIMESTAMP_MAPPER)._origin
-            return None if origin is None else arrivals[kind].get((pts + origin) % 2**32)
-
-        receiver._handle_rtp_packet = note
-        lookups[kind] = lookup
-    return lookups
 
 
 @needs_models

@@ -14,7 +14,7 @@ import pytest
 from client.webrtc import WhepViewer
 from tests.server_fixtures import run_server, wait_until
 from tests.test_server_rooms import create_room, invite
-from tests.voice_fixtures import CLICK_LEVEL, click_track, peak, send_raw_rtp
+from tests.voice_fixtures import CLICK_LEVEL, click_track, note_rtp_arrivals, peak, send_raw_rtp
 
 pytest.importorskip("aiortc")
 
@@ -55,6 +55,13 @@ async def loud_frames(v: WhepViewer, count: int) -> tuple[int, int]:
         frame, _ = await v.next_audio()
         loud += peak(frame) > CLICK_LEVEL
     return count, loud
+
+
+def seen(lookup, pts: int) -> float:
+    """When the packets of the frame decoded with ``pts`` arrived (each one was seen)."""
+    at = lookup(pts)
+    assert at is not None, f"the packets of the frame with pts {pts} were not seen"
+    return at
 
 
 def test_every_viewer_hears_the_performer_in_the_videos_stream(srv):
@@ -123,17 +130,7 @@ def test_the_voice_arrives_with_the_mouth_it_was_spoken_with(srv):
         mic = click_track(click_every=35, on_click=clicked)
         performer = viewer(srv, room["id"], perform["token"], microphone=mic)
         async with performer, viewer(srv, room["id"], watch["token"], voices=1) as v:
-            arrivals = {"audio": {}, "video": {}}
-            first: dict[str, int] = {}
-            for receiver in v.pc.getReceivers():
-                kind, original = receiver.track.kind, receiver._handle_rtp_packet
-
-                async def note(packet, arrival_time_ms=0, kind=kind, original=original):
-                    pts = (packet.timestamp - first.setdefault(kind, packet.timestamp)) % 2**32
-                    arrivals[kind][pts] = time.monotonic()  # aiortc's frame pts is this
-                    await original(packet, arrival_time_ms=arrival_time_ms)
-
-                receiver._handle_rtp_packet = note
+            arrived = note_rtp_arrivals(v)
             closed = (await v.next_video_frame()).to_ndarray(format="gray").astype(int)
 
             async def tracker():
@@ -152,7 +149,7 @@ def test_the_voice_arrives_with_the_mouth_it_was_spoken_with(srv):
                     changed.append(int((abs(grey - closed) > 25).sum()))
                     is_open = changed[-1] > 3  # 64 px: the open mouth is 6-7 px
                     if is_open and not was_open and time.monotonic() > warm["until"]:
-                        edges.append(arrivals["video"][frame.pts])
+                        edges.append(seen(arrived["video"], frame.pts))
                     was_open = is_open
                 return edges
 
@@ -161,7 +158,7 @@ def test_the_voice_arrives_with_the_mouth_it_was_spoken_with(srv):
                 while len(mic.clicks) <= events + 1:
                     frame, _ = await v.next_audio()
                     if peak(frame) > CLICK_LEVEL and quiet and time.monotonic() > warm["until"]:
-                        onsets.append(arrivals["audio"][frame.pts])
+                        onsets.append(seen(arrived["audio"], frame.pts))
                     quiet = peak(frame) <= CLICK_LEVEL
                 return onsets
 

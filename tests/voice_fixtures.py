@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import fractions
 import time
+from collections.abc import Callable
 
 import numpy as np
 
@@ -78,3 +79,30 @@ async def send_raw_rtp(pc, payload_type: int, payloads: list[bytes],
         packet = RtpPacket(payload_type=payload_type, sequence_number=i,
                            timestamp=i * FRAME_SAMPLES, ssrc=ssrc, payload=payload)
         await transport._send_rtp(packet.serialize(transport._rtp_header_extensions_map))
+
+
+def note_rtp_arrivals(v) -> dict[str, Callable[[int], float | None]]:
+    """Each track's RTP arrival times, looked up by a decoded frame's pts (None: its packets
+    were not seen): when a frame or a click reached viewer ``v`` (a WhepViewer), before its
+    decoding (a viewer sharing its process with the server decodes at wandering times).
+    Keyed by the RTP timestamp itself and looked up through aiortc's own pts origin
+    (client.webrtc.rtp_timestamp): counted from the first packet seen instead, a packet
+    before this hook would shift every key, and on the capture clock frames one tick apart
+    would then pair with others seconds away."""
+    from client.webrtc import rtp_timestamp
+
+    arrivals: dict[str, dict[int, float]] = {"audio": {}, "video": {}}
+    lookups = {}
+    for receiver in v.pc.getReceivers():
+        kind, original = receiver.track.kind, receiver._handle_rtp_packet
+
+        async def note(packet, arrival_time_ms=0, kind=kind, original=original):
+            arrivals[kind].setdefault(packet.timestamp, time.monotonic())
+            await original(packet, arrival_time_ms=arrival_time_ms)
+
+        def lookup(pts: int, kind=kind, receiver=receiver) -> float | None:
+            return arrivals[kind].get(rtp_timestamp(receiver, pts))
+
+        receiver._handle_rtp_packet = note
+        lookups[kind] = lookup
+    return lookups
