@@ -43,6 +43,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import httpx
 import numpy as np
@@ -55,7 +56,7 @@ sys.path.insert(0, str(ROOT / "bench"))
 from stream import start_server, stop_server  # noqa: E402
 from webrtc import cpu_seconds, release_at_marker  # noqa: E402
 
-from client.webrtc import WhepViewer  # noqa: E402
+from client.webrtc import WhepViewer, rtp_timestamp  # noqa: E402
 from protocol import Drive  # noqa: E402
 
 RATE = 48_000
@@ -113,9 +114,9 @@ class Ear:
         self.closed: np.ndarray | None = None
         self.mouth: list[float] = []
         self.clicks: list[float] = []
-        # aiortc's frames carry their RTP timestamp less the track's first one as pts
-        self.first_ts: dict[str, int] = {}
-        self.arrivals: dict[int, float] = {}  # audio pts -> arrival
+        # keyed by RTP timestamp; a decoded frame's own: self.rtp(kind, frame.pts)
+        self.receivers: dict[str, Any] = {}
+        self.arrivals: dict[int, float] = {}  # audio RTP timestamp -> arrival
         self.video_arrivals: dict[int, float] = {}  # video pts -> its last packet's arrival
         self.packet_times: list[float] = []
         self.packet_seqs: list[int] = []  # RTP sequence numbers: a gap with none missing
@@ -130,25 +131,27 @@ class Ear:
     def hook(self) -> None:
         """Note each RTP packet's arrival before aiortc handles it."""
         for receiver in self.viewer.pc.getReceivers():
+            self.receivers.setdefault(receiver.track.kind, receiver)
             original = receiver._handle_rtp_packet
             if receiver.track.kind == "audio":
                 async def handle(packet, arrival_time_ms: int = 0, original=original):
                     now = time.monotonic()
-                    self.arrivals[self.pts("audio", packet.timestamp)] = now
+                    self.arrivals[packet.timestamp] = now
                     self.packet_times.append(now)
                     self.packet_seqs.append(packet.sequence_number)
                     await original(packet, arrival_time_ms=arrival_time_ms)
             else:
                 async def handle(packet, arrival_time_ms: int = 0, original=original):
-                    self.video_arrivals[self.pts("video", packet.timestamp)] = time.monotonic()
+                    self.video_arrivals[packet.timestamp] = time.monotonic()
                     if len(self.video_arrivals) > 4096:  # bounded: the oldest go
                         self.video_arrivals.pop(next(iter(self.video_arrivals)))
                     await original(packet, arrival_time_ms=arrival_time_ms)
             receiver._handle_rtp_packet = handle
             self._hook_reports(receiver)
 
-    def pts(self, kind: str, rtp_ts: int) -> int:
-        return (rtp_ts - self.first_ts.setdefault(kind, rtp_ts)) % 2**32
+    def rtp(self, kind: str, pts: int) -> int | None:
+        """The RTP timestamp of a decoded frame (client.webrtc.rtp_timestamp)."""
+        return rtp_timestamp(self.receivers.get(kind), pts)
 
     def _hook_reports(self, receiver) -> None:
         from aiortc.rtp import RtcpSrPacket
@@ -158,9 +161,7 @@ class Ear:
         async def handle(packet):
             if isinstance(packet, RtcpSrPacket):
                 info = packet.sender_info
-                if kind in self.first_ts:
-                    self.sr[kind].append((self.pts(kind, info.rtp_timestamp),
-                                          info.ntp_timestamp / 2**32))
+                self.sr[kind].append((info.rtp_timestamp, info.ntp_timestamp / 2**32))
             await original(packet)
 
         receiver._handle_rtcp_packet = handle
@@ -197,9 +198,11 @@ class Ear:
                 continue
             is_open = int((np.abs(grey - self.closed) > 25).sum()) > self.open_pixels
             if is_open and not self._open:
+                ts = self.rtp("video", frame.pts)
                 self.mouth.append(decoded if self.mouth_clock == "decode"
-                                  else self.video_arrivals.get(frame.pts, decoded))
-                self.mouth_ts.append(frame.pts)
+                                  else self.video_arrivals.get(ts, decoded))
+                if ts is not None:
+                    self.mouth_ts.append(ts)
             self._open = is_open
 
     async def listen(self, end: float) -> None:
@@ -214,11 +217,13 @@ class Ear:
                 return
             peak = np.abs(frame.to_ndarray()).max() / 32768
             if peak > CLICK_LEVEL and not loud:
-                arrived = self.arrivals.get(frame.pts)
+                ts = self.rtp("audio", frame.pts)
+                arrived = self.arrivals.get(ts)
                 self.missed_arrivals += arrived is None
                 self.clicks.append(at if self.mouth_clock == "decode" or arrived is None
                                    else arrived)
-                self.click_ts.append(frame.pts)
+                if ts is not None:
+                    self.click_ts.append(ts)
             loud = peak > CLICK_LEVEL
 
 
