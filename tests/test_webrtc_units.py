@@ -71,15 +71,6 @@ def test_stamps_survive_the_video_codecs_at_500_kbit(codec):
     assert read == [1000 + seq for seq in range(6)]
 
 
-def moving_picture(i: int, size: int = 64) -> np.ndarray:
-    """Smooth gradients and a disc moving across: what a codec's rate control budgets for
-    (aiortc's VP8 encoder fed one-tick timestamps spends ~45 instead of ~500 bytes a frame)."""
-    yy, xx = np.mgrid[:size, :size]
-    cx = size / 2 + size / 4 * np.sin(i / 3)
-    disc = ((xx - cx) ** 2 + (yy - size / 2) ** 2) < (size / 5) ** 2
-    return np.stack([(xx * 3 + 4 * i) % 256, (yy * 2) % 256, 255 * disc], -1).astype(np.uint8)
-
-
 class FrameClock:
     """A sending clock that moves on 1/30 s each time it is read."""
 
@@ -100,10 +91,13 @@ def test_the_codec_counts_sending_time_and_the_wire_keeps_the_frames_timestamps(
     from aiortc.codecs.h264 import h264_depayload
     from aiortc.codecs.vpx import vp8_depayload
 
+    from bench.encoder_clock import picture
     from server.webrtc.encoders import ENCODERS
 
     depay = vp8_depayload if codec == "vp8" else h264_depayload
-    pictures = [moving_picture(i) for i in range(12)]  # not noise: that costs qmax either way
+    # a moving picture, not noise (that costs qmax either way): aiortc's VP8 encoder fed
+    # one-tick timestamps spends a fraction of the bytes on it
+    pictures = [picture(i, 64) for i in range(12)]
     patterns = {"even": [i * 3000 for i in range(12)],
                 "one tick": [5 + i for i in range(12)],
                 "jumps": [(i // 4) * 90_000 * 3 + i for i in range(12)]}
