@@ -54,7 +54,8 @@ SeatIndex = Annotated[int, Field(ge=0, lt=MAX_SEATS)]
 # Seconds on the performer's own monotonic clock (performance.now() / 1000, time.monotonic()):
 # when what a drive or a voice packet carries was captured. The server never compares it with
 # its own clock; it hands it back on what shows or plays it.
-CaptureTime = Annotated[float, Field(ge=0, le=1e9, allow_inf_nan=False)]
+MAX_CAPTURE_TIME = 1e9  # seconds: a capture time is at most this
+CaptureTime = Annotated[float, Field(ge=0, le=MAX_CAPTURE_TIME, allow_inf_nan=False)]
 MAX_VOICE_BYTES = 1276  # one Opus frame of the largest (1275 B) and its TOC byte
 Role = Literal["perform", "watch"]
 Vec3 = tuple[float, float, float]

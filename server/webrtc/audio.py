@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import fractions
 import logging
+import time
 from typing import Any
 
 import av
@@ -24,6 +25,8 @@ from aiortc import sdp as aiortc_sdp
 from aiortc.mediastreams import MediaStreamError
 
 from ..rooms.voice import CLOCK_RATE, Listener, SeatVoice, VoicePacket
+from ..stream.capture_clock import ArrivalClock
+from .publisher_clock import TrackReports
 from .sender_clock import CaptureEpoch, CaptureStamps
 
 log = logging.getLogger(__name__)
@@ -83,16 +86,23 @@ def opus_payload_type(answer_sdp: str, mid: str) -> int | None:
     return None
 
 
-def publish_voice(receiver: Any, voice: SeatVoice, publisher: object,
-                  payload_type: int) -> None:
-    """``receiver``'s Opus RTP payloads go to ``voice`` (checked there), undecoded."""
+def publish_voice(receiver: Any, voice: SeatVoice, publisher: object, payload_type: int,
+                  reports: TrackReports | None = None, clock: ArrivalClock | None = None
+                  ) -> None:
+    """``receiver``'s Opus RTP payloads go to ``voice`` (checked there), undecoded. With the
+    track's sender ``reports`` each packet carries its capture time on the publisher's clock,
+    put on this server's by ``clock`` (the one the publisher's drives use)."""
     async def handle(packet: Any, arrival_time_ms: int = 0) -> None:
         if packet.payload_type != payload_type:
             voice.counts["garbage"] += 1  # not the negotiated Opus (aiortc would drop it too)
             return
         level = packet.extensions.audio_level  # RFC 6464: (voice activity, -dBov) when sent
-        voice.publish(publisher, packet.payload, packet.timestamp,
-                      level_dbov=None if level is None else -float(level[1]))
+        now = time.monotonic()
+        t_capture = None if reports is None else reports.capture_time(packet.timestamp)
+        captured_at = (None if t_capture is None or clock is None
+                       else clock.observe(t_capture, now))
+        voice.publish(publisher, packet.payload, packet.timestamp, now, t_capture,
+                      None if level is None else -float(level[1]), captured_at)
 
     setattr(receiver, RTP_HANDLER, handle)
 

@@ -2,7 +2,8 @@
 
 Every decoded frame is read (aiortc queues them unboundedly otherwise) and offered to the
 participant's tracker, which keeps only the newest waiting (latest wins, never a queue); the
-conversion to BGR happens on the tracking thread.
+conversion to BGR happens on the tracking thread. A frame's capture time comes from the
+publisher's sender reports (publisher_clock.py): the drive tracked from it carries it.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from aiortc.mediastreams import MediaStreamError
 from protocol.messages import MAX_SEQ
 
 from ..stream.tracking import DecodedImage
+from .publisher_clock import TrackReports, frame_rtp_timestamp
 
 log = logging.getLogger(__name__)
 
@@ -24,9 +26,11 @@ def _bgr(frame: Any):
     return lambda: frame.to_ndarray(format="bgr24")  # [H, W, 3] uint8, on the tracking thread
 
 
-async def ingest(track: Any, participant: Any) -> None:
-    """Until the track ends: each frame to ``participant.offer_image``. When tracking is not
-    available in this server the participant is told once and frames are only drained."""
+async def ingest(track: Any, participant: Any, receiver: Any = None,
+                 reports: TrackReports | None = None) -> None:
+    """Until the track ends: each frame to ``participant.offer_image``, with its capture time
+    from ``receiver``'s sender ``reports`` once one came. When tracking is not available in
+    this server the participant is told once and frames are only drained."""
     seq, told = 0, False
     while True:
         try:
@@ -40,5 +44,7 @@ async def ingest(track: Any, participant: Any) -> None:
                 told = True
             continue
         seq = seq + 1 if seq < MAX_SEQ else 0
-        participant.offer_image(DecodedImage(seq, frame.width, frame.height, _bgr(frame)),
-                                time.monotonic())
+        t_capture = (None if reports is None
+                     else reports.capture_time(frame_rtp_timestamp(receiver, frame.pts)))
+        participant.offer_image(DecodedImage(seq, frame.width, frame.height, _bgr(frame),
+                                             t_capture), time.monotonic())

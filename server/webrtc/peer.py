@@ -18,13 +18,14 @@ import logging
 from typing import Any
 
 from aiortc import RTCPeerConnection
+from aiortc.mediastreams import VIDEO_CLOCK_RATE
 
 from protocol import Request, encode
 
 from ..context import ServerContext
 from ..rooms.join import seat_participant, serve
 from ..rooms.registry import Room
-from ..rooms.voice import seat_voice
+from ..rooms.voice import CLOCK_RATE, seat_voice
 from ..rooms.voice_mix import room_mix
 from ..stream.admission import Admitted
 from ..stream.session import Session, error_message
@@ -33,6 +34,7 @@ from .channel import DataChannel
 from .encoders import install_encoder
 from .ingest import ingest
 from .negotiate import Kind, Offer, answer, configuration
+from .publisher_clock import PublisherClock
 from .sctp import GuardLimits, SctpGuard
 from .sender_clock import CaptureEpoch, report_capture_clock
 from .track import LatestFrameTrack
@@ -56,6 +58,7 @@ class WebRTCPeer:
                                metrics=ctx.metrics, name=resource)
         self.track: LatestFrameTrack | None = None
         self.epoch: CaptureEpoch | None = None  # webrtc_sender_clock = capture: both tracks'
+        self.publisher_clock = PublisherClock()  # what it publishes, on its reports' clock
         self.participant: Session | None = None
         self.codec: str | None = None      # negotiated video codec (MIME type), watching
         self.encoder: Any = None           # our clamped encoder, once installed
@@ -152,7 +155,10 @@ class WebRTCPeer:
             if speaks and transceiver.mid == offer.microphone_mid and pt is not None:
                 voice = seat_voice(self.room.live.seat(seat), self.ctx.settings,
                                    self.ctx.metrics)
-                publish_voice(transceiver.receiver, voice, self, pt)
+                reports = self.publisher_clock.track(CLOCK_RATE)
+                reports.watch(transceiver.receiver)
+                publish_voice(transceiver.receiver, voice, self, pt, reports,
+                              self.participant.capture_clock)
             else:
                 refuse_voice(transceiver.receiver, self.ctx.metrics, self.voice_counts)
 
@@ -170,7 +176,13 @@ class WebRTCPeer:
 
     def _on_track(self, track: Any) -> None:
         if self.kind == "whip" and track.kind == "video" and self.participant is not None:
-            self._spawn(ingest(track, self.participant), "ingest")
+            receiver = next((t.receiver for t in self.pc.getTransceivers()
+                             if t.receiver.track is track), None)
+            reports = None
+            if receiver is not None:  # the webcam's capture times, as its microphone's
+                reports = self.publisher_clock.track(VIDEO_CLOCK_RATE)
+                reports.watch(receiver)
+            self._spawn(ingest(track, self.participant, receiver, reports), "ingest")
 
     def _on_state(self) -> None:
         state = self.pc.connectionState

@@ -1,0 +1,102 @@
+"""A WHIP publisher's capture times, read from its own RTCP sender reports.
+
+A browser stamps its webcam and its microphone on one clock: each track's RTCP sender report
+pairs an RTP timestamp with the NTP time of the same instant (RFC 3550 6.4.1), which is how a
+receiver lip-syncs them. The server reads those reports here so that a published frame's
+tracked drive and a published voice packet carry capture times (``t_capture``) on that one
+clock, as a WebSocket performer's stamps do: a WebSocket viewer then syncs a WHIP performer
+too, and the WebRTC senders' capture clock (sender_clock.py) gets the frame's capture instant,
+not its arrival after the jitter buffer and the decoder.
+
+Times are seconds since a per-peer origin (the first report's NTP second, less
+``ORIGIN_MARGIN_S``) so that they fit the protocol's ``CaptureTime``. Until a track's first
+report arrives its times are None (its arrival stands in, as before). A publisher controls its
+reports: a time outside ``CaptureTime`` (0 to ``MAX_CAPTURE_TIME``) is None; nothing raises.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+from protocol.messages import MAX_CAPTURE_TIME
+
+log = logging.getLogger(__name__)
+
+RTP_WRAP = 2**32
+NTP_FRACTION = 2**32  # NTP's 32.32 fixed point
+ORIGIN_MARGIN_S = 3600.0  # media stamped up to this long before the first report stays >= 0
+RTCP_HANDLER = "_handle_rtcp_packet"  # RTCRtpReceiver's entry for each routed RTCP packet
+# aiortc 1.16's RTCRtpReceiver: RTP timestamp -> frame pts (tests/test_webrtc_publisher_clock.py
+# fails if it moves)
+TIMESTAMP_MAPPER = "_RTCRtpReceiver__timestamp_mapper"
+
+
+def signed_ticks(a: int, b: int) -> int:
+    """``a - b`` for 32-bit RTP timestamps, wrap-safe: in [-2**31, 2**31)."""
+    return (a - b + 2**31) % RTP_WRAP - 2**31
+
+
+class PublisherClock:
+    """One peer's tracks on its sender-report clock (one origin for all of them)."""
+
+    def __init__(self) -> None:
+        self.origin: float | None = None  # NTP seconds of time 0
+        self.reports = 0                  # sender reports taken
+        self.refused = 0                  # reports without a usable NTP time
+
+    def track(self, clock_rate: int) -> TrackReports:
+        return TrackReports(self, clock_rate)
+
+    def note(self, ntp_timestamp: int) -> float | None:
+        """A report's NTP time (64-bit) as seconds since the origin; None if unusable."""
+        seconds = ntp_timestamp / NTP_FRACTION
+        if seconds <= 0:  # a sender without a wall clock
+            self.refused += 1
+            return None
+        if self.origin is None:
+            self.origin = float(int(seconds)) - ORIGIN_MARGIN_S
+        self.reports += 1
+        return seconds - self.origin
+
+
+class TrackReports:
+    """One received track's last sender report: its RTP timestamps as capture times."""
+
+    def __init__(self, clock: PublisherClock, clock_rate: int) -> None:
+        self.clock, self.clock_rate = clock, clock_rate
+        self._last: tuple[int, float] | None = None  # (RTP timestamp, its time)
+
+    def note(self, rtp_timestamp: int, ntp_timestamp: int) -> None:
+        at = self.clock.note(ntp_timestamp)
+        if at is not None:
+            self._last = (rtp_timestamp % RTP_WRAP, at)
+
+    def capture_time(self, rtp_timestamp: int | None) -> float | None:
+        """When the media of ``rtp_timestamp`` was captured (seconds on the peer's clock)."""
+        if self._last is None or rtp_timestamp is None:
+            return None
+        rtp, at = self._last
+        t = at + signed_ticks(rtp_timestamp % RTP_WRAP, rtp) / self.clock_rate
+        return t if 0.0 <= t <= MAX_CAPTURE_TIME else None
+
+    def watch(self, receiver: Any) -> None:
+        """Take ``receiver``'s sender reports (aiortc routes them by SSRC) before aiortc does."""
+        from aiortc.rtp import RtcpSrPacket
+
+        original = getattr(receiver, RTCP_HANDLER)
+
+        async def handle(packet: Any) -> None:
+            if isinstance(packet, RtcpSrPacket):
+                info = packet.sender_info
+                self.note(info.rtp_timestamp, info.ntp_timestamp)
+            await original(packet)
+
+        setattr(receiver, RTCP_HANDLER, handle)
+
+
+def frame_rtp_timestamp(receiver: Any, pts: int | None) -> int | None:
+    """The RTP timestamp of the frame ``receiver`` decoded with ``pts`` (aiortc counts pts from
+    its first decoded frame); None when unknown."""
+    origin = getattr(getattr(receiver, TIMESTAMP_MAPPER, None), "_origin", None)
+    return None if origin is None or pts is None else (pts + origin) % RTP_WRAP
