@@ -217,6 +217,8 @@ def test_a_whip_publishers_frames_and_voice_carry_capture_times_on_one_clock(srv
           f"{voiced} stamped voice packets, {len(clicks)} clicks; image arrival less its "
           f"capture instant, ms: {[round(x, 1) for x in leads]}")
     assert all(abs(x) <= ONE_CLOCK_MS for x in residual), residual
-    # on this server's clock an image was captured before it arrived (decoded): the WebRTC
-    # senders stamp its frames with that instant, not with the arrival as before
-    assert all(x > 0 for x in leads), leads
+    # on this server's clock an image was captured no later than it arrived (decoded): the
+    # WebRTC senders stamp its frames with that instant (before: with the arrival)
+    assert all(x >= 0 for x in leads), leads
+    # and it arrived at its last packet, not a frame interval later (server/webrtc/jitter.py)
+    assert sorted(leads)[len(leads) // 2] < period / 2 * 1e3, leads

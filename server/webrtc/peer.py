@@ -33,6 +33,7 @@ from .audio import VoiceTrack, opus_payload_type, publish_voice, refuse_voice
 from .channel import DataChannel
 from .encoders import install_encoder
 from .ingest import ingest
+from .jitter import release_on_marker
 from .negotiate import Kind, Offer, answer, configuration
 from .publisher_clock import PublisherClock
 from .sctp import GuardLimits, SctpGuard
@@ -182,6 +183,7 @@ class WebRTCPeer:
             if receiver is not None:  # the webcam's capture times, as its microphone's
                 reports = self.publisher_clock.track(VIDEO_CLOCK_RATE)
                 reports.watch(receiver)
+                release_on_marker(receiver)  # each frame tracked at its last packet
             self._spawn(ingest(track, self.participant, receiver, reports), "ingest")
 
     def _on_state(self) -> None:
