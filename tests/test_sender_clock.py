@@ -162,10 +162,12 @@ def test_arrival_clock_takes_the_quickest_recent_transit_and_restarts_on_a_jump(
     from server.stream.capture_clock import ArrivalClock
 
     clock = ArrivalClock(window_s=10.0, jump_s=1.0)
+    assert clock.stamp_of(5.0) is None  # nothing seen: no inverse
     # stamps 100 s behind this clock, transits 30, 5 (the quickest), 80 ms
     assert clock.observe(0.0, 100.030) == pytest.approx(100.030)
     assert clock.observe(1.0, 101.005) == pytest.approx(101.005)
     assert clock.observe(2.0, 102.080) == pytest.approx(102.005)  # a late one moves nothing
+    assert clock.stamp_of(102.005) == pytest.approx(2.0)  # back to the sender's clock
     # the quickest leaves the window: the quickest of the rest
     assert clock.observe(11.5, 111.590) == pytest.approx(111.580)
     # the sender's clock jumps back 500 s (a restarted page): a new window at once

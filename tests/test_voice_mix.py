@@ -152,8 +152,11 @@ def test_a_viewer_asking_for_the_mix_hears_both_seats_in_one_track(srv):
     assert subscribers == 2 and running
     assert 40 <= rate <= 60, rate  # one 20 ms frame at a time for both viewers: mixed once
     assert "unmixed" not in counts
-    # the WebSocket viewer's messages: the mix (no seat), both tones in them
-    assert all(m.seat is None and m.t_capture is None for m in messages)
+    # the WebSocket viewer's messages: the mix (no seat), both tones in them; stamped on its
+    # picture seat's clock once that performer's reports came (WHEP microphones: RTCP)
+    assert all(m.seat is None for m in messages)
+    stamps = [m.t_capture for m in messages if m.t_capture is not None]
+    assert stamps == sorted(stamps), stamps
     decoder = av.CodecContext.create("libopus", "r")
     decoder.sample_rate, decoder.layout = RATE, "mono"
     pcm = np.concatenate([f.to_ndarray().reshape(-1).astype(np.float32) / 32768
@@ -199,6 +202,34 @@ def test_the_mix_sums_at_most_voice_mix_max_seats(srv):
     levels = tone_levels(pcm[len(pcm) // 4:])
     assert levels[TONES[0]] > 0.15 and levels[TONES[1]] < 0.02, levels
     assert counts["unmixed"] >= 80, counts
+    assert all(m.t_capture is None for m in messages)  # its performers stamp nothing
+
+
+def test_the_websocket_mix_carries_capture_times_on_its_pictures_clock(srv):
+    """The picture seat's performer stamps its voice (its clock at 50 s); the other seat's
+    stamps are on a clock of its own (at 9000 s). The mix's messages carry the capture instants
+    of what they hold on the picture seat's clock: 20 ms apart, within the stamps sent."""
+    room, performers, watch = two_seat_room(srv)
+    opus = [tone_packets(f, 100) for f in TONES]
+
+    async def run():
+        async with join(srv, room["id"], performers[0]["token"]) as first, \
+                join(srv, room["id"], performers[1]["token"]) as second, \
+                join(srv, room["id"], watch["token"], voice_mix=True) as viewer:
+            await recv_until(viewer, is_type("frame"))
+            start = time.monotonic()
+            for i in range(100):
+                await first.send(encode(Voice(seq=i, data=opus[0][i], t_capture=50 + i / 50)))
+                await second.send(encode(Voice(seq=i, data=opus[1][i],
+                                               t_capture=9000 + i / 50)))
+                await asyncio.sleep(max(0.0, start + (i + 1) / 50 - time.monotonic()))
+            return [await recv_until(viewer, is_type("voice")) for _ in range(60)]
+
+    messages = asyncio.run(run())
+    stamps = [m.t_capture for m in messages]
+    assert all(s is not None and 50 - 0.1 <= s <= 52 + 0.1 for s in stamps), stamps
+    steps = np.diff(stamps)
+    assert abs(float(np.median(steps)) - 0.02) < 0.002 and (steps > 0).all(), steps
 
 
 def test_a_performer_cannot_ask_the_websocket_for_the_mix(srv):

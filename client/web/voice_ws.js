@@ -214,7 +214,8 @@ export class WsVoices {
   /** How much later than its fastest packets the picture shows the same instant (ms), or
    *  null before both are known (frames and the voice are on the same performer's clock). */
   pictureExtraMs() {
-    const seat = this.seats.get(this.pictureSeat);
+    // the mix (seat 0 here) is stamped on the picture seat's clock by the server
+    const seat = this.seats.get(this.mixed ? 0 : this.pictureSeat);
     if (!this.pictureLags.length || !seat?.audioLags.length) return null;
     return median(this.pictureLags) - Math.min(...seat.audioLags);
   }

@@ -11,7 +11,9 @@ subscriber and stops with the last; while no seat sends anything it sleeps.
 Bounds: at most ``voice_mix_max_seats`` seats mixed at once (the first ones to speak; a
 packet of another seat is dropped and counted ``unmixed`` until one falls silent for
 ``HOLD_S``), each seat's decoded backlog at most ``voice_buffer_packets`` frames, each
-subscriber's queue the same.
+subscriber's queue the same. Each mixed packet carries its loudest seat's capture instant; a
+WebSocket subscriber gets it as ``t_capture`` on the clock its frames carry
+(:func:`picture_stamp`).
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ import av
 import numpy as np
 
 from protocol import Voice
+from protocol.messages import MAX_CAPTURE_TIME
 
 from .voice import CLOCK_RATE, Listener, VoicePacket, seat_voice
 
@@ -334,10 +337,24 @@ async def relay_mix(session: Any, live: Any, settings: Any, metrics: Any = None)
     seq = 0
     try:
         while (packet := await subscriber.next()) is not None:
-            session.send_control(Voice(seq=seq, data=packet.payload))
+            session.send_control(Voice(seq=seq, data=packet.payload,
+                                       t_capture=picture_stamp(session, live, packet)))
             seq += 1
     finally:
         subscriber.close()
+
+
+def picture_stamp(session: Any, live: Any, packet: VoicePacket) -> float | None:
+    """A mixed packet's capture instant as a stamp of the clock the session's frames carry
+    (its seat's performer's ``t_capture``), so a WebSocket viewer syncs the mix to its picture
+    as it syncs a seat's own voice; None when that performer stamps nothing."""
+    seats = live.seats
+    position = getattr(session, "position", None)
+    if packet.captured_at is None or position is None or not 0 <= position < len(seats):
+        return None
+    clock = getattr(getattr(seats[position], "performer", None), "capture_clock", None)
+    stamp = None if clock is None else clock.stamp_of(packet.captured_at)
+    return stamp if stamp is not None and 0.0 <= stamp <= MAX_CAPTURE_TIME else None
 
 
 def room_mix(live: Any, settings: Any, metrics: Any = None) -> RoomMix:

@@ -42,6 +42,11 @@ class ArrivalClock:
             self._window.popleft()
         return stamp + self._window[0][1]
 
+    def stamp_of(self, at: float) -> float | None:
+        """The inverse: instant ``at`` on this server's clock as a stamp of the sender's clock
+        (None before a sample)."""
+        return None if not self._window else at - self._window[0][1]
+
     def reset(self) -> None:
         """The sender changed: forget what its clock was."""
         self._window.clear()
