@@ -233,31 +233,15 @@ async def transport_bytes(viewer: WhepViewer) -> int:
 
 def release_at_marker(viewer: WhepViewer) -> None:
     """Make the viewer's video receiver hand a frame to the decoder at its last packet (the
-    RTP marker bit), as browsers do. aiortc's stock jitter buffer releases a frame only when
-    the next frame's first packet arrives, which adds one frame interval (33 ms at 30 fps,
-    200 ms at 5 fps) to every WebRTC latency measured here but not to a browser's."""
-    from aiortc.jitterbuffer import JitterBuffer, JitterFrame
-
-    class MarkerJitterBuffer(JitterBuffer):
-        def _remove_frame(self, sequence_number: int) -> JitterFrame | None:
-            packets = []
-            for count in range(self.capacity):  # the contiguous packets from the oldest
-                packet = self._packets[(self._origin + count) % self._capacity]
-                if packet is None:
-                    return None
-                if packets and packet.timestamp != packets[0].timestamp:  # no marker (lost)
-                    self.remove(count)
-                    return JitterFrame(b"".join(p._data for p in packets), packets[0].timestamp)
-                packets.append(packet)
-                if packet.marker:
-                    self.remove(count + 1)
-                    return JitterFrame(b"".join(p._data for p in packets), packet.timestamp)
-            return None
+    RTP marker bit), as browsers do, with the server's own WHIP buffer
+    (server/webrtc/jitter.py). aiortc's stock jitter buffer releases a frame only when the
+    next frame's first packet arrives, which adds one frame interval (33 ms at 30 fps, 200 ms
+    at 5 fps) to every WebRTC latency measured here but not to a browser's."""
+    from server.webrtc.jitter import release_on_marker
 
     for receiver in viewer.pc.getReceivers():
         if receiver.track.kind == "video":  # before the first packet: ICE is not up yet
-            receiver._RTCRtpReceiver__jitter_buffer = MarkerJitterBuffer(capacity=512,
-                                                                        is_video=True)
+            release_on_marker(receiver)
 
 
 async def run_webrtc(url: str, token: str, codec: str, run: Run, pid: int | None,
