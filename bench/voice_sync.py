@@ -36,6 +36,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import fractions
+import gc
 import itertools
 import multiprocessing
 import os
@@ -247,11 +248,32 @@ def pair(events: list[float], later: list[float], window: float = EVENT_EVERY_S
     return out
 
 
+class GcPauses:
+    """This process's garbage-collector pauses (ms) while installed."""
+
+    def __init__(self) -> None:
+        self.pauses: list[float] = []
+        self._started = 0.0
+        gc.callbacks.append(self._on)
+
+    def _on(self, phase: str, info: dict) -> None:
+        if phase == "start":
+            self._started = time.perf_counter()
+        else:
+            self.pauses.append((time.perf_counter() - self._started) * 1e3)
+
+    def close(self) -> float:
+        """The longest pause."""
+        gc.callbacks.remove(self._on)
+        return max(self.pauses, default=0.0)
+
+
 async def listen_in_process(url: str, token: str, room: str, count: int, size: int,
                             open_pixels: int, mouth_clock: str, voice: bool, ready, go
                             ) -> list[dict]:
     """``count`` viewers in this process: joined, first frame seen, then ``ready`` gets the
-    count; recording until the end time ``go`` gives."""
+    count; recording until the end time ``go`` gives. The process's longest garbage-collector
+    pause while recording is returned too (a pause stalls its receiving)."""
     ears = [Ear(WhepViewer(url, room, token, width=size, height=size, role="watch",
                            voices=1, timeout_s=60), open_pixels, mouth_clock)
             for _ in range(count)]
@@ -260,6 +282,7 @@ async def listen_in_process(url: str, token: str, room: str, count: int, size: i
         release_at_marker(ear.viewer)
         ear.hook()
     await asyncio.gather(*(e.viewer.next_frame() for e in ears))
+    pauses = GcPauses()
     ready.put(count)
     end = await asyncio.to_thread(go.get, True, 600)
     cpu0, t0 = time.process_time(), time.monotonic()
@@ -267,12 +290,13 @@ async def listen_in_process(url: str, token: str, room: str, count: int, size: i
                            for t in (e.watch_video(end), e.listen(end) if voice
                                      else asyncio.sleep(0))))
     cpu = (time.process_time() - cpu0) / (time.monotonic() - t0)  # this process, all threads
+    gc_max_ms = pauses.close()
     for ear in ears:
         await ear.viewer.close()
     return [{"mouth": e.mouth, "clicks": e.clicks, "packets": e.packet_times,
              "seqs": e.packet_seqs, "frames": e.frames, "cpu": cpu / count,
              "sr_offsets": e.sr_offsets(), "missed_arrivals": e.missed_arrivals,
-             "lost": e.lost} for e in ears]
+             "lost": e.lost, "gc_max_ms": gc_max_ms} for e in ears]
 
 
 def viewer_process(args: tuple, ready, go, results) -> None:
@@ -303,7 +327,25 @@ def server_voice_counts(url: str, token: str) -> dict[str, float]:
         elif line.startswith("telesplat_event_loop_lag_ms_bucket{"):
             le = line.split('le="')[1].split('"')[0]
             out[f"loop lag <= {le}"] = float(line.rsplit(" ", 1)[1])
+        elif line.startswith("telesplat_gc_pause_ms_bucket{"):
+            gen = line.split('generation="')[1].split('"')[0]
+            le = line.split('le="')[1].split('"')[0]
+            out[f"gc{gen} <= {le}"] = float(line.rsplit(" ", 1)[1])
+        elif line.startswith("telesplat_gc_pause_ms_sum{"):
+            gen = line.split('generation="')[1].split('"')[0]
+            out[f"gc{gen} ms"] = float(line.rsplit(" ", 1)[1])
     return out
+
+
+def gc_text(before: dict[str, float], after: dict[str, float]) -> str:
+    """The server's garbage-collector pauses during a run, per generation: how many, their
+    total and how many were longer than 50 ms."""
+    def diff(key: str) -> float:
+        return after.get(key, 0) - before.get(key, 0)
+    parts = [f"gen {g}: {diff(f'gc{g} <= +Inf'):.0f} ({diff(f'gc{g} ms'):.0f} ms, "
+             f"{diff(f'gc{g} <= +Inf') - diff(f'gc{g} <= 50.0'):.0f} > 50 ms)"
+             for g in (0, 1, 2)]
+    return "; ".join(parts)
 
 
 def loop_lag_text(before: dict[str, float], after: dict[str, float]) -> str:
@@ -425,10 +467,13 @@ async def run(url: str, token: str, viewers: int, events: int, size: int,
           f"{[len(r['mouth']) for r in records]}, clicks {[len(r['clicks']) for r in records]},"
           f" audio packets {[len(r['packets']) for r in records]}, video frames "
           f"{[r['frames'] for r in records]}, viewer CPU s/s each "
-          f"{[round(r['cpu'], 3) for r in records]}, clicks without an arrival "
+          f"{[round(r['cpu'], 3) for r in records]}, viewer processes' longest garbage-"
+          f"collector pause ms {sorted({round(r['gc_max_ms']) for r in records})}"
+          f", clicks without an arrival "
           f"{sum(r['missed_arrivals'] for r in records)}, server voice packets "
-          f"{ {k: after.get(k, 0) - before.get(k, 0) for k in after if 'lag' not in k} }; "
-          f"server event loop {loop_lag_text(before, after)}; first viewer, ms "
+          f"{ {k: after.get(k, 0) - before.get(k, 0) for k in after if k.isidentifier()} }; "
+          f"server event loop {loop_lag_text(before, after)}; server garbage collector "
+          f"{gc_text(before, after)}; first viewer, ms "
           f"after each event: mouth "
           f"{[round((m - f) * 1e3) for f, m in zip(fired, first['mouth'], strict=False)]}, "
           f"click {[round((c - f) * 1e3) for f, c in zip(fired, first['clicks'], strict=False)]}",

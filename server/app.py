@@ -14,6 +14,7 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import contextlib
+import gc
 import logging
 import time
 from collections.abc import AsyncIterator
@@ -34,7 +35,7 @@ from .config import Settings
 from .context import ServerContext
 from .jobs.demo_build import DemoBuild
 from .logsafe import install_log_redaction
-from .loop_watch import LoopWatch
+from .loop_watch import GcWatch, LoopWatch, freeze_survivors
 from .metrics import ServerMetrics
 from .private import private_dir
 from .registry import DEMO_ID, AvatarRecord, AvatarRegistry
@@ -114,6 +115,8 @@ def _start(ctx: ServerContext) -> None:
     ctx.metrics.avatars.set(len(ctx.registry.list()))
     if s.startup_room:
         open_startup_room(ctx)
+    if s.gc_freeze:
+        freeze_survivors()
 
 
 def _warm_up_behind(ctx: ServerContext) -> None:
@@ -129,6 +132,8 @@ def _warm_up_behind(ctx: ServerContext) -> None:
         ctx.warmed.set()
     if took is not None:
         log.info("warm-up frame rendered in %.1f s", took)
+    if ctx.settings.gc_freeze:
+        freeze_survivors()  # the kernels it compiled
 
 
 def _reload_demo(ctx: ServerContext, loop: asyncio.AbstractEventLoop,
@@ -208,6 +213,8 @@ def create_app(settings: Settings) -> FastAPI:
         loop_watch = LoopWatch(ctx.metrics, settings.loop_lag_interval_s,
                                settings.loop_stall_log_ms)
         loop_watch.start()
+        gc_watch = GcWatch(ctx.metrics)
+        gc_watch.start()
         try:
             async with jobs.lifespan(ctx):  # the training worker
                 # the trained demo, when not built yet: its job trains while we serve
@@ -221,6 +228,7 @@ def create_app(settings: Settings) -> FastAPI:
         finally:
             sweeper.cancel()
             await loop_watch.stop()
+            gc_watch.stop()
             # Whoever is still in (RestartingServer told the rest before uvicorn closed them)
             await announce_restart(ctx, settings.restart_notice_s)
             await ctx.webrtc_peers.close_all(RESTART_MESSAGE)
@@ -231,6 +239,8 @@ def create_app(settings: Settings) -> FastAPI:
         await asyncio.to_thread(ctx.track_scheduler.shutdown)
         if ctx.rooms.store is not None:
             ctx.rooms.store.close()
+        if settings.gc_freeze:
+            gc.unfreeze()  # what it froze is collectable again in a process that goes on
 
     app = FastAPI(title="Telesplat", version="0.1.0", lifespan=lifespan,
                   description="Hosts 3D-Gaussian upper-body avatars and drives them live over "

@@ -485,6 +485,11 @@ class Settings(BaseModel):
         0.0, ge=0.0, le=60_000.0, description="Log the event loop's stack when it is held "
                                               "this long (ms); 0: off. A diagnostic: one "
                                               "sleeping thread.")
+    gc_freeze: bool = Field(
+        True, description="Move what is alive once the server has started (the libraries, "
+                          "the avatars, the warm-up's kernels) out of the garbage collector's "
+                          "reach (gc.freeze), so a full collection walks only what came after: "
+                          "a full collection holds every thread, the event loop's too.")
     voice_presence_interval_s: float = Field(
         0.25, ge=0.05, le=10.0, description="Shortest time between two presence updates a "
                                             "room sends because who speaks changed.")

@@ -3,12 +3,14 @@ asked, where the loop was when it stalled (a stack in the log).
 
 Every packet of voice and every frame leaves through this one loop, so a callback that holds
 it for 300 ms is a 300 ms gap at every listener. The probe measures that; the stall log names
-the code that held it (``loop_stall_log_ms``; off by default).
+the code that held it (``loop_stall_log_ms``; off by default). :class:`GcWatch` times the
+cyclic garbage collector's pauses, which hold every Python thread, the loop's too.
 """
 
 from __future__ import annotations
 
 import asyncio
+import gc
 import logging
 import sys
 import threading
@@ -80,3 +82,39 @@ class LoopWatch:
             self.metrics.loop_stalls.inc()
             log.warning("event loop held for %.0f ms so far, at:\n%s", held_ms,
                         "".join(stack).rstrip())
+
+
+class GcWatch:
+    """Each collection's pause into ``telesplat_gc_pause_ms{generation}`` (a ``gc.callbacks``
+    hook: two clock reads per collection)."""
+
+    def __init__(self, metrics: ServerMetrics) -> None:
+        self.metrics = metrics
+        self._started = 0.0
+
+    def start(self) -> None:
+        gc.callbacks.append(self._on_collect)
+
+    def stop(self) -> None:
+        if self._on_collect in gc.callbacks:
+            gc.callbacks.remove(self._on_collect)
+
+    def _on_collect(self, phase: str, info: dict) -> None:
+        if phase == "start":  # collections never overlap: the collector holds the GIL
+            self._started = time.perf_counter()
+        else:
+            self.metrics.gc_pause_ms.labels(str(info["generation"])).observe(
+                (time.perf_counter() - self._started) * 1e3)
+
+
+def freeze_survivors() -> int:
+    """Collect, then move every object still alive out of the collector's reach (gc.freeze):
+    a full collection then walks only what was made since, not the hundreds of thousands of
+    objects torch, numba and the avatars leave behind (docs/benchmarks.md: one full collection
+    held the loop 171 ms at 16 viewers). Frozen objects are never collected, so call it when
+    what is alive stays (after start-up and the warm-up). The number frozen."""
+    gc.collect()
+    gc.freeze()
+    count = gc.get_freeze_count()
+    log.info("garbage collector: %d objects frozen", count)
+    return count

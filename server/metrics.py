@@ -64,6 +64,10 @@ class ServerMetrics:
             "telesplat_event_loop_lag_ms", "How late the event loop woke from a "
             "loop_lag_interval_s sleep (ms): time the loop was held by other work",
             buckets=LATENCY_BUCKETS_MS, registry=r)
+        self.gc_pause_ms = Histogram(
+            "telesplat_gc_pause_ms", "Pauses of Python's cyclic garbage collector (ms), by "
+            "generation: a collection holds the GIL, so the event loop waits it out",
+            ["generation"], buckets=LATENCY_BUCKETS_MS, registry=r)
         self.loop_stalls = Counter(
             "telesplat_event_loop_stalls", "Stalls past loop_stall_log_ms whose stack was "
             "logged", registry=r)

@@ -78,6 +78,9 @@ def run_server(data_dir: Path, *, ws: Any = None, **overrides: Any) -> Iterator[
     fields = {"data_dir": data_dir, "demo_avatar": "synthetic", "default_width": TEST_SIZE,
               "default_height": TEST_SIZE, "auth": "local", "stats_interval_s": 0.5,
               "torch_threads": 1,  # two xdist workers share the two cores
+              # each freeze is a full collection of the test process's whole heap (hundreds
+              # of servers start in a run); tests/test_loop_watch.py runs one with it
+              "gc_freeze": False,
               **overrides}
     settings = Settings(**fields)
     app = create_app(settings)
