@@ -19,6 +19,7 @@ import logging
 import time
 from collections.abc import AsyncIterator
 from functools import partial
+from importlib import import_module
 from pathlib import Path
 
 from fastapi import FastAPI
@@ -115,6 +116,10 @@ def _start(ctx: ServerContext) -> None:
     ctx.metrics.avatars.set(len(ctx.registry.list()))
     if s.startup_room:
         open_startup_room(ctx)
+    if s.webrtc_max_peers > 0:
+        # aiortc and PyAV loaded here, not by the first WHEP/WHIP request on the event loop
+        # (a 66 ms stall at the first peer, logged by loop_stall_log_ms; longer when busy)
+        import_module("server.webrtc.peer")
     if s.gc_freeze:
         freeze_survivors()
 
