@@ -222,3 +222,43 @@ def test_a_whip_publishers_frames_and_voice_carry_capture_times_on_one_clock(srv
     assert all(x >= 0 for x in leads), leads
     # and it arrived at its last packet, not a frame interval later (server/webrtc/jitter.py)
     assert sorted(leads)[len(leads) // 2] < period / 2 * 1e3, leads
+
+
+def test_a_whep_performers_voice_stays_off_the_clock_of_its_own_drives(srv):
+    """A WHEP performer drives over its data channel, stamped on a clock of its own, and
+    speaks over RTP: its voice gets no stamp from the sender reports (a WebSocket viewer would
+    then sync it against frames on another clock), and its drives' clock never restarts."""
+    from client.webrtc import WhepViewer
+    from protocol import Drive, decode_server
+    from tests.voice_fixtures import click_track
+
+    room = create_room(srv)
+    perform = invite(srv, room["id"], "perform")
+    watch = invite(srv, room["id"], "watch")
+
+    async def run():
+        performer = WhepViewer(srv.url, room["id"], perform["token"], width=64, height=64,
+                               microphone=click_track(), timeout_s=TIMEOUT_S)
+        async with performer, join(srv, room["id"], watch["token"], voice=True) as viewer:
+            await performer.wait_open()
+            stamps, voiced = [], 0
+            deadline = time.monotonic() + 4.0  # past aiortc's first reports (0.5-1.5 s)
+            seq = 0
+            while time.monotonic() < deadline:
+                seq += 1
+                performer.send(Drive(seq=seq, smplx={"jaw_pose": [0.1 * (seq % 2), 0, 0]},
+                                     t_capture=10.0 + time.monotonic() % 1000))
+                try:
+                    msg = decode_server(await asyncio.wait_for(viewer.recv(), 0.1))
+                except TimeoutError:
+                    continue
+                if is_type("voice")(msg):
+                    voiced += 1
+                    stamps.append(msg.t_capture)
+            session = srv.ctx.rooms.get(room["id"]).live.seats[0].performer
+            return stamps, voiced, session.capture_clock.resets
+
+    stamps, voiced, resets = asyncio.run(run())
+    assert voiced >= 20, voiced
+    assert all(s is None for s in stamps), stamps
+    assert resets == 0

@@ -156,8 +156,12 @@ class WebRTCPeer:
             if speaks and transceiver.mid == offer.microphone_mid and pt is not None:
                 voice = seat_voice(self.room.live.seat(seat), self.ctx.settings,
                                    self.ctx.metrics)
-                reports = self.publisher_clock.track(CLOCK_RATE)
-                reports.watch(transceiver.receiver)
+                reports = None
+                if offer.publish_mid is not None:
+                    # its drives come from its webcam, on its reports' clock: so does its
+                    # voice (a WHEP performer's drives carry stamps of a clock of its own)
+                    reports = self.publisher_clock.track(CLOCK_RATE)
+                    reports.watch(transceiver.receiver)
                 publish_voice(transceiver.receiver, voice, self, pt, reports,
                               self.participant.capture_clock)
             else:

@@ -8,6 +8,10 @@ clock, as a WebSocket performer's stamps do: a WebSocket viewer then syncs a WHI
 too, and the WebRTC senders' capture clock (sender_clock.py) gets the frame's capture instant,
 not its arrival after the jitter buffer and the decoder.
 
+Only a peer that publishes its webcam stamps its voice this way: a WHEP performer's drives
+come over its data channel stamped on a clock of its own, which its voice's stamps must share
+to be synced, so its RTP voice stays unstamped (its arrival stands in, as before).
+
 Times are seconds since a per-peer origin (the first report's NTP second, less
 ``ORIGIN_MARGIN_S``) so that they fit the protocol's ``CaptureTime``. Until a track's first
 report arrives its times are None (its arrival stands in, as before). A publisher controls its
