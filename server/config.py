@@ -430,7 +430,7 @@ class Settings(BaseModel):
         16, ge=1, description="SCTP stream ids (data channels) one WebRTC peer may use; "
                               "chunks on more are dropped.")
     webrtc_sender_clock: Literal["capture", "send"] = Field(
-        "send", description="What a WebRTC viewer's RTP timestamps and RTCP sender reports "
+        "capture", description="What a WebRTC viewer's RTP timestamps and RTCP sender reports "
                                "(video and voice) count: capture (the performer's capture "
                                "instants, one clock for both tracks: a browser lip-syncs "
                                "them) or send (aiortc's: the moment each was sent; "
