@@ -169,6 +169,25 @@ def test_a_viewer_asking_for_the_mix_hears_both_seats_in_one_track(srv):
                what="the mix stopped with its last viewer")
 
 
+async def speak_to_the_mix(srv, room, performers, watch, voice_of) -> tuple[list, dict]:
+    """Both performers over the WebSocket for 2 s, 20 ms apart: ``voice_of(seat, i)`` is
+    packet ``i`` of a seat (None: silent then). The first 60 messages a mix viewer got and the
+    mix's counts."""
+    async with join(srv, room["id"], performers[0]["token"]) as first, \
+            join(srv, room["id"], performers[1]["token"]) as second, \
+            join(srv, room["id"], watch["token"], voice_mix=True) as viewer:
+        await recv_until(viewer, is_type("frame"))
+        start = time.monotonic()
+        for i in range(100):
+            for seat, ws in enumerate((first, second)):
+                voice = voice_of(seat, i)
+                if voice is not None:
+                    await ws.send(encode(voice))
+            await asyncio.sleep(max(0.0, start + (i + 1) / 50 - time.monotonic()))
+        messages = [await recv_until(viewer, is_type("voice")) for _ in range(60)]
+        return messages, dict(live(srv, room["id"]).voice_mix.counts)
+
+
 def test_the_mix_sums_at_most_voice_mix_max_seats(srv):
     """A mix bounded to one seat plays the first seat to speak; the other's packets are dropped
     and counted until the first falls silent."""
@@ -178,21 +197,13 @@ def test_the_mix_sums_at_most_voice_mix_max_seats(srv):
     settings.voice_mix_max_seats = 1
     opus = [tone_packets(f, 100) for f in TONES]
 
-    async def run():
-        async with join(srv, room["id"], performers[0]["token"]) as first, \
-                join(srv, room["id"], performers[1]["token"]) as second, \
-                join(srv, room["id"], watch["token"], voice_mix=True) as viewer:
-            await recv_until(viewer, is_type("frame"))
-            for i in range(100):
-                await first.send(encode(Voice(seq=i, data=opus[0][i])))
-                if i >= 10:  # the second speaks later: the mix is full
-                    await second.send(encode(Voice(seq=i, data=opus[1][i])))
-                await asyncio.sleep(0.02)
-            messages = [await recv_until(viewer, is_type("voice")) for _ in range(60)]
-            return messages, dict(live(srv, room["id"]).voice_mix.counts)
+    def voice_of(seat: int, i: int) -> Voice | None:
+        # the second speaks later: the mix is full
+        return Voice(seq=i, data=opus[seat][i]) if seat == 0 or i >= 10 else None
 
     try:
-        messages, counts = asyncio.run(run())
+        messages, counts = asyncio.run(speak_to_the_mix(srv, room, performers, watch,
+                                                        voice_of))
     finally:
         settings.voice_mix_max_seats = before
     decoder = av.CodecContext.create("libopus", "r")
@@ -212,20 +223,10 @@ def test_the_websocket_mix_carries_capture_times_on_its_pictures_clock(srv):
     room, performers, watch = two_seat_room(srv)
     opus = [tone_packets(f, 100) for f in TONES]
 
-    async def run():
-        async with join(srv, room["id"], performers[0]["token"]) as first, \
-                join(srv, room["id"], performers[1]["token"]) as second, \
-                join(srv, room["id"], watch["token"], voice_mix=True) as viewer:
-            await recv_until(viewer, is_type("frame"))
-            start = time.monotonic()
-            for i in range(100):
-                await first.send(encode(Voice(seq=i, data=opus[0][i], t_capture=50 + i / 50)))
-                await second.send(encode(Voice(seq=i, data=opus[1][i],
-                                               t_capture=9000 + i / 50)))
-                await asyncio.sleep(max(0.0, start + (i + 1) / 50 - time.monotonic()))
-            return [await recv_until(viewer, is_type("voice")) for _ in range(60)]
+    def voice_of(seat: int, i: int) -> Voice:
+        return Voice(seq=i, data=opus[seat][i], t_capture=(50, 9000)[seat] + i / 50)
 
-    messages = asyncio.run(run())
+    messages, _ = asyncio.run(speak_to_the_mix(srv, room, performers, watch, voice_of))
     stamps = [m.t_capture for m in messages]
     assert all(s is not None and 50 - 0.1 <= s <= 52 + 0.1 for s in stamps), stamps
     steps = np.diff(stamps)
