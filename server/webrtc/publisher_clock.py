@@ -46,7 +46,6 @@ class PublisherClock:
 
     def __init__(self) -> None:
         self.origin: float | None = None  # NTP seconds of time 0
-        self.reports = 0                  # sender reports taken
         self.refused = 0                  # reports without a usable NTP time
 
     def track(self, clock_rate: int) -> TrackReports:
@@ -60,7 +59,6 @@ class PublisherClock:
             return None
         if self.origin is None:
             self.origin = float(int(seconds)) - ORIGIN_MARGIN_S
-        self.reports += 1
         return seconds - self.origin
 
 
