@@ -14,7 +14,11 @@ from aiortc.jitterbuffer import JitterBuffer  # noqa: E402
 from aiortc.rtp import RtpPacket  # noqa: E402
 
 from server.webrtc.jitter import RECEIVER_JITTER_BUFFER, MarkerJitterBuffer, release_on_marker  # noqa: E402
-from server.webrtc.publisher_clock import TIMESTAMP_MAPPER, frame_rtp_timestamp  # noqa: E402
+from server.webrtc.publisher_clock import (  # noqa: E402
+    TIMESTAMP_MAPPER,
+    PublisherClock,
+    frame_rtp_timestamp,
+)
 
 TICKS = 3000  # 90 kHz at 30 fps
 
@@ -89,6 +93,7 @@ def test_aiortcs_receiver_has_what_the_server_replaces():
             assert release_on_marker(receiver)
             assert isinstance(getattr(receiver, RECEIVER_JITTER_BUFFER), MarkerJitterBuffer)
             assert hasattr(receiver, TIMESTAMP_MAPPER)
+            assert PublisherClock().track(90_000).watch(receiver)  # its RTCP handler is there
             assert frame_rtp_timestamp(receiver, 0) is None  # no frame decoded yet
         finally:
             await pc.close()

@@ -20,19 +20,16 @@ reports: a time outside ``CaptureTime`` (0 to ``MAX_CAPTURE_TIME``) is None; not
 
 from __future__ import annotations
 
-import logging
 from typing import Any
 
 from protocol.messages import MAX_CAPTURE_TIME
-
-log = logging.getLogger(__name__)
 
 RTP_WRAP = 2**32
 NTP_FRACTION = 2**32  # NTP's 32.32 fixed point
 ORIGIN_MARGIN_S = 3600.0  # media stamped up to this long before the first report stays >= 0
 RTCP_HANDLER = "_handle_rtcp_packet"  # RTCRtpReceiver's entry for each routed RTCP packet
-# aiortc 1.16's RTCRtpReceiver: RTP timestamp -> frame pts (tests/test_webrtc_publisher_clock.py
-# fails if it moves)
+# aiortc 1.16's RTCRtpReceiver: RTP timestamp -> frame pts (tests/test_webrtc_jitter.py fails
+# if it moves)
 TIMESTAMP_MAPPER = "_RTCRtpReceiver__timestamp_mapper"
 
 
@@ -82,11 +79,14 @@ class TrackReports:
         t = at + signed_ticks(rtp_timestamp % RTP_WRAP, rtp) / self.clock_rate
         return t if 0.0 <= t <= MAX_CAPTURE_TIME else None
 
-    def watch(self, receiver: Any) -> None:
-        """Take ``receiver``'s sender reports (aiortc routes them by SSRC) before aiortc does."""
+    def watch(self, receiver: Any) -> bool:
+        """Take ``receiver``'s sender reports (aiortc routes them by SSRC) before aiortc does;
+        False (no capture times, nothing else changed) if aiortc moved its handler."""
         from aiortc.rtp import RtcpSrPacket
 
-        original = getattr(receiver, RTCP_HANDLER)
+        original = getattr(receiver, RTCP_HANDLER, None)
+        if original is None:
+            return False
 
         async def handle(packet: Any) -> None:
             if isinstance(packet, RtcpSrPacket):
@@ -95,6 +95,7 @@ class TrackReports:
             await original(packet)
 
         setattr(receiver, RTCP_HANDLER, handle)
+        return True
 
 
 def frame_rtp_timestamp(receiver: Any, pts: int | None) -> int | None:
