@@ -27,8 +27,10 @@ from tests.voice_fixtures import CLICK_LEVEL, CLICK_SAMPLES, FRAME_SAMPLES, RATE
 NTP_NOW = 3_973_000_000  # NTP seconds in 2025
 FRAME_EVERY = 20         # audio packets (20 ms) per webcam frame: 0.4 s, 2.5 fps
 TIMEOUT_S = 90.0         # the first image loads the landmark models
-ONE_CLOCK_MS = 60.0      # a frame's stamp lands this close to its instant on the voice's clock
-ONE_CLICK_MS = 25.0      # a click's, to the median click's
+ONE_CLOCK_MS = 50.0      # the median frame's stamp lands this close to its instant on the
+#                          voice's clock (a wrong clock lands anywhere within +-200 ms)
+ONE_CLICK_MS = 25.0      # the median click's, to the first's grid
+FRAMES, CLICKS = 8, 5    # drives and clicks a run collects
 VOICED = 150             # voice packets a WHEP performer's test hears (3 s)
 
 
@@ -154,7 +156,9 @@ def clicked(decoder, payload: bytes) -> bool:
 def test_a_whip_publishers_frames_and_voice_carry_capture_times_on_one_clock(srv):
     """A WebSocket viewer of a WHIP publisher: the frames of its tracked webcam and its voice
     both carry capture times (none came before this), each frame's on the 0.4 s grid of the
-    clicks' (the instants the webcam and the microphone shared) within ONE_CLOCK_MS."""
+    clicks' (the instants the webcam and the microphone shared). Medians: aiortc's reports
+    pair a timestamp with the time its packet was *sent* (a browser's, with its capture), so
+    a packet sent late by a busy loop moves every stamp until the next report."""
     import av
     import httpx
     from aiortc import RTCConfiguration, RTCPeerConnection, RTCSessionDescription
@@ -181,7 +185,8 @@ def test_a_whip_publishers_frames_and_voice_carry_capture_times_on_one_clock(srv
                 assert r.status_code == 201, r.text
                 await pc.setRemoteDescription(RTCSessionDescription(r.text, "answer"))
                 deadline = time.monotonic() + TIMEOUT_S
-                while (len(frames) < 6 or len(clicks) < 3) and time.monotonic() < deadline:
+                while ((len(frames) < FRAMES or len(clicks) < CLICKS)
+                       and time.monotonic() < deadline):
                     try:
                         from protocol import decode_server
 
@@ -201,15 +206,15 @@ def test_a_whip_publishers_frames_and_voice_carry_capture_times_on_one_clock(srv
         return frames, clicks, voiced, leads
 
     frames, clicks, voiced, leads = asyncio.run(run())
-    assert len(frames) >= 6 and len(clicks) >= 3, (frames, clicks, voiced)
+    assert len(frames) >= FRAMES and len(clicks) >= CLICKS, (frames, clicks, voiced)
     period = FRAME_EVERY * FRAME_SAMPLES / RATE
     # the clicks keep their grid: each report maps the timestamps anew, off by how late the
-    # publisher sent the packet it names (a few ms)
+    # publisher sent the packet it names (a few ms; 200 ms seen beside a CI run)
     phase = clicks[0]
     off = sorted(((c - phase + period / 2) % period - period / 2) for c in clicks)
     phase += off[len(off) // 2]  # the median click's
     off = [((c - phase + period / 2) % period - period / 2) * 1e3 for c in clicks]
-    assert max(abs(x) for x in off) < ONE_CLICK_MS, off
+    assert float(np.median(np.abs(off))) < ONE_CLICK_MS, off
     # each drive's stamp: its webcam frame's instant, on the voice's clock
     stamps = [frames[seq] for seq in sorted(frames)]
     assert stamps == sorted(stamps)  # later drives, later images
@@ -217,7 +222,7 @@ def test_a_whip_publishers_frames_and_voice_carry_capture_times_on_one_clock(srv
     print(f"frame stamps against the clicks' grid, ms: {[round(x, 1) for x in residual]}; "
           f"{voiced} stamped voice packets, {len(clicks)} clicks; image arrival less its "
           f"capture instant, ms: {[round(x, 1) for x in leads]}")
-    assert all(abs(x) <= ONE_CLOCK_MS for x in residual), residual
+    assert float(np.median(np.abs(residual))) <= ONE_CLOCK_MS, residual
     # on this server's clock an image was captured no later than it arrived (decoded): the
     # WebRTC senders stamp its frames with that instant (before: with the arrival)
     assert all(x >= 0 for x in leads), leads
