@@ -36,7 +36,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import fractions
-import gc
 import itertools
 import multiprocessing
 import os
@@ -59,6 +58,7 @@ from webrtc import cpu_seconds, release_at_marker  # noqa: E402
 
 from client.webrtc import WhepViewer, rtp_timestamp  # noqa: E402
 from protocol import Drive  # noqa: E402
+from server.loop_watch import GcWatch  # noqa: E402
 
 RATE = 48_000
 FRAME = 960
@@ -248,26 +248,6 @@ def pair(events: list[float], later: list[float], window: float = EVENT_EVERY_S
     return out
 
 
-class GcPauses:
-    """This process's garbage-collector pauses (ms) while installed."""
-
-    def __init__(self) -> None:
-        self.pauses: list[float] = []
-        self._started = 0.0
-        gc.callbacks.append(self._on)
-
-    def _on(self, phase: str, info: dict) -> None:
-        if phase == "start":
-            self._started = time.perf_counter()
-        else:
-            self.pauses.append((time.perf_counter() - self._started) * 1e3)
-
-    def close(self) -> float:
-        """The longest pause."""
-        gc.callbacks.remove(self._on)
-        return max(self.pauses, default=0.0)
-
-
 async def listen_in_process(url: str, token: str, room: str, count: int, size: int,
                             open_pixels: int, mouth_clock: str, voice: bool, ready, go
                             ) -> list[dict]:
@@ -282,7 +262,9 @@ async def listen_in_process(url: str, token: str, room: str, count: int, size: i
         release_at_marker(ear.viewer)
         ear.hook()
     await asyncio.gather(*(e.viewer.next_frame() for e in ears))
-    pauses = GcPauses()
+    pauses: list[float] = []  # this process's collector pauses while recording (ms)
+    gc_watch = GcWatch(lambda generation, ms: pauses.append(ms))
+    gc_watch.start()
     ready.put(count)
     end = await asyncio.to_thread(go.get, True, 600)
     cpu0, t0 = time.process_time(), time.monotonic()
@@ -290,7 +272,8 @@ async def listen_in_process(url: str, token: str, room: str, count: int, size: i
                            for t in (e.watch_video(end), e.listen(end) if voice
                                      else asyncio.sleep(0))))
     cpu = (time.process_time() - cpu0) / (time.monotonic() - t0)  # this process, all threads
-    gc_max_ms = pauses.close()
+    gc_watch.stop()
+    gc_max_ms = max(pauses, default=0.0)
     for ear in ears:
         await ear.viewer.close()
     return [{"mouth": e.mouth, "clicks": e.clicks, "packets": e.packet_times,

@@ -218,7 +218,7 @@ def create_app(settings: Settings) -> FastAPI:
         loop_watch = LoopWatch(ctx.metrics, settings.loop_lag_interval_s,
                                settings.loop_stall_log_ms)
         loop_watch.start()
-        gc_watch = GcWatch(ctx.metrics)
+        gc_watch = GcWatch.into(ctx.metrics)
         gc_watch.start()
         try:
             async with jobs.lifespan(ctx):  # the training worker

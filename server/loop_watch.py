@@ -16,6 +16,7 @@ import sys
 import threading
 import time
 import traceback
+from collections.abc import Callable
 
 from .metrics import ServerMetrics
 
@@ -85,12 +86,17 @@ class LoopWatch:
 
 
 class GcWatch:
-    """Each collection's pause into ``telesplat_gc_pause_ms{generation}`` (a ``gc.callbacks``
-    hook: two clock reads per collection)."""
+    """Each collection's pause to ``on_pause(generation, ms)`` (a ``gc.callbacks`` hook: two
+    clock reads per collection); :meth:`into` puts them in ``telesplat_gc_pause_ms``."""
 
-    def __init__(self, metrics: ServerMetrics) -> None:
-        self.metrics = metrics
+    def __init__(self, on_pause: Callable[[int, float], None]) -> None:
+        self.on_pause = on_pause
         self._started = 0.0
+
+    @classmethod
+    def into(cls, metrics: ServerMetrics) -> GcWatch:
+        return cls(lambda generation, ms: metrics.gc_pause_ms.labels(str(generation))
+                   .observe(ms))
 
     def start(self) -> None:
         gc.callbacks.append(self._on_collect)
@@ -103,8 +109,7 @@ class GcWatch:
         if phase == "start":  # collections never overlap: the collector holds the GIL
             self._started = time.perf_counter()
         else:
-            self.metrics.gc_pause_ms.labels(str(info["generation"])).observe(
-                (time.perf_counter() - self._started) * 1e3)
+            self.on_pause(info["generation"], (time.perf_counter() - self._started) * 1e3)
 
 
 def freeze_survivors() -> int:

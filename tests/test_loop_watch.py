@@ -72,7 +72,7 @@ def gc_counts(metrics: ServerMetrics) -> dict[str, float]:
 
 def test_each_collection_is_timed_by_generation_and_stop_unhooks() -> None:
     metrics = ServerMetrics()
-    watch = GcWatch(metrics)
+    watch = GcWatch.into(metrics)
     hooks = len(gc.callbacks)
     watch.start()
     try:

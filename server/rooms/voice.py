@@ -229,19 +229,21 @@ class SeatVoice:
 
     def publish(self, publisher: object, payload: bytes, rtp_ts: int,
                 now: float | None = None, t_capture: float | None = None,
-                level_dbov: float | None = None, captured_at: float | None = None) -> str:
+                level_dbov: float | None = None, clock: ArrivalClock | None = None) -> str:
         """Check ``payload`` and fan it out; the outcome (a voice_packets label).
         ``level_dbov``: its audio level as the sender measured it (None: not given);
-        ``captured_at``: its capture instant on this server's clock, mapped by the clock its
-        performer's drives use (None: its media time through this voice's own clock)."""
+        ``clock``: the performer's own (its drives' too): a ``t_capture`` goes through it to
+        this server's clock, so voice and frames land there by one transit estimate (without
+        either: the media time through this voice's own clock)."""
         now = time.monotonic() if now is None else now
         outcome = self._check(payload, now)
         if outcome == "forwarded":
             media_ts = self._timeline(publisher, rtp_ts, now)
-            own = self._capture_clock.observe(media_ts / CLOCK_RATE, now)
+            captured_at = (clock.observe(t_capture, now)
+                           if clock is not None and t_capture is not None
+                           else self._capture_clock.observe(media_ts / CLOCK_RATE, now))
             packet = VoicePacket(payload, media_ts, now, t_capture, self.drive_arrived(),
-                                 self._paced(media_ts, now), self.tracking(),
-                                 own if captured_at is None else captured_at)
+                                 self._paced(media_ts, now), self.tracking(), captured_at)
             self.last_packet_at = now
             self._heard(level_dbov, now)
             for listener in list(self.listeners):
@@ -328,17 +330,13 @@ def seat_voice(seat: Any, settings: Any, metrics: Any = None) -> SeatVoice:
 def publish_message(seat: Any, performer: Any, message: Voice, settings: Any,
                     metrics: Any = None) -> str:
     """A performer's ``voice`` message (WebSocket, data channel) into its seat's voice; its
-    media time comes from its capture time (the performer's clock), else from arrival. A
-    capture time goes through the performer's own clock (``capture_clock``, its drives' too),
-    so its voice and its frames land on this server's clock by one transit estimate."""
+    media time comes from its capture time (the performer's clock, put on this server's by
+    its ``capture_clock``), else from arrival."""
     now = time.monotonic()
     at = message.t_capture if message.t_capture is not None else now
-    clock = getattr(performer, "capture_clock", None)
-    captured_at = (None if message.t_capture is None or clock is None
-                   else clock.observe(message.t_capture, now))
     return seat_voice(seat, settings, metrics).publish(
         performer, message.data, round(at * CLOCK_RATE) % 2**32, now, message.t_capture,
-        message.level_dbov, captured_at)
+        message.level_dbov, getattr(performer, "capture_clock", None))
 
 
 async def relay_voices(session: Any, live: Any, settings: Any, metrics: Any = None) -> None:

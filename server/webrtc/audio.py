@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import fractions
 import logging
-import time
 from typing import Any
 
 import av
@@ -97,12 +96,9 @@ def publish_voice(receiver: Any, voice: SeatVoice, publisher: object, payload_ty
             voice.counts["garbage"] += 1  # not the negotiated Opus (aiortc would drop it too)
             return
         level = packet.extensions.audio_level  # RFC 6464: (voice activity, -dBov) when sent
-        now = time.monotonic()
         t_capture = None if reports is None else reports.capture_time(packet.timestamp)
-        captured_at = (None if t_capture is None or clock is None
-                       else clock.observe(t_capture, now))
-        voice.publish(publisher, packet.payload, packet.timestamp, now, t_capture,
-                      None if level is None else -float(level[1]), captured_at)
+        voice.publish(publisher, packet.payload, packet.timestamp, None, t_capture,
+                      None if level is None else -float(level[1]), clock)
 
     setattr(receiver, RTP_HANDLER, handle)
 

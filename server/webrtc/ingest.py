@@ -17,7 +17,7 @@ from aiortc.mediastreams import MediaStreamError
 from protocol.messages import MAX_SEQ
 
 from ..stream.tracking import DecodedImage
-from .publisher_clock import TrackReports, frame_rtp_timestamp
+from .publisher_clock import TrackReports
 
 log = logging.getLogger(__name__)
 
@@ -26,10 +26,9 @@ def _bgr(frame: Any):
     return lambda: frame.to_ndarray(format="bgr24")  # [H, W, 3] uint8, on the tracking thread
 
 
-async def ingest(track: Any, participant: Any, receiver: Any = None,
-                 reports: TrackReports | None = None) -> None:
+async def ingest(track: Any, participant: Any, reports: TrackReports | None = None) -> None:
     """Until the track ends: each frame to ``participant.offer_image``, with its capture time
-    from ``receiver``'s sender ``reports`` once one came. When tracking is not available in
+    from its track's sender ``reports`` once one came. When tracking is not available in
     this server the participant is told once and frames are only drained."""
     seq, told = 0, False
     while True:
@@ -44,7 +43,6 @@ async def ingest(track: Any, participant: Any, receiver: Any = None,
                 told = True
             continue
         seq = seq + 1 if seq < MAX_SEQ else 0
-        t_capture = (None if reports is None
-                     else reports.capture_time(frame_rtp_timestamp(receiver, frame.pts)))
+        t_capture = None if reports is None else reports.frame_capture_time(frame.pts)
         participant.offer_image(DecodedImage(seq, frame.width, frame.height, _bgr(frame),
                                              t_capture), time.monotonic())

@@ -156,12 +156,10 @@ class WebRTCPeer:
             if speaks and transceiver.mid == offer.microphone_mid and pt is not None:
                 voice = seat_voice(self.room.live.seat(seat), self.ctx.settings,
                                    self.ctx.metrics)
-                reports = None
-                if offer.publish_mid is not None:
-                    # its drives come from its webcam, on its reports' clock: so does its
-                    # voice (a WHEP performer's drives carry stamps of a clock of its own)
-                    reports = self.publisher_clock.track(CLOCK_RATE)
-                    reports.watch(transceiver.receiver)
+                # its drives come from its webcam, on its reports' clock: so does its voice
+                # (a WHEP performer's drives carry stamps of a clock of its own)
+                reports = (None if offer.publish_mid is None
+                           else self.publisher_clock.watch(transceiver.receiver, CLOCK_RATE))
                 publish_voice(transceiver.receiver, voice, self, pt, reports,
                               self.participant.capture_clock)
             else:
@@ -185,10 +183,9 @@ class WebRTCPeer:
                              if t.receiver.track is track), None)
             reports = None
             if receiver is not None:  # the webcam's capture times, as its microphone's
-                reports = self.publisher_clock.track(VIDEO_CLOCK_RATE)
-                reports.watch(receiver)
+                reports = self.publisher_clock.watch(receiver, VIDEO_CLOCK_RATE)
                 release_on_marker(receiver)  # each frame tracked at its last packet
-            self._spawn(ingest(track, self.participant, receiver, reports), "ingest")
+            self._spawn(ingest(track, self.participant, reports), "ingest")
 
     def _on_state(self) -> None:
         state = self.pc.connectionState

@@ -48,6 +48,12 @@ class PublisherClock:
     def track(self, clock_rate: int) -> TrackReports:
         return TrackReports(self, clock_rate)
 
+    def watch(self, receiver: Any, clock_rate: int) -> TrackReports | None:
+        """The reports of ``receiver``'s track, read as aiortc routes them; None if aiortc
+        moved its handler (no capture times then)."""
+        reports = self.track(clock_rate)
+        return reports if reports.watch(receiver) else None
+
     def note(self, ntp_timestamp: int) -> float | None:
         """A report's NTP time (64-bit) as seconds since the origin; None if unusable."""
         seconds = ntp_timestamp / NTP_FRACTION
@@ -65,6 +71,7 @@ class TrackReports:
     def __init__(self, clock: PublisherClock, clock_rate: int) -> None:
         self.clock, self.clock_rate = clock, clock_rate
         self._last: tuple[int, float] | None = None  # (RTP timestamp, its time)
+        self.receiver: Any = None  # the aiortc receiver watched
 
     def note(self, rtp_timestamp: int, ntp_timestamp: int) -> None:
         at = self.clock.note(ntp_timestamp)
@@ -79,6 +86,10 @@ class TrackReports:
         t = at + signed_ticks(rtp_timestamp % RTP_WRAP, rtp) / self.clock_rate
         return t if 0.0 <= t <= MAX_CAPTURE_TIME else None
 
+    def frame_capture_time(self, pts: int | None) -> float | None:
+        """When the frame the watched receiver decoded with ``pts`` was captured."""
+        return self.capture_time(frame_rtp_timestamp(self.receiver, pts))
+
     def watch(self, receiver: Any) -> bool:
         """Take ``receiver``'s sender reports (aiortc routes them by SSRC) before aiortc does;
         False (no capture times, nothing else changed) if aiortc moved its handler."""
@@ -87,6 +98,7 @@ class TrackReports:
         original = getattr(receiver, RTCP_HANDLER, None)
         if original is None:
             return False
+        self.receiver = receiver
 
         async def handle(packet: Any) -> None:
             if isinstance(packet, RtcpSrPacket):
