@@ -44,7 +44,10 @@ def srv(tmp_path_factory):
     with run_server(tmp_path_factory.mktemp("voice_webcam"), default_width=SIZE,
                     default_height=SIZE, default_max_fps=30,
                     voice_max_delay_s=MAX_DELAY_S,
-                    voice_buffer_packets=int(MAX_DELAY_S * 50) + 50) as running:
+                    voice_buffer_packets=int(MAX_DELAY_S * 50) + 50,
+                    # the server's default: a full collection of this test process's heap
+                    # (server, viewer and pytest in one) holds every packet in flight
+                    gc_freeze=True) as running:
         yield running
 
 
