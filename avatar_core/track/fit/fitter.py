@@ -29,7 +29,7 @@ from ...body.joint_limits import EXPRESSION_LIMIT, JOINT_LIMITS_DEG, RELAXED_ARM
 from ...body.models import SMPLXModel
 from ...body.skeleton import JOINT, LEFT_HAND_JOINTS, RIGHT_HAND_JOINTS, SMPLX_JOINT_NAMES
 from . import correspondence as cor
-from . import palm_retry, world_cues
+from . import elbow_prior, palm_retry, world_cues
 from .camera import MIN_DEPTH_M, WebcamCamera, project_points
 from .embedding import LandmarkEmbedding
 from .hand_prior import hinge_matrix, hinge_rows
@@ -117,6 +117,12 @@ class FitConfig:
     # (`hand_prior.py`; 0: off): the landmarks pin a finger's bend far better than its
     # twist, which the fit otherwise bends to meet MediaPipe's offset finger points.
     finger_hinge_weight: float = 10.0
+    # The elbows held to their hinge (`elbow_prior.py`): their sideways bend, per rad^2
+    # (0: off), and how far (deg) one may bend backward past straight before a joint-limit
+    # hinge stops it (180 or more: off). Free elbows let the fit trade the upper arm's twist
+    # for a sideways bend that reaches the same landmarks.
+    elbow_hinge_weight: float = 0.0
+    elbow_extension_deg: float = 180.0
     # The learned landmark embedding (`embedding.py`: where each landmark lies on the model);
     # None: today's correspondence (joint centres, vertices, the iBUG triangles).
     embedding: LandmarkEmbedding | None = None
@@ -126,6 +132,10 @@ class FitConfig:
     # (`world_cues.py`; 0: off). Set on held-out renders (docs/tracking.md).
     world_weight: float = 0.0
     image_z_weight: float = 0.0
+    # Each arm bone's direction toward BlazePose's metric world landmarks
+    # (`world_cues.direction_residuals`), per rad^2 (0: off): its world bones are far nearer
+    # the truth than a monocular fit's (docs/tracking.md).
+    world_direction_weight: float = 0.0
     dtype: torch.dtype = torch.float64
 
 
@@ -231,7 +241,18 @@ class FrameFitter:
             rows if self.config.finger_hinge_weight > 0 else {}, joint_columns, n)
         mean = np.zeros(n)
         mean[hand_cols] = self.hand_mean.reshape(-1)
+        elbows = elbow_prior.elbow_axes(self.kinematics.j_shape)
+        elbow_columns = {k: lay["body"][0].start + 3 * FREE_BODY_JOINTS.index(
+            SMPLX_JOINT_NAMES[k]) + np.arange(3) for k in elbows}
+        if self.config.elbow_hinge_weight > 0:
+            hinge = np.concatenate([hinge, math.sqrt(self.config.elbow_hinge_weight)
+                                    * elbow_prior.sideways_matrix(elbows, elbow_columns, n)])
         self.hinge_jacobian, self.hinge_offset = hinge, hinge @ mean
+        # Elbow flexion rows [E, N] and the backward bend they allow (rad), or None.
+        self.elbow_flexion = None
+        if self.config.elbow_extension_deg < 180.0:
+            self.elbow_flexion = (elbow_prior.flexion_matrix(elbows, elbow_columns, n),
+                                  math.radians(self.config.elbow_extension_deg))
         # Per hand: (its rows, its wrist's body-variable columns, its hand-pose columns, the
         # wrist's joint, the rest palm [5, 3] for `palm_rotation`).
         self.palm_hands = []
@@ -335,6 +356,9 @@ class FrameFitter:
             terms.append(_Term(*world_cues.world_residuals(
                 seen.depth, seen.d_depth, problem.world_pairs, problem.camera.focal,
                 problem.scale, jacobian)))
+        if problem.direction_pairs is not None:
+            terms.append(_Term(*world_cues.direction_residuals(
+                seen.points, seen.d_points, problem.direction_pairs, jacobian)))
         # Quadratic priors toward rest, and the temporal term: diagonal Jacobians.
         terms.append(_Term(self.prior_sqrt * (x - self.prior_rest), None, self.prior_sqrt))
         if problem.previous is not None:
@@ -370,6 +394,13 @@ class FrameFitter:
                 j[np.arange(len(on))[:, None], joint_cols[on]] = \
                     limit * aa[on] / angle[on, None]
                 jacobians.append(j)
+        if self.elbow_flexion is not None:
+            rows, bound = self.elbow_flexion
+            over = -(rows @ x) - bound  # how far each elbow bends backward past the bound
+            on = np.flatnonzero(over > 0)
+            residuals.append(limit * over[on])
+            if jacobian:
+                jacobians.append(-limit * rows[on])
         r = np.concatenate(residuals)
         if not r.size:
             return None
@@ -396,10 +427,10 @@ class FrameFitter:
         points, jac = self._keypoints(x, jacobian)
         proj, d_proj = project_points(points, camera)
         if not jacobian:
-            return _Projected(proj, -points[:, 2])
+            return _Projected(proj, -points[:, 2], points)
         d_proj[~self.kinematics.available] = 0.0  # NaN rows: no keypoint, weight 0
-        return _Projected(proj, -points[:, 2], np.einsum("kab,kbn->kan", d_proj, jac),
-                          -jac[:, 2])
+        return _Projected(proj, -points[:, 2], points, np.einsum("kab,kbn->kan", d_proj, jac),
+                          -jac[:, 2], jac)
 
     def dense_system(self, x: np.ndarray, problem: _Problem, sqrt_w: np.ndarray
                      ) -> tuple[np.ndarray, np.ndarray]:
@@ -445,7 +476,9 @@ class FrameFitter:
         problem = _Problem(camera, np.asarray(obs.pixels, dtype=np.float64),
                            max(camera.width, camera.height) / 100.0,
                            x.copy() if warm else None, self._depth_pairs(obs, weight),
-                           self._world_pairs(obs, weight))
+                           self._world_pairs(obs, weight),
+                           world_cues.direction_pairs(obs, weight,
+                                                      self.config.world_direction_weight))
         stats = {"iterations": 0, "evaluations": 0}
         if not warm:  # coarse to fine: place the head and torso first, then the limbs
             n = self.config.placement_iterations
@@ -606,14 +639,19 @@ class _Problem:
     # sqrt weight [D]), or None.
     depth_pairs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
     world_pairs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+    # Bone directions: (from rows [B], to rows [B], target unit directions [B, 3], sqrt
+    # weight [B]), or None.
+    direction_pairs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
 
 
 @dataclass(frozen=True)
 class _Projected:
     pixels: np.ndarray                  # [K, 2]
     depth: np.ndarray                   # [K] m in front of the camera
+    points: np.ndarray                  # [K, 3] camera frame
     d_pixels: np.ndarray | None = None  # [K, 2, N]
     d_depth: np.ndarray | None = None   # [K, N]
+    d_points: np.ndarray | None = None  # [K, 3, N]
 
 
 def reprojection_errors(proj: np.ndarray, obs: Observations) -> dict[str, float]:

@@ -1,0 +1,179 @@
+"""The arm's cues beyond 2D landmarks: the elbows' hinge prior (`fit/elbow_prior.py`) and
+BlazePose's world bone directions (`fit/world_cues.direction_residuals`)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from avatar_core.body.skeleton import JOINT
+from avatar_core.gaussians.animate import synthetic_package
+from avatar_core.motion.library import _ARMS, mirrored
+from avatar_core.synth.model_writer import ensure_models
+from avatar_core.track.fit import correspondence as cor
+from avatar_core.track.fit import elbow_prior, world_cues
+from avatar_core.track.fit.camera import WebcamCamera
+from avatar_core.track.fit.fitter import FitConfig, FrameFitter, _Problem, neutral_params
+from avatar_core.track.fit.observations import empty_observations
+from avatar_core.track.fit.synthetic import synthetic_observations
+
+CAMERA = WebcamCamera(640, 480, 60.0)
+POSE = cor.POSE_SLICE.start
+
+
+@pytest.fixture(scope="module")
+def model_and_betas():
+    package, model = synthetic_package(ensure_models().root, 0)
+    return model, np.asarray(package.body.betas)
+
+
+@pytest.fixture(scope="module")
+def cued(model_and_betas):
+    """A fitter with both cues on."""
+    return FrameFitter(*model_and_betas, FitConfig(elbow_hinge_weight=10.0,
+                                                   elbow_extension_deg=5.0,
+                                                   world_direction_weight=10.0))
+
+
+def _arm_pose(model, shoulder, elbow, side="right"):
+    p = neutral_params(model)
+    p["transl"] = np.array([0.0, -0.45, -1.1])
+    p["body_pose"][JOINT[f"{side}_shoulder"] - 1] = shoulder
+    p["body_pose"][JOINT[f"{side}_elbow"] - 1] = elbow
+    return p
+
+
+def test_elbow_axes_are_orthonormal_to_the_forearm(cued):
+    axes = elbow_prior.elbow_axes(cued.kinematics.j_shape)
+    assert set(axes) == {JOINT["left_elbow"], JOINT["right_elbow"]}
+    j = cued.kinematics.j_shape
+    for k, (axis, sideways) in axes.items():
+        side = "left" if k == JOINT["left_elbow"] else "right"
+        bone = j[JOINT[f"{side}_wrist"]] - j[k]
+        bone /= np.linalg.norm(bone)
+        np.testing.assert_allclose([np.linalg.norm(axis), np.linalg.norm(sideways)], 1.0)
+        assert abs(axis @ bone) < 1e-9 and abs(sideways @ bone) < 1e-9
+        assert abs(axis @ sideways) < 1e-9
+        # Flexing about the axis moves the forearm toward the front (+z).
+        assert np.cross(axis, bone)[2] > 0.9
+
+
+def test_elbow_axes_of_a_degenerate_arm_are_empty_not_nan(cued):
+    collapsed = np.ones_like(cued.kinematics.j_shape)
+    assert elbow_prior.elbow_axes(collapsed) == {}
+    forward = cued.kinematics.j_shape.copy()
+    forward[JOINT["left_wrist"]] = forward[JOINT["left_elbow"]] + [0.0, 0.0, 0.25]
+    assert set(elbow_prior.elbow_axes(forward)) == {JOINT["right_elbow"]}
+
+
+def test_the_motion_librarys_elbows_keep_to_the_hinge(cued):
+    """The key arm poses of the motion library (both sides) bend their elbows about the axis
+    (within 3 deg), forward: the prior holds the truth of the studio takes."""
+    axes = elbow_prior.elbow_axes(cued.kinematics.j_shape)
+    right = {name: {"right_elbow": pose[2]} for name, pose in _ARMS.items()}
+    for name, joints in right.items():
+        for side_joints in (joints, mirrored(joints)):
+            (joint, aa), = side_joints.items()
+            axis, sideways = axes[JOINT[joint]]
+            aa = np.asarray(aa)
+            assert abs(sideways @ aa) < math.radians(3.0), (name, joint)
+            assert axis @ aa > 0.0, (name, joint)
+
+
+def test_the_elbow_rows_weigh_the_sideways_bend_and_stop_a_backward_bend(model_and_betas, cued):
+    model, _ = model_and_betas
+    axes = elbow_prior.elbow_axes(cued.kinematics.j_shape)
+    axis, sideways = axes[JOINT["right_elbow"]]
+    elbow = -0.5 * axis + 0.3 * sideways  # bent 29 deg backward and 17 deg sideways
+    x = cued.pack(_arm_pose(model, [0.0, 0.0, 0.0], elbow))
+    plain = FrameFitter(*model_and_betas, FitConfig())
+    rows = cued.hinge_jacobian[len(plain.hinge_jacobian):]
+    assert rows.shape[0] == 2
+    np.testing.assert_allclose(sorted(np.abs(rows @ x)), [0.0, math.sqrt(10.0) * 0.3],
+                               atol=1e-12)
+    term = cued._hinge_term(x, jacobian=True)
+    over = 0.5 - math.radians(5.0)
+    assert term is not None and np.isclose(term.residuals, 10.0 * over).any()
+    # Bent forward: no active row.
+    x = cued.pack(_arm_pose(model, [0.0, 0.0, 0.0], 1.2 * axis))
+    assert cued._hinge_term(x, jacobian=False) is None
+
+
+def test_direction_pairs_need_both_landmarks_and_a_bone(model_and_betas, cued):
+    obs = empty_observations((640, 480))
+    weight = np.ones(cor.NUM_KEYPOINTS)
+    assert world_cues.direction_pairs(obs, weight, 10.0) is None  # no world landmarks
+    obs.world = np.zeros((33, 3))
+    obs.world[13] = [0.0, 0.3, 0.0]  # left elbow below the left shoulder (y down)
+    obs.world[15] = obs.world[13]  # a forearm of no length
+    obs.world[16] = np.nan
+    obs.world[12] = [np.inf, 0.0, 0.0]  # an infinite right shoulder
+    pairs = world_cues.direction_pairs(obs, weight, 10.0)
+    assert pairs is not None
+    a, b, u, w = pairs
+    # Only the left upper arm: the others have no length, a NaN or an infinity.
+    assert list(a) == [POSE + 11] and list(b) == [POSE + 13]
+    np.testing.assert_allclose(u, [[0.0, -1.0, 0.0]])  # down, in the camera frame (y up)
+    assert world_cues.direction_pairs(obs, weight, 0.0) is None
+    weight[POSE + 13] = 0.0
+    assert world_cues.direction_pairs(obs, weight, 10.0) is None
+
+
+def test_objective_jacobian_with_the_arm_cues_matches_finite_differences(model_and_betas, cued):
+    """Every residual, with the elbow rows (one backward bend active) and the world bone
+    directions, against central differences."""
+    model, _ = model_and_betas
+    rng = np.random.default_rng(11)
+    axes = elbow_prior.elbow_axes(cued.kinematics.j_shape)
+    axis, sideways = axes[JOINT["left_elbow"]]
+    p = _arm_pose(model, [0.2, -0.3, -0.5], -0.4 * axis + 0.2 * sideways, side="left")
+    x = cued.pack(p) + rng.normal(0, 0.05, cued.pack(p).size)
+    x[cued.layout["transl"][0]] = p["transl"]
+    pixels = cued._data(x, CAMERA, False).pixels
+    target = np.nan_to_num(pixels)
+    sqrt_w = np.where(cued.kinematics.available, 1.0, 0.0)
+    obs = empty_observations((640, 480))
+    obs.world = rng.normal(0, 0.3, (33, 3))
+    pairs = world_cues.direction_pairs(obs, sqrt_w ** 2, cued.config.world_direction_weight)
+    assert pairs is not None and len(pairs[0]) == 4
+    problem = _Problem(CAMERA, target, 6.4, None, direction_pairs=pairs)
+    res, jac = cued.dense_system(x, problem, sqrt_w)
+    assert np.isfinite(res).all() and np.isfinite(jac).all()
+    eps = 1e-6
+    numeric = np.empty_like(jac)
+    for i in range(x.size):
+        d = np.zeros(x.size)
+        d[i] = eps
+        hi, _ = cued.dense_system(x + d, problem, sqrt_w)
+        lo, _ = cued.dense_system(x - d, problem, sqrt_w)
+        numeric[:, i] = (hi - lo) / (2 * eps)
+    np.testing.assert_allclose(jac, numeric, atol=2e-5 * max(1.0, np.abs(jac).max()))
+
+
+def test_world_directions_turn_a_foreshortened_forearm_the_right_way(model_and_betas):
+    """A forearm pointing toward the camera projects short, and without the hand's landmarks
+    the 2D fit (3 px noise, cold start) turns it the wrong way; BlazePose's world directions
+    of the truth bring it within a few degrees."""
+    model, betas = model_and_betas
+    truth = _arm_pose(model, [0.0, 0.6, 1.1], [0.0, 1.5, 0.0])
+    rows = [11, 12, 13, 14, 15, 16]
+    errors = {}
+    for weight in (0.0, 10.0):
+        fitter = FrameFitter(model, betas, FitConfig(world_direction_weight=weight))
+        pts, _ = fitter._keypoints(fitter.pack(truth), False)
+        true_fore = pts[POSE + 16] - pts[POSE + 14]
+        for seed in (0, 1):
+            obs, _ = synthetic_observations(fitter, truth, CAMERA, 3.0,
+                                            np.random.default_rng(seed),
+                                            drop=("left_hand", "right_hand"))
+            obs.world = np.full((33, 3), np.nan)
+            obs.world[rows] = (pts[POSE + np.array(rows)] - pts[POSE + 11]) \
+                * world_cues.WORLD_TO_CAMERA
+            got, _ = fitter._keypoints(fitter.pack(fitter.fit(obs, CAMERA).params), False)
+            fore = got[POSE + 16] - got[POSE + 14]
+            cos = fore @ true_fore / np.linalg.norm(fore) / np.linalg.norm(true_fore)
+            errors[weight, seed] = math.degrees(math.acos(min(1.0, cos)))
+    assert all(errors[10.0, s] < 10.0 for s in (0, 1)), errors
+    assert all(errors[0.0, s] > 60.0 for s in (0, 1)), errors
