@@ -24,6 +24,17 @@ def _conditions(args):
     return [Condition(i, f) for i in ids for f in framings]
 
 
+def _top_level_split(text: str) -> list[str]:
+    """Split on the commas outside brackets: 'a=1,b=((1,2),(3,4))' -> ['a=1', 'b=((1,2),(3,4))']."""
+    parts, depth, start = [], 0, 0
+    for i, ch in enumerate(text):
+        depth += (ch in "([{") - (ch in ")]}")
+        if ch == "," and depth == 0:
+            parts.append(text[start:i])
+            start = i + 1
+    return [*parts, text[start:]]
+
+
 def parse_variants(text: str) -> dict[str, dict]:
     """'a:hold_arms=1,edge_margin=0.02;b:fit.temporal_weight=2' -> {"": {}, "a": {...}}
     (values parsed as Python literals; fit.X changes the FitConfig)."""
@@ -37,7 +48,7 @@ def parse_variants(text: str) -> dict[str, dict]:
     for item in filter(None, (t.strip() for t in text.split(";"))):
         label, _, fields = item.partition(":")
         changes, fit = {}, {}
-        for pair in filter(None, (f.strip() for f in fields.split(","))):
+        for pair in filter(None, (f.strip() for f in _top_level_split(fields))):
             key, _, value = pair.partition("=")
             (fit if key.startswith("fit.") else changes)[key.removeprefix("fit.")] = \
                 ast.literal_eval(value)

@@ -177,3 +177,31 @@ def test_world_directions_turn_a_foreshortened_forearm_the_right_way(model_and_b
             errors[weight, seed] = math.degrees(math.acos(min(1.0, cos)))
     assert all(errors[10.0, s] < 10.0 for s in (0, 1)), errors
     assert all(errors[0.0, s] > 60.0 for s in (0, 1)), errors
+
+
+def test_world_landmarks_are_smoothed_row_by_row_and_restart_when_rows_change(
+        model_and_betas):
+    from avatar_core.track.fit.sequence import SequenceFit, SequenceFitConfig
+
+    model, betas = model_and_betas
+    seq = SequenceFit(model, betas, SequenceFitConfig(world_min_cutoff=1.0))
+    rng = np.random.default_rng(2)
+    obs = empty_observations((640, 480))
+    base = rng.normal(0, 0.3, (33, 3))
+    base[25:] = np.nan  # rows BlazePose did not give
+    raw, smooth = [], []
+    for i in range(30):
+        obs.world = base + rng.normal(0, 0.02, (33, 3))
+        out = seq._smoothed_world(obs, i / 30)
+        assert np.isnan(out.world[25:]).all() and np.isfinite(out.world[:25]).all()
+        raw.append(obs.world[:25].copy())
+        smooth.append(out.world[:25])
+    assert np.std(np.diff(smooth, axis=0)) < 0.5 * np.std(np.diff(raw, axis=0))
+    # A row lost: the filter restarts, so this frame passes as it is.
+    obs.world = base + rng.normal(0, 0.02, (33, 3))
+    obs.world[3] = np.nan
+    out = seq._smoothed_world(obs, 1.0)
+    np.testing.assert_array_equal(out.world, obs.world)
+    # Off by default: the observations pass untouched.
+    plain = SequenceFit(model, betas)
+    assert plain._smoothed_world(obs, 1.1) is obs

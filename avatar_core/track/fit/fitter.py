@@ -136,6 +136,7 @@ class FitConfig:
     # (`world_cues.direction_residuals`), per rad^2 (0: off): its world bones are far nearer
     # the truth than a monocular fit's (docs/tracking.md).
     world_direction_weight: float = 0.0
+    world_direction_bones: tuple[tuple[int, int], ...] = world_cues.ARM_BONES
     dtype: torch.dtype = torch.float64
 
 
@@ -478,7 +479,8 @@ class FrameFitter:
                            x.copy() if warm else None, self._depth_pairs(obs, weight),
                            self._world_pairs(obs, weight),
                            world_cues.direction_pairs(obs, weight,
-                                                      self.config.world_direction_weight))
+                                                      self.config.world_direction_weight,
+                                                      self.config.world_direction_bones))
         stats = {"iterations": 0, "evaluations": 0}
         if not warm:  # coarse to fine: place the head and torso first, then the limbs
             n = self.config.placement_iterations

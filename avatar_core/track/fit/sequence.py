@@ -15,6 +15,7 @@ from a stale pose.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -31,7 +32,7 @@ from .observations import (
     without_edge_arm_points,
     without_pose_hands,
 )
-from .one_euro import ParamSmoother
+from .one_euro import OneEuroFilter, ParamSmoother
 from .palm import rotation_angle_deg
 
 # Parameter -> owning group; body_pose rows listed separately (rows = joint index - 1).
@@ -80,6 +81,9 @@ class SequenceFitConfig:
     # Each arm held, then eased to rest, while nothing below its shoulder is observed
     # (`arm_seen`); False: the arms belong to the pose group and follow the fit.
     hold_arms: bool = False
+    # One Euro on BlazePose's world landmarks before the fit, Hz at rest (0: off): they are
+    # read afresh each frame, and their jitter passes into the world terms.
+    world_min_cutoff: float = 0.0
     fit: FitConfig = field(default_factory=FitConfig)
 
 
@@ -114,6 +118,8 @@ class SequenceFit:
         self.gaze = gaze_solver(model) if self.config.gaze else None
         self.neutral = self.fitter.neutral
         self.smoother = ParamSmoother(self.config.min_cutoff, self.config.beta)
+        self.world_smoother = OneEuroFilter(self.config.world_min_cutoff, self.config.beta) \
+            if self.config.world_min_cutoff > 0 else None
         self._rows = {g: _body_rows(g) for g in HOLD_GROUPS}
         self.reset()
 
@@ -122,6 +128,9 @@ class SequenceFit:
         self.held: dict[str, dict[str, np.ndarray]] = {}  # group -> its last fitted values
         self.last_seen: dict[str, float] = {}
         self.smoother.reset()
+        if self.world_smoother is not None:
+            self.world_smoother.reset()
+        self._world_rows: np.ndarray | None = None  # [33] the finite rows last filtered
         self.palm_previous: dict[str, tuple[np.ndarray, float]] = {}  # side -> (rotation, t)
 
     def _group_values(self, params: dict[str, np.ndarray], group: str) -> dict[str, np.ndarray]:
@@ -169,12 +178,29 @@ class SequenceFit:
             self.palm_previous[side] = (rot, t)
         return stable
 
+    def _smoothed_world(self, obs: Observations, t: float) -> Observations:
+        """`obs` with its world landmarks through the One Euro filter, row by row; a change in
+        which rows are finite (a landmark lost or found) restarts the filter."""
+        if self.world_smoother is None:
+            return obs
+        if obs.world is None:
+            self.world_smoother.reset()
+            return obs
+        rows = np.isfinite(obs.world).all(axis=1)
+        if self._world_rows is None or not np.array_equal(rows, self._world_rows):
+            self.world_smoother.reset()
+        self._world_rows = rows
+        world = np.full_like(obs.world, np.nan)
+        world[rows] = self.world_smoother(obs.world[rows], t)
+        return dataclasses.replace(obs, world=world)
+
     def step(self, obs: Observations, t: float) -> FrameParams:
         camera = WebcamCamera(*obs.image_size, fov_x_deg=self.config.fov_x_deg)
         seen = {g: bool(obs.seen.get(g)) for g in GROUPS}
         if not self.config.pose_hands:
             obs = without_pose_hands(obs)
         obs = without_edge_arm_points(obs, self.config.edge_margin * max(obs.image_size))
+        obs = self._smoothed_world(obs, t)
         fit = None
         if any(seen.values()):
             stale = not self.last_seen or t - max(self.last_seen.values()) > self.config.hold_s

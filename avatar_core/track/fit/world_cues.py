@@ -55,24 +55,26 @@ def world_residuals(depth, d_depth, pairs, focal: float, px_scale: float, jacobi
 
 
 # Bones whose world direction the direction term pulls toward BlazePose's: (from, to) in its
-# numbering: the upper arms and forearms.
-DIRECTION_BONES = ((11, 13), (13, 15), (12, 14), (14, 16))
+# numbering: the upper arms and forearms; and the shoulders' line (it carries the torso's yaw).
+ARM_BONES = ((11, 13), (13, 15), (12, 14), (14, 16))
+SHOULDER_LINE = ((12, 11),)
 # BlazePose's world axes (x right, y down, z away from the camera) -> the fit's camera frame
 # (x right, y up, z toward the camera): measured on the studio recordings, where this sign
 # choice puts the shoulders' line 3-6 deg from the truth and every other choice >= 170 deg.
 WORLD_TO_CAMERA = np.array([1.0, -1.0, -1.0])
 
 
-def direction_pairs(obs, weight: np.ndarray, w: float
+def direction_pairs(obs, weight: np.ndarray, w: float, bones=ARM_BONES
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
     """(from rows [D], to rows [D], target unit directions [D, 3] in the camera frame,
-    sqrt weight [D]) of the bones (`DIRECTION_BONES`) whose two landmarks are used and have
-    finite, distinct world points; None: none (or `w` 0, or no world landmarks)."""
+    sqrt weight [D]) of the `bones` ((from, to) BlazePose landmarks) whose two landmarks are
+    used and have finite, distinct world points; None: none (or `w` 0, or no world
+    landmarks)."""
     if w <= 0 or obs.world is None:
         return None
     base = cor.POSE_SLICE.start
     rows = []
-    for a, b in DIRECTION_BONES:
+    for a, b in bones:
         if weight[base + a] <= 0 or weight[base + b] <= 0:
             continue
         v = (obs.world[b] - obs.world[a]) * WORLD_TO_CAMERA
