@@ -205,3 +205,22 @@ def test_world_landmarks_are_smoothed_row_by_row_and_restart_when_rows_change(
     # Off by default: the observations pass untouched.
     plain = SequenceFit(model, betas)
     assert plain._smoothed_world(obs, 1.1) is obs
+
+
+def test_the_arms_may_have_their_own_temporal_weight(model_and_betas):
+    fitter = FrameFitter(*model_and_betas, FitConfig(temporal_weight=0.5,
+                                                     arm_temporal_weight=10.0))
+    arms = fitter._free_mask(("left_shoulder", "right_elbow", "left_wrist"))
+    face = fitter._free_mask(("jaw_pose", "neck", "expression"))
+    assert np.allclose(fitter.temporal_sqrt[arms], math.sqrt(10.0))
+    assert np.allclose(fitter.temporal_sqrt[face], math.sqrt(0.5))
+    transl = fitter._free_mask(("transl",))
+    assert np.allclose(fitter.temporal_sqrt[transl], math.sqrt(50.0))
+
+
+@pytest.mark.parametrize("field", ["arm_temporal_weight", "elbow_hinge_weight",
+                                   "world_direction_weight", "temporal_weight"])
+@pytest.mark.parametrize("value", [-1.0, math.nan, math.inf])
+def test_bad_cue_weights_are_refused(model_and_betas, field, value):
+    with pytest.raises(ValueError, match=field):
+        FrameFitter(*model_and_betas, FitConfig(**{field: value}))

@@ -76,6 +76,13 @@ def test_each_drive_fits_with_its_own_inputs():
     depth = pd.drive_config("true_all_arm_depth", base).fit
     assert depth.world_weight == pd.TRUE_DEPTH_WEIGHT and depth.embedding is None
     assert pd.drive_config("live_pose_hands", base).pose_hands and not base.pose_hands
+    from avatar_core.track.fit.sequence import ARM_CUES
+
+    cued = pd.drive_config("arm_cues", base).fit
+    assert all(getattr(cued, k) == v for k, v in ARM_CUES.items()) and cued.embedding is None
+    assert base.fit.world_direction_weight == 0 and base.fit.elbow_hinge_weight == 0
+    both = pd.drive_config("embedding_arm_cues", base).fit
+    assert both.embedding is not None and both.world_direction_weight > 0
     points = np.arange(33 * 3, dtype=float).reshape(33, 3)
     world = pd.true_world(points, ("torso",))  # shoulders' line, nose against each shoulder
     assert set(np.flatnonzero(np.isfinite(world[:, 2]))) == {0, 11, 12}

@@ -7,6 +7,8 @@ configuration:
 * ``embedding``: the same landmarks through the learned landmark embedding and BlazePose's
   image z (the issue's "learned embedding + 3D cues"; the weight set on held-out renders,
   docs/tracking.md);
+* ``arm_cues``: the same landmarks with BlazePose's world bone directions and the elbow
+  hinge (`sequence.ARM_CUES`); ``embedding_arm_cues``: both;
 * ``true_body``, ``true_body_face``, ``true_all``: the tracked 2D landmarks of those parts
   replaced by the truth (the part-attribution table);
 * ``*_depth``: the depth question. The true camera depth of the body landmarks of one part
@@ -23,6 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from avatar_core.track.fit.sequence import with_arm_cues
 from avatar_core.track.fit.world_cues import DEPTH_PAIRS
 
 ALL_PARTS = ("pose", "face", "left_hand", "right_hand")
@@ -41,11 +44,15 @@ class Drive:
     true_depth: tuple[str, ...] = ()      # `DEPTH_PARTS` whose depth comes from the truth
     embedding: bool = False               # the learned landmark embedding + image z
     pose_hands: bool | None = None        # `SequenceFitConfig.pose_hands`; None: as given
+    arm_cues: bool = False                # `sequence.ARM_CUES`
 
 
 DRIVES = {
     "live": Drive("webcam, live fit"),
     "embedding": Drive("webcam, learned embedding + 3D cues", embedding=True),
+    "arm_cues": Drive("webcam, world bone directions + elbow hinge", arm_cues=True),
+    "embedding_arm_cues": Drive("webcam, learned embedding + world bones + elbow hinge",
+                                embedding=True, arm_cues=True),
     "live_pose_hands": Drive("webcam, live fit + the pose's hand points", pose_hands=True),
     "true_body": Drive("true body 2D", ("pose",)),
     "true_body_face": Drive("true body + face 2D", ("pose", "face")),
@@ -81,7 +88,8 @@ def drive_config(name: str, base, embedding=None):
     if drive.true_depth:
         fit = dataclasses.replace(fit, world_weight=TRUE_DEPTH_WEIGHT, embedding=None)
     pose_hands = base.pose_hands if drive.pose_hands is None else drive.pose_hands
-    return dataclasses.replace(base, fit=fit, pose_hands=pose_hands)
+    out = dataclasses.replace(base, fit=fit, pose_hands=pose_hands)
+    return with_arm_cues(out) if drive.arm_cues else out
 
 
 def true_world(model_points: np.ndarray, parts) -> np.ndarray:

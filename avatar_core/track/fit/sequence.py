@@ -34,6 +34,7 @@ from .observations import (
 )
 from .one_euro import OneEuroFilter, ParamSmoother
 from .palm import rotation_angle_deg
+from .world_cues import ARM_BONES, SHOULDER_LINE
 
 # Parameter -> owning group; body_pose rows listed separately (rows = joint index - 1).
 GROUP_OF_PARAM = {"expression": "face", "jaw_pose": "face", "leye_pose": "face",
@@ -221,6 +222,20 @@ class SequenceFit:
         if self.config.smoothing:
             params = self.smoother(params, t)
         return FrameParams(params, seen, fit, t)
+
+
+# The arm cues as set on identity 1 of the studio webcam protocol and checked on identity 0
+# (docs/tracking.md, "BlazePose's world bones and the elbow hinge"): BlazePose's world bone
+# directions (arms and the shoulders' line), the elbows held to their hinge, and a firmer
+# temporal prior on the arms against the jitter the world landmarks bring.
+ARM_CUES = {"world_direction_weight": 100.0,
+            "world_direction_bones": (*ARM_BONES, *SHOULDER_LINE),
+            "elbow_hinge_weight": 10.0, "elbow_extension_deg": 5.0, "arm_temporal_weight": 10.0}
+
+
+def with_arm_cues(config: SequenceFitConfig) -> SequenceFitConfig:
+    """`config` with `ARM_CUES` in its fit."""
+    return dataclasses.replace(config, fit=dataclasses.replace(config.fit, **ARM_CUES))
 
 
 def drive_params(params: dict[str, np.ndarray], with_transl: bool = False
