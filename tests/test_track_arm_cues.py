@@ -207,20 +207,32 @@ def test_world_landmarks_are_smoothed_row_by_row_and_restart_when_rows_change(
     assert plain._smoothed_world(obs, 1.1) is obs
 
 
-def test_the_arms_may_have_their_own_temporal_weight(model_and_betas):
+def test_the_body_may_have_its_own_temporal_weight(model_and_betas):
     fitter = FrameFitter(*model_and_betas, FitConfig(temporal_weight=0.5,
-                                                     arm_temporal_weight=10.0))
-    arms = fitter._free_mask(("left_shoulder", "right_elbow", "left_wrist"))
-    face = fitter._free_mask(("jaw_pose", "neck", "expression"))
+                                                     body_temporal_weight=10.0))
+    arms = fitter._free_mask(("global_orient", "spine2", "neck", "left_shoulder",
+                              "right_elbow", "left_wrist"))
+    face = fitter._free_mask(("jaw_pose", "expression", "left_hand_pose"))
     assert np.allclose(fitter.temporal_sqrt[arms], math.sqrt(10.0))
     assert np.allclose(fitter.temporal_sqrt[face], math.sqrt(0.5))
     transl = fitter._free_mask(("transl",))
-    assert np.allclose(fitter.temporal_sqrt[transl], math.sqrt(50.0))
+    assert np.allclose(fitter.temporal_sqrt[transl], math.sqrt(1000.0))
 
 
-@pytest.mark.parametrize("field", ["arm_temporal_weight", "elbow_hinge_weight",
+@pytest.mark.parametrize("field", ["body_temporal_weight", "elbow_hinge_weight",
                                    "world_direction_weight", "temporal_weight"])
 @pytest.mark.parametrize("value", [-1.0, math.nan, math.inf])
 def test_bad_cue_weights_are_refused(model_and_betas, field, value):
     with pytest.raises(ValueError, match=field):
         FrameFitter(*model_and_betas, FitConfig(**{field: value}))
+
+
+def test_the_live_path_carries_the_arm_cues_and_the_plain_config_none():
+    from avatar_core.track.fit.sequence import ARM_CUES, SequenceFitConfig, live_config
+
+    live = live_config(fov_x_deg=50.0, smoothing=False)
+    assert live.fov_x_deg == 50.0 and not live.smoothing
+    assert all(getattr(live.fit, k) == v for k, v in ARM_CUES.items())
+    plain = SequenceFitConfig().fit
+    assert plain.world_direction_weight == 0 and plain.elbow_hinge_weight == 0
+    assert plain.body_temporal_weight is None

@@ -171,7 +171,7 @@ def _live_tracking(loaded: LoadedAvatar, webcam: Camera, fit_config=None):
     """The server's tracker and fit (server/stream/tracking.py SessionTracker._ensure), with the
     webcam's own field of view. Raises RuntimeError with the reason when it cannot run."""
     try:
-        from ..track.fit.sequence import SequenceFit, SequenceFitConfig
+        from ..track.fit.sequence import SequenceFit, live_config
         from ..track.tracker import LIVE_PALM_INTERVAL, Tracker
 
         tracker = Tracker(threads=1, palm_interval=LIVE_PALM_INTERVAL, iris=True)
@@ -179,7 +179,7 @@ def _live_tracking(loaded: LoadedAvatar, webcam: Camera, fit_config=None):
         raise RuntimeError(f"webcam tracking is not available: {exc} (the MediaPipe "
                            "models: telesplat track fetch-models)") from exc
     betas = np.asarray(loaded.package.body.betas, dtype=np.float64)
-    config = SequenceFitConfig(fov_x_deg=_fov_x_deg(webcam))
+    config = live_config(fov_x_deg=_fov_x_deg(webcam))
     if fit_config is not None:
         config.fit = fit_config
     fit = SequenceFit(loaded.animator.body_model, betas if betas.size else None, config)

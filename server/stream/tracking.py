@@ -65,7 +65,7 @@ class SessionTracker:
         if self._tracker is not None:
             return
         try:
-            from avatar_core.track.fit.sequence import SequenceFit
+            from avatar_core.track.fit.sequence import SequenceFit, live_config
             from avatar_core.track.tracker import LIVE_PALM_INTERVAL, Tracker
 
             tracker = Tracker(threads=1, palm_interval=LIVE_PALM_INTERVAL, iris=True)
@@ -73,7 +73,7 @@ class SessionTracker:
             self.unavailable = f"server-side tracking is not available: {exc}"
             raise TrackingUnavailable(self.unavailable) from exc
         self._tracker = tracker
-        self._fit = SequenceFit(self.body_model, self.betas)
+        self._fit = SequenceFit(self.body_model, self.betas, live_config())
 
     def process(self, image: Image | DecodedImage, received_at: float) -> TrackedImage:
         """Raises TrackingUnavailable or TrackingInputInvalid; anything else is a bug."""

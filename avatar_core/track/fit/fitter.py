@@ -53,8 +53,6 @@ CORE_POSE_LANDMARKS = (0, 2, 5, 7, 8, 11, 12, 23, 24)  # nose, eyes, ears, shoul
 ARM_VARIABLES = (*CORE_VARIABLES, "left_collar", "right_collar", "left_shoulder",
                  "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist")
 ARM_POSE_LANDMARKS = (*CORE_POSE_LANDMARKS, 13, 14, 15, 16)  # + elbows, wrists
-ARM_JOINTS = ("left_shoulder", "right_shoulder", "left_elbow", "right_elbow", "left_wrist",
-              "right_wrist")
 HAND_PALM_LANDMARKS = (0, 1, 5, 9, 13, 17)  # wrist and knuckles: the palm's placement
 ARM_PRIOR = 0.02
 EXPRESSION_PRIOR = 0.02
@@ -97,9 +95,10 @@ class FitConfig:
     warm_iterations: int = 4    # ... of a warm start
     placement_iterations: int = 6
     temporal_weight: float = 0.5  # per rad^2 (and per m^2 x 100 for transl), warm starts only
-    # ... for the shoulders, elbows and wrists alone (None: `temporal_weight`): the world
-    # bone directions' frame-to-frame noise is the arms', and the face keeps its own.
-    arm_temporal_weight: float | None = None
+    # ... for the body alone (its placement and rotations: root, spine, collars, neck, head,
+    # arms; None: `temporal_weight`): the world bone directions' frame-to-frame noise moves
+    # the body, while the face (jaw, expression) and the fingers keep their own.
+    body_temporal_weight: float | None = None
     # A hand point's relative-depth residual against its 2D one (0: off). A trade-off measured
     # on renders (docs/tracking.md): more weight, fewer palm / back flips of the wrist, worse
     # 2D hand keypoints.
@@ -176,7 +175,7 @@ class FrameFitter:
                  config: FitConfig | None = None) -> None:
         self.config = config or FitConfig()
         cfg = self.config
-        for name in ("arm_prior", "temporal_weight", "arm_temporal_weight",
+        for name in ("arm_prior", "temporal_weight", "body_temporal_weight",
                      "elbow_hinge_weight", "world_direction_weight"):
             value = getattr(cfg, name)
             if value is not None and not (math.isfinite(value) and value >= 0):
@@ -238,9 +237,10 @@ class FrameFitter:
             arms[sl.start + np.array(HAND_PALM_LANDMARKS)] = 1.0
         self.stage_masks = {"core": core, "arms": arms}
         temporal = np.full(n, self.config.temporal_weight)
+        if self.config.body_temporal_weight is not None:
+            temporal[self._free_mask(("global_orient", "transl", *FREE_BODY_JOINTS))] = \
+                self.config.body_temporal_weight
         temporal[lay["transl"][0]] *= 100.0  # 1 cm weighs as 0.1 rad
-        if self.config.arm_temporal_weight is not None:
-            temporal[self._free_mask(ARM_JOINTS)] = self.config.arm_temporal_weight
         self.temporal_sqrt = np.sqrt(temporal)
         # The hinge prior: sqrt weight x the map to the fingers' off-axis components, and the
         # mean hand's part (the hand variables are relative to it).

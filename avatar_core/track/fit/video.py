@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 from .observations import from_track_result
-from .sequence import SequenceFit, SequenceFitConfig, drive_params
+from .sequence import SequenceFit, drive_params, live_config
 
 
 def frames_from(source: str | int, max_frames: int | None = None
@@ -122,4 +122,4 @@ def default_sequence_fit(fov_x_deg: float = 60.0, smoothing: bool = True,
             betas = np.asarray(identity["betas"], dtype=np.float64)
     else:
         betas = np.zeros(model.num_betas)
-    return SequenceFit(model, betas, SequenceFitConfig(fov_x_deg=fov_x_deg, smoothing=smoothing))
+    return SequenceFit(model, betas, live_config(fov_x_deg=fov_x_deg, smoothing=smoothing))
