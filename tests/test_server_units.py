@@ -184,15 +184,18 @@ def test_registry_round_trip(tmp_path):
         reopened.get("../etc")
 
 
-def test_serve_command_is_wired_lazily():
+def test_serve_command_is_wired_lazily(capsys):
     code = ("import sys, avatar_core.cli as c; c.build_parser(); "
             "print(any(m.startswith(('fastapi', 'uvicorn', 'server.app')) for m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=60, check=True)
-    assert out.stdout.strip() == "False"
-    help_text = subprocess.run([sys.executable, "-m", "avatar_core.cli", "serve", "--help"],
-                               capture_output=True, text=True, timeout=60, check=True).stdout
-    assert "--port" in help_text and "--config" in help_text
+    assert out.stdout.strip() == "False"  # a fresh interpreter: what building the parser loads
+    # the help in this process (tests/cli_run.py says why; `python -m` entries run elsewhere)
+    from avatar_core.cli import main
+    from tests.cli_run import run_main
+
+    ran = run_main(main, ["serve", "--help"], capsys)
+    assert ran.returncode == 0 and "--port" in ran.stdout and "--config" in ran.stdout
 
 
 def test_the_announced_socket_already_listens():
