@@ -5,8 +5,6 @@ inputs, and a few frames of one identity in one framing through the real tracker
 from __future__ import annotations
 
 import math
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -140,21 +138,25 @@ def test_joint_errors_are_geodesic_degrees():
     assert err["neck_head"] == pytest.approx(0.0, abs=1e-6)  # they cancel: the head is right
 
 
-def test_bad_arguments_are_refused():
+def test_bad_arguments_are_refused(tmp_path, capsys):
     with pytest.raises(ValueError, match="unknown framing"):
         run_protocol((0,), ("full_body",), 10.0, max_frames=2)
     with pytest.raises(ValueError, match="fps"):
         run_protocol((0,), ("waist_up",), 0.0, max_frames=2)
     with pytest.raises(ValueError, match="drives"):
         wp.run_condition(wp.Condition(0, "waist_up"), 10.0, max_frames=2, drives=("magic",))
-    bad = subprocess.run([sys.executable, "-m", "avatar_core.cli", "synth", "webcam-eval",
-                          "--out", "unused", "--identities", "a,b"], capture_output=True,
-                         text=True, timeout=120)
-    assert bad.returncode != 0 and "--identities takes integers" in bad.stderr
-    bad = subprocess.run([sys.executable, "-m", "avatar_core.cli", "synth", "webcam-eval",
-                          "--out", "unused", "--drives", "live,magic"], capture_output=True,
-                         text=True, timeout=120)
+    # the CLI's main() in this process (tests/cli_run.py says why): a SystemExit with a
+    # message is what `python -m` prints to stderr before exiting 1
+    from avatar_core.cli import main
+    from tests.cli_run import run_main
+
+    out = tmp_path / "unused"
+    with pytest.raises(SystemExit, match="--identities takes integers"):
+        main(["synth", "webcam-eval", "--out", str(out), "--identities", "a,b"])
+    bad = run_main(main, ["synth", "webcam-eval", "--out", out, "--drives", "live,magic"],
+                   capsys)
     assert bad.returncode != 0 and "drives must be among" in bad.stderr
+    assert not out.exists()
 
 
 def test_a_few_frames_of_the_protocol_through_the_real_tracker():
