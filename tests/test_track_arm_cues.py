@@ -18,6 +18,7 @@ from avatar_core.track.fit.camera import WebcamCamera
 from avatar_core.track.fit.fitter import FitConfig, FrameFitter, _Problem, neutral_params
 from avatar_core.track.fit.observations import empty_observations
 from avatar_core.track.fit.synthetic import synthetic_observations
+from tests.fit_jacobian import assert_objective_jacobian
 
 CAMERA = WebcamCamera(640, 480, 60.0)
 POSE = cor.POSE_SLICE.start
@@ -139,17 +140,7 @@ def test_objective_jacobian_with_the_arm_cues_matches_finite_differences(model_a
     pairs = world_cues.direction_pairs(obs, sqrt_w ** 2, cued.config.world_direction_weight)
     assert pairs is not None and len(pairs[0]) == 4
     problem = _Problem(CAMERA, target, 6.4, None, direction_pairs=pairs)
-    res, jac = cued.dense_system(x, problem, sqrt_w)
-    assert np.isfinite(res).all() and np.isfinite(jac).all()
-    eps = 1e-6
-    numeric = np.empty_like(jac)
-    for i in range(x.size):
-        d = np.zeros(x.size)
-        d[i] = eps
-        hi, _ = cued.dense_system(x + d, problem, sqrt_w)
-        lo, _ = cued.dense_system(x - d, problem, sqrt_w)
-        numeric[:, i] = (hi - lo) / (2 * eps)
-    np.testing.assert_allclose(jac, numeric, atol=2e-5 * max(1.0, np.abs(jac).max()))
+    assert_objective_jacobian(cued, x, problem, sqrt_w)
 
 
 def test_world_directions_turn_a_foreshortened_forearm_the_right_way(model_and_betas):

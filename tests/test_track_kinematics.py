@@ -14,6 +14,7 @@ from avatar_core.track.fit.camera import WebcamCamera
 from avatar_core.track.fit.fitter import FrameFitter, _Problem, neutral_params
 from avatar_core.track.fit.kinematics import rodrigues_and_left_jacobian
 from avatar_core.track.fit.observations import empty_observations
+from tests.fit_jacobian import assert_objective_jacobian
 
 CAMERA = WebcamCamera(640, 480, 60.0)
 
@@ -112,17 +113,7 @@ def test_objective_jacobian_matches_finite_differences(fitter):
     obs.depth[:] = rng.normal(0, 20.0, len(target))  # hand and face z: relative-depth pairs
     problem = _Problem(CAMERA, target, 6.4, x + 0.01, fitter._depth_pairs(obs, sqrt_w ** 2))
     assert problem.depth_pairs is not None and len(problem.depth_pairs[0]) == 2 * 20 + 50
-    res, jac = fitter.dense_system(x, problem, sqrt_w)
-    assert np.isfinite(res).all() and np.isfinite(jac).all()
-    eps = 1e-6
-    numeric = np.empty_like(jac)
-    for i in range(x.size):
-        d = np.zeros(x.size)
-        d[i] = eps
-        hi, _ = fitter.dense_system(x + d, problem, sqrt_w)
-        lo, _ = fitter.dense_system(x - d, problem, sqrt_w)
-        numeric[:, i] = (hi - lo) / (2 * eps)
-    np.testing.assert_allclose(jac, numeric, atol=2e-5 * max(1.0, np.abs(jac).max()))
+    assert_objective_jacobian(fitter, x, problem, sqrt_w)
 
 
 def test_non_finite_pose_gives_nan_points_not_a_crash(fitter):
