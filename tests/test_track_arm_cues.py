@@ -196,6 +196,9 @@ def test_world_landmarks_are_smoothed_row_by_row_and_restart_when_rows_change(
     # Off by default: the observations pass untouched.
     plain = SequenceFit(model, betas)
     assert plain._smoothed_world(obs, 1.1) is obs
+    for bad in (-1.0, math.nan, math.inf):
+        with pytest.raises(ValueError, match="world_min_cutoff"):
+            SequenceFit(model, betas, SequenceFitConfig(world_min_cutoff=bad))
 
 
 def test_the_body_may_have_its_own_temporal_weight(model_and_betas):

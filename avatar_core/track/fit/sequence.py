@@ -115,6 +115,9 @@ class SequenceFit:
         if not 0.0 <= self.config.edge_margin < 0.5:
             raise ValueError(f"edge_margin is a fraction of the image's longer side in "
                              f"[0, 0.5), got {self.config.edge_margin}")
+        if not (np.isfinite(self.config.world_min_cutoff) and self.config.world_min_cutoff >= 0):
+            raise ValueError(f"world_min_cutoff must be a finite frequency >= 0 (0: off), got "
+                             f"{self.config.world_min_cutoff}")
         self.fitter = FrameFitter(model, betas, self.config.fit)
         self.gaze = gaze_solver(model) if self.config.gaze else None
         self.neutral = self.fitter.neutral
@@ -227,7 +230,8 @@ class SequenceFit:
 # The arm cues as set on identity 1 of the studio webcam protocol and checked on identity 0
 # (docs/tracking.md, "BlazePose's world bones and the elbow hinge"): BlazePose's world bone
 # directions (arms and the shoulders' line), the elbows held to their hinge, and a firmer
-# temporal prior on the body's rotations against the jitter the world landmarks bring.
+# temporal prior on the body (placement and rotations) against the jitter the world
+# landmarks bring.
 ARM_CUES = {"world_direction_weight": 100.0,
             "world_direction_bones": (*ARM_BONES, *SHOULDER_LINE),
             "elbow_hinge_weight": 10.0, "elbow_extension_deg": 5.0, "body_temporal_weight": 10.0}
