@@ -240,3 +240,19 @@ def test_a_recording_is_fitted_once_per_drive_and_variant():
     assert list(named.metrics) == ["true_all_depth+arms"]
     with pytest.raises(ValueError, match="unknown fit variant"):
         wp.fit_recording(rec, drives=("live+nope",), variants=variants, curve=False)
+
+
+def test_replay_variants_take_tuples_and_fit_fields():
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "bench" / "webcam_replay.py"
+    spec = importlib.util.spec_from_file_location("webcam_replay", path)
+    replay = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(replay)
+    got = replay.parse_variants(
+        "a:fit.world_direction_bones=((11,13),(12,11)),fit.world_direction_weight=30.0;"
+        "b:world_min_cutoff=3.0")
+    assert got[""] == {} and got["b"] == {"world_min_cutoff": 3.0}
+    assert got["a"]["fit"].world_direction_bones == ((11, 13), (12, 11))
+    assert got["a"]["fit"].world_direction_weight == 30.0
