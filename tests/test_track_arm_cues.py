@@ -230,3 +230,13 @@ def test_the_live_path_carries_the_arm_cues_and_the_plain_config_none():
     plain = SequenceFitConfig().fit
     assert plain.world_direction_weight == 0 and plain.elbow_hinge_weight == 0
     assert plain.body_temporal_weight is None
+
+
+@pytest.mark.parametrize("fields", [{"elbow_extension_deg": math.nan},
+                                    {"elbow_extension_deg": -5.0},
+                                    {"world_direction_bones": ((11, 33),)},
+                                    {"world_direction_bones": ((11, 11),)},
+                                    {"world_direction_bones": ((11, 13, 15),)}])
+def test_bad_arm_cue_settings_are_refused(model_and_betas, fields):
+    with pytest.raises(ValueError, match=next(iter(fields))):
+        FrameFitter(*model_and_betas, FitConfig(**fields))

@@ -5,7 +5,10 @@ Minimized by Levenberg-Marquardt (bounded iterations) with the exact Jacobian of
 
     sum_k w_k * pseudo_huber(|project(keypoint_k) - landmark_k|) / s^2   (data, s = max(W,H)/100)
   + pose prior (spine, neck, head, collars toward rest; arms and hands weakly toward neutral)
-  + joint limits (hinge on each rotation's angle beyond `JOINT_LIMITS_DEG`)
+  + joint limits (hinge on each rotation's angle beyond `JOINT_LIMITS_DEG`; an elbow bent
+    backward past `elbow_extension_deg`)
+  + BlazePose's world bone directions against the model's (`world_cues`, when weighted)
+  + the fingers' and the elbows' hinge priors (`hand_prior.py`, `elbow_prior.py`)
   + expression prior and its +-1.5 bound
   + temporal prior toward the previous frame's fit (warm starts only)
 
@@ -136,9 +139,10 @@ class FitConfig:
     # (`world_cues.py`; 0: off). Set on held-out renders (docs/tracking.md).
     world_weight: float = 0.0
     image_z_weight: float = 0.0
-    # Each arm bone's direction toward BlazePose's metric world landmarks
-    # (`world_cues.direction_residuals`), per rad^2 (0: off): its world bones are far nearer
-    # the truth than a monocular fit's (docs/tracking.md).
+    # Each bone of `world_direction_bones` ((from, to) BlazePose landmarks) toward its
+    # direction in BlazePose's metric world landmarks (`world_cues.direction_residuals`), per
+    # rad^2 (0: off): its world bones are far nearer the truth than a monocular fit's
+    # (docs/tracking.md).
     world_direction_weight: float = 0.0
     world_direction_bones: tuple[tuple[int, int], ...] = world_cues.ARM_BONES
     dtype: torch.dtype = torch.float64
@@ -180,6 +184,14 @@ class FrameFitter:
             value = getattr(cfg, name)
             if value is not None and not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a finite weight >= 0, got {value}")
+        if math.isnan(cfg.elbow_extension_deg) or cfg.elbow_extension_deg < 0:
+            raise ValueError(f"elbow_extension_deg must be >= 0 (180 or more: off), got "
+                             f"{cfg.elbow_extension_deg}")
+        if any(len(b) != 2 or not all(0 <= i < cor.NUM_POSE for i in b) or b[0] == b[1]
+               for b in cfg.world_direction_bones):
+            raise ValueError(f"world_direction_bones must be (from, to) pairs of distinct "
+                             f"BlazePose landmarks in [0, {cor.NUM_POSE}), got "
+                             f"{cfg.world_direction_bones}")
         self.keypoints = BodyKeypoints(model, dtype=self.config.dtype)  # the reference model
         self.num_expression = model.num_expression
         n_betas = self.keypoints.model.num_betas
