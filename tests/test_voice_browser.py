@@ -14,6 +14,10 @@ from tests.server_fixtures import server_fixture  # noqa: F401 (`server`)
 from tests.test_client_browser import server_log, wait_for  # noqa: F401 (a fixture)
 from tests.test_webrtc_browser import browser_test, make_webrtc_chromium, wait_playing
 
+# Chromium plays the voice in real time: these pages run one at a time (one xdist group),
+# never beside each other (two failed together under contention in a CI run, 27 Nov).
+pytestmark = pytest.mark.xdist_group("voice_browser")
+
 LOUD_S = 60  # waits for Chromium's beeps (one a second) to show in the levels
 
 

@@ -8,12 +8,18 @@ from __future__ import annotations
 import asyncio
 import threading
 
+import pytest
+
 from tests.server_fixtures import server_fixture, wait_until  # noqa: F401 (`server`)
 from tests.test_client_browser import server_log, wait_for  # noqa: F401 (a fixture)
 from tests.test_server_rooms import create_room, invite, live
 from tests.test_voice_browser import LOUD_S
 from tests.test_voice_mix import SIZE, TIMEOUT_S, TONES, tone_track
 from tests.test_webrtc_browser import browser_test, make_webrtc_chromium, wait_playing
+
+# Chromium plays the voice in real time: these pages run one at a time (one xdist group),
+# never beside each other (two failed together under contention in a CI run, 27 Nov).
+pytestmark = pytest.mark.xdist_group("voice_browser")
 
 SPEAKING_S = 120  # bounded: how long the performers speak at most (the test stops them)
 

@@ -21,6 +21,10 @@ from tests.test_client_units import node, run_node
 from tests.test_voice_browser import LOUD_S, room, voice_counts, with_microphone  # noqa: F401
 from tests.test_webrtc_browser import WEB, browser_test, make_webrtc_chromium
 
+# Chromium plays the voice in real time: these pages run one at a time (one xdist group),
+# never beside each other (two failed together under contention in a CI run, 27 Nov).
+pytestmark = pytest.mark.xdist_group("voice_browser")
+
 WARM_UP_S = 2.0      # the first drives' frames, before the viewer has measured the picture
 EARLY_MS, LATE_MS = -45.0, 125.0  # ITU-R BT.1359: detectable when audio is earlier / later
 RESYNC_MS = 20       # client/web/voice_ws.js: the voice's delay moves further only to resync
@@ -194,3 +198,24 @@ def test_levels_in_dbov_and_the_missing_webcodecs_said_in_node():
     assert out["full"] == 0 and out["tenth"] == pytest.approx(-20)
     assert out["silence"] == -127 and out["tiny"] == -127  # clamped to RFC 6464's range
     assert "WebCodecs" in out["missing"]  # node has no AudioEncoder: said, not thrown
+
+
+@pytest.mark.skipif(node() is None, reason="node is not installed")
+def test_the_webrtc_level_is_the_mean_since_the_last_poll_in_node():
+    """A beep between two polls lifts the level even when each poll's instant is silent."""
+    url = Path(WEB, "voice.js").resolve().as_uri()
+    out = json.loads(run_node(f"""
+        import {{ intervalLevel }} from {json.dumps(url)};
+        console.log(JSON.stringify([
+          intervalLevel(null, 1.0, 2.0),
+          intervalLevel({{energy: 0.0, duration: 1.0}}, null, 2.0),
+          intervalLevel({{energy: 0.0, duration: 1.0}}, 0.025, 2.0),
+          intervalLevel({{energy: 0.5, duration: 2.0}}, 0.5, 3.0),
+          intervalLevel({{energy: 0.5, duration: 2.0}}, 0.6, 2.0),
+          intervalLevel({{energy: 0.5, duration: 2.0}}, 0.4, 3.0)]));"""))
+    # no previous poll or no stats: none; a 0.5-level beep for 0.1 s in a one-second
+    # interval: sqrt(0.25 x 0.1 / 1) = 0.158; silence: 0; no time passed: none; a counter
+    # that went back (a new receiver): never negative
+    assert out[:2] == [None, None]
+    assert out[2] == pytest.approx(0.158, abs=1e-3)
+    assert out[3] == 0 and out[4] is None and out[5] == 0

@@ -3,7 +3,8 @@
 // 0, the next seat 1, ...; the server answers lines past the room's seats inactive, and sends a
 // performer no voice of its own seat). The voices are in the video's MediaStream on the
 // server's side, so the browser lip-syncs them; each plays in its own <audio> with the
-// viewer's own volume and mute. Who speaks: the inbound audio level (getStats), polled.
+// viewer's own volume and mute. Who speaks: the inbound audio level (getStats), polled, and
+// the mean level of what played since the last poll.
 // WHEP has no renegotiation: turning the microphone on or off reconnects.
 
 export const VOICE_LINES = 4;     // seats this page can hear (recvonly lines offered)
@@ -11,6 +12,19 @@ export const SPEAKING_LEVEL = 0.02;  // inbound-rtp audioLevel (0..1) above whic
 
 export function openMicrophone() {
   return navigator.mediaDevices.getUserMedia({ audio: true, video: false });
+}
+
+/** The RMS level (0..1) of what played since the last poll, from inbound-rtp's
+ * totalAudioEnergy (level^2 x seconds, summed over every sample played) and
+ * totalSamplesDuration; `previous`: {energy, duration} of the last poll. null without both, or
+ * when no time passed. A 1 Hz poll of audioLevel alone reads one instant, and can keep missing
+ * a voice that pulses at the poll's own period (Chromium's fake microphone beeps once a
+ * second: a viewer then heard 3,000 packets and never "speaking"). */
+export function intervalLevel(previous, energy, duration) {
+  if (previous == null || energy == null || duration == null) return null;
+  const seconds = duration - previous.duration;
+  if (!(seconds > 0)) return null;
+  return Math.sqrt(Math.max(0, energy - previous.energy) / seconds);
 }
 
 /** What a voice line is called: its seat, or the room's mix (a viewer's #voice-mix). */
@@ -53,7 +67,7 @@ export class RoomVoices {
     this.mic = null;        // MediaStream of the microphone, while performing with it
     this.micMuted = false;
     this.lines = [];        // recvonly transceivers, seat order
-    this.seats = new Map(); // seat index -> {audio, receiver, speaking, level}
+    this.seats = new Map(); // seat index -> {audio, receiver, speaking, level, played}
     this.mixed = false;     // asked for the room's mix: the first line carries it
   }
 
@@ -83,7 +97,8 @@ export class RoomVoices {
       volume: (v) => { audio.volume = v; },
       mute: (m) => { audio.muted = m; },
     }, audio, this.mixed);
-    this.seats.set(index, { audio, receiver: event.receiver, label, speaking: false, level: 0 });
+    this.seats.set(index, { audio, receiver: event.receiver, label, speaking: false, level: 0,
+                            played: null });
     audio.play().catch(() => { /* autoplay refused until a click: the page says so */ });
   }
 
@@ -104,15 +119,19 @@ export class RoomVoices {
   async poll() {
     const out = [];
     for (const [index, seat] of this.seats) {
-      let level = 0, packets = 0;
+      let level = 0, packets = 0, energy = null, duration = null;
       try {
         (await seat.receiver.getStats()).forEach((s) => {
           if (s.type === "inbound-rtp" && s.kind === "audio") {
             level = s.audioLevel ?? 0;
             packets = s.packetsReceived ?? 0;
+            energy = s.totalAudioEnergy ?? null;
+            duration = s.totalSamplesDuration ?? null;
           }
         });
       } catch { /* closed meanwhile */ }
+      level = Math.max(level, intervalLevel(seat.played, energy, duration) ?? 0);
+      seat.played = energy == null || duration == null ? null : { energy, duration };
       seat.level = level;
       seat.speaking = level > SPEAKING_LEVEL;
       seat.label.textContent = `${voiceName(index, this.mixed)}${seat.speaking ? " (speaking)" : ""}`;
