@@ -140,10 +140,14 @@ def _eval(args: argparse.Namespace) -> int:
 
         fit_config = None
         if args.embedding or args.world_weight or args.image_z_weight:
-            from .track.fit.embedding import load_embedding
-            from .track.fit.fitter import FitConfig
+            import dataclasses
 
-            fit_config = FitConfig(
+            from .track.fit.embedding import load_embedding
+            from .track.fit.sequence import live_config
+
+            # the live fit (arm cues included) with these changed, not a fit from scratch
+            fit_config = dataclasses.replace(
+                live_config().fit,
                 embedding=load_embedding(args.embedding) if args.embedding else None,
                 world_weight=args.world_weight, image_z_weight=args.image_z_weight)
         with tqdm(desc="evaluating webcam", unit="frame") as bar:
@@ -590,7 +594,8 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--frame-stride", type=int, default=1, help="every K-th frame")
     ev.add_argument("--size", type=int, default=None, help="render width (default: dataset's)")
     ev.add_argument("--embedding", type=Path, default=None,
-                    help="webcam protocol: fit with this learned landmark embedding (.npz)")
+                    help="webcam protocol: the live fit with this learned landmark embedding "
+                         "(.npz)")
     ev.add_argument("--world-weight", type=float, default=0.0,
                     help="webcam protocol: weight of BlazePose's world-z term in the fit")
     ev.add_argument("--image-z-weight", type=float, default=0.0,

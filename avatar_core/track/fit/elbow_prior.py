@@ -16,13 +16,9 @@ from __future__ import annotations
 import numpy as np
 
 from ...body.skeleton import JOINT
+from .hand_prior import unit_or_none
 
 FORWARD = np.array([0.0, 0.0, 1.0])  # the rest stance's facing direction
-
-
-def _unit(v: np.ndarray) -> np.ndarray | None:
-    n = float(np.linalg.norm(v))
-    return v / n if np.isfinite(n) and n > 1e-9 else None
 
 
 def elbow_axes(rest_joints: np.ndarray) -> dict[int, tuple[np.ndarray, np.ndarray]]:
@@ -33,30 +29,11 @@ def elbow_axes(rest_joints: np.ndarray) -> dict[int, tuple[np.ndarray, np.ndarra
     out = {}
     for side in ("left", "right"):
         elbow = JOINT[f"{side}_elbow"]
-        bone = _unit(j[JOINT[f"{side}_wrist"]] - j[elbow])
+        bone = unit_or_none(j[JOINT[f"{side}_wrist"]] - j[elbow])
         if bone is None:
             continue
-        axis = _unit(np.cross(bone, FORWARD))
+        axis = unit_or_none(np.cross(bone, FORWARD))
         if axis is None:
             continue
         out[elbow] = (axis, np.cross(axis, bone))
     return out
-
-
-def sideways_matrix(axes: dict[int, tuple[np.ndarray, np.ndarray]],
-                    joint_columns: dict[int, np.ndarray], size: int) -> np.ndarray:
-    """[E, size] the linear map from the free-variable vector to each elbow's sideways bend."""
-    rows = np.zeros((len(axes), size))
-    for r, (k, (_, sideways)) in enumerate(axes.items()):
-        rows[r, joint_columns[k]] = sideways
-    return rows
-
-
-def flexion_matrix(axes: dict[int, tuple[np.ndarray, np.ndarray]],
-                   joint_columns: dict[int, np.ndarray], size: int) -> np.ndarray:
-    """[E, size] the linear map from the free-variable vector to each elbow's flexion (rad,
-    positive toward the front; negative is bending backward)."""
-    rows = np.zeros((len(axes), size))
-    for r, (k, (axis, _)) in enumerate(axes.items()):
-        rows[r, joint_columns[k]] = axis
-    return rows

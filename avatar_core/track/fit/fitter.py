@@ -268,13 +268,15 @@ class FrameFitter:
         elbow_columns = {k: lay["body"][0].start + 3 * FREE_BODY_JOINTS.index(
             SMPLX_JOINT_NAMES[k]) + np.arange(3) for k in elbows}
         if self.config.elbow_hinge_weight > 0:
+            sideways = {k: s[None] for k, (_, s) in elbows.items()}
             hinge = np.concatenate([hinge, math.sqrt(self.config.elbow_hinge_weight)
-                                    * elbow_prior.sideways_matrix(elbows, elbow_columns, n)])
+                                    * hinge_matrix(sideways, elbow_columns, n)])
         self.hinge_jacobian, self.hinge_offset = hinge, hinge @ mean
         # Elbow flexion rows [E, N] and the backward bend they allow (rad), or None.
         self.elbow_flexion = None
         if self.config.elbow_extension_deg < 180.0:
-            self.elbow_flexion = (elbow_prior.flexion_matrix(elbows, elbow_columns, n),
+            flexion = {k: axis[None] for k, (axis, _) in elbows.items()}
+            self.elbow_flexion = (hinge_matrix(flexion, elbow_columns, n),
                                   math.radians(self.config.elbow_extension_deg))
         # Per hand: (its rows, its wrist's body-variable columns, its hand-pose columns, the
         # wrist's joint, the rest palm [5, 3] for `palm_rotation`).

@@ -27,7 +27,8 @@ HINGES = ("index2", "index3", "middle2", "middle3", "ring2", "ring3", "pinky2", 
 BASES = ("index1", "middle1", "ring1", "pinky1")
 
 
-def _unit(v: np.ndarray) -> np.ndarray | None:
+def unit_or_none(v: np.ndarray) -> np.ndarray | None:
+    """v / |v|, or None for a zero-length or non-finite v."""
     n = float(np.linalg.norm(v))
     return v / n if np.isfinite(n) and n > 1e-9 else None
 
@@ -40,7 +41,8 @@ def hinge_rows(rest_joints: np.ndarray, parents: np.ndarray, side: str
     j = np.asarray(rest_joints, dtype=np.float64)
     parents = np.asarray(parents)
     wrist = j[JOINT[f"{side}_wrist"]]
-    normal = _unit(np.cross(j[JOINT[f"{side}_index1"]] - wrist, j[JOINT[f"{side}_pinky1"]] - wrist))
+    normal = unit_or_none(np.cross(j[JOINT[f"{side}_index1"]] - wrist,
+                                   j[JOINT[f"{side}_pinky1"]] - wrist))
     if normal is None:
         return {}
     out: dict[int, np.ndarray] = {}
@@ -48,13 +50,13 @@ def hinge_rows(rest_joints: np.ndarray, parents: np.ndarray, side: str
         for name in names:
             k = JOINT[f"{side}_{name}"]
             children = np.flatnonzero(parents == k)
-            bone = _unit(j[children[0]] - j[k]) if len(children) else _unit(j[k] - j[parents[k]])
+            bone = unit_or_none(j[children[0]] - j[k] if len(children) else j[k] - j[parents[k]])
             if bone is None:
                 continue
             if not hinge:
                 out[k] = bone[None]
                 continue
-            axis = _unit(np.cross(bone, normal))
+            axis = unit_or_none(np.cross(bone, normal))
             if axis is None:
                 continue
             other = np.cross(axis, bone)  # bone, other: an orthonormal basis of axis's complement
