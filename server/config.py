@@ -408,6 +408,12 @@ class Settings(BaseModel):
     webrtc_connect_timeout_s: float = Field(
         15.0, gt=0, description="Seconds a WebRTC peer may take from its answer to a connected "
                                 "ICE/DTLS transport; then it is closed and its slot freed.")
+    webrtc_close_flush_s: float = Field(
+        3.0, ge=0, le=10.0, description="Seconds a WebRTC peer closed for a too-large "
+                                         "data-channel message waits for the client to "
+                                         "acknowledge its too_large error before the "
+                                         "association is aborted (3 s: room for one "
+                                         "retransmission; aiortc's shortest is 1 s).")
     webrtc_max_message_bytes: int = Field(
         256 * 1024, ge=1024, description="Largest data-channel message, bytes: advertised as "
                                          "the SDP answer's a=max-message-size and enforced "

@@ -479,3 +479,47 @@ def test_hostile_chunks_stay_within_the_window_and_the_stream_cap(tmp_path):
     assert g.peak_held <= window and g.dropped["window"] > 0, g.summary()
     assert g.accepted_bytes - 40 * 8 <= window, g.summary()
     assert not g.refused  # out of order: never counted as one message, never completed
+
+
+def test_the_guard_flushes_a_last_message_and_gives_up_on_a_silent_peer():
+    """Before a refused peer's association is aborted, its ``too_large`` is let out: flush
+    returns once the client acknowledged it, and gives up at its bound when the client never
+    acknowledges (here its SACKs are silenced)."""
+    from aiortc import RTCConfiguration, RTCPeerConnection, RTCSessionDescription
+
+    from server.webrtc.sctp import GuardLimits, SctpGuard
+
+    async def silent_sack(*args, **kwargs) -> None:
+        return None
+
+    async def run():
+        client, server = (RTCPeerConnection(RTCConfiguration(iceServers=[])) for _ in range(2))
+        guard = SctpGuard(GuardLimits.from_settings(Settings()), lambda size: None)
+        received: list[str] = []
+        accepted: list = []  # the server's end of the channel
+        client.createDataChannel("telesplat").on("message", received.append)
+        server.on("datachannel", accepted.append)
+        await client.setLocalDescription(await client.createOffer())
+        await server.setRemoteDescription(RTCSessionDescription(
+            client.localDescription.sdp, "offer"))
+        assert guard.install(server.sctp)
+        await server.setLocalDescription(await server.createAnswer())
+        await client.setRemoteDescription(RTCSessionDescription(
+            server.localDescription.sdp, "answer"))
+        await asyncio.wait_for(_until(lambda: accepted and accepted[0].readyState == "open"),
+                               TIMEOUT_S)
+        accepted[0].send("last")
+        flushed = await guard.flush(TIMEOUT_S)
+        await asyncio.wait_for(_until(lambda: received), TIMEOUT_S)
+        client.sctp._send_sack = silent_sack  # the client stops acknowledging
+        accepted[0].send("unacknowledged")
+        t0 = time.monotonic()
+        gave_up = not await guard.flush(0.3)
+        waited = time.monotonic() - t0
+        for pc in (client, server):
+            await pc.close()
+        return flushed, received, gave_up, waited
+
+    flushed, received, gave_up, waited = asyncio.run(run())
+    assert flushed and received[0] == "last"
+    assert gave_up and 0.3 <= waited < 0.3 + 5.0, waited

@@ -61,6 +61,8 @@ HOOKS = ("_receive_data_chunk", "_receive_forward_tsn_chunk", "_send_sack")
 STATE = ("_inbound_streams", "_advertised_rwnd", "_last_received_tsn", "_sack_misordered",
          "_sack_needed")
 REASONS = ("closed", "streams", "window", "duplicate")
+SEND_QUEUES = ("_data_channel_queue", "_outbound_queue", "_sent_queue")  # unsent or unacked
+FLUSH_POLL_S = 0.01
 
 
 @dataclass(frozen=True)
@@ -181,6 +183,21 @@ class SctpGuard:
         capabilities = RTCSctpCapabilities(maxMessageSize=self.limits.max_message_bytes)
         sctp.getCapabilities = lambda: capabilities  # this instance's a=max-message-size
         self.installed = True
+        return True
+
+    async def flush(self, timeout_s: float) -> bool:
+        """Wait, at most ``timeout_s``, until what the server sent on the association is
+        acknowledged (a last ``too_large`` must not die in aiortc's queues when the peer's
+        teardown aborts the association); False when the time ran out."""
+        sctp = self._sctp
+        if sctp is None or not all(hasattr(sctp, n) for n in SEND_QUEUES):
+            return True
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout_s
+        while any(getattr(sctp, n) for n in SEND_QUEUES):
+            if loop.time() >= deadline:
+                return False
+            await asyncio.sleep(FLUSH_POLL_S)
         return True
 
     def stop(self) -> None:
