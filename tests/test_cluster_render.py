@@ -25,6 +25,7 @@ from tests.server_fixtures import (
     run_server,
     stream,
     wait_until,
+    ws_connect,
 )
 
 # One worker runs the module under `make test` (-n 2 --dist loadgroup): one cluster, one gateway.
@@ -162,8 +163,7 @@ def create_room(srv) -> tuple[str, str, str]:
 @contextlib.asynccontextmanager
 async def join_room(srv, room_id: str, token: str):
     url = srv.url.replace("http://", "ws://") + f"/v1/stream?room={room_id}"
-    async with websockets.connect(url, max_size=None, open_timeout=WS_TIMEOUT_S,
-                                  close_timeout=5) as ws:
+    async with ws_connect(url) as ws:
         await ws.send(encode(Hello(token=token)))
         await recv_until(ws, is_type("welcome"))
         yield ws

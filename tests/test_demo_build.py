@@ -20,12 +20,11 @@ import cv2
 import httpx
 import numpy as np
 import pytest
-import websockets
 
 import server.jobs.demo_build as demo_build
 from protocol import Frame, Hello, Orbit, View, encode
 from server.registry import AvatarRegistry
-from tests.server_fixtures import is_type, recv_until, run_server, stream
+from tests.server_fixtures import is_type, recv_until, run_server, stream, ws_connect
 from tests.test_client_units import chromium_missing, make_chromium, node, run_node
 
 TINY = {"motions": "smile", "resolution": 48, "frames": 2, "preset": "test", "iterations": 12}
@@ -96,8 +95,7 @@ class KeptConnections:
         async with contextlib.AsyncExitStack() as stack:
             sockets = {}
             for scope in ("perform", "watch"):
-                ws = await stack.enter_async_context(websockets.connect(
-                    room_url, max_size=None, open_timeout=30, close_timeout=5))
+                ws = await stack.enter_async_context(ws_connect(room_url, open_timeout=30))
                 await ws.send(encode(Hello(token=tokens[scope], role=scope)))
                 ws.welcome = await recv_until(ws, is_type("welcome"), timeout=60)
                 sockets[scope] = ws

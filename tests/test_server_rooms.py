@@ -25,6 +25,7 @@ from tests.server_fixtures import (
     recv_until,
     run_server,
     wait_until,
+    ws_connect,
 )
 
 SIZE = 96
@@ -68,8 +69,7 @@ def room_url(srv, room_id: str) -> str:
 async def join(srv, room_id: str, token: str, *, welcome: bool = True, **hello):
     """A room's WebSocket after its hello (and, unless ``welcome=False``, its welcome)."""
     extra = {k: hello.pop(k) for k in ("sock", "max_queue") if k in hello}
-    async with websockets.connect(room_url(srv, room_id), max_size=None,
-                                  open_timeout=WS_TIMEOUT_S, close_timeout=5, **extra) as ws:
+    async with ws_connect(room_url(srv, room_id), **extra) as ws:
         await ws.send(encode(Hello(token=token, **hello)))
         if welcome:
             ws.welcome = await recv_until(ws, is_type("welcome"))
