@@ -54,10 +54,11 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
 from stream import start_server, stop_server  # noqa: E402
-from webrtc import cpu_seconds, release_at_marker  # noqa: E402
+from webrtc import cpu_seconds  # noqa: E402
 
-from client.webrtc import WhepViewer, rtp_timestamp  # noqa: E402
+from client.webrtc import WhepViewer  # noqa: E402
 from protocol import Drive  # noqa: E402
+from protocol.rtp_receiver import frame_rtp_timestamp  # noqa: E402
 from server.loop_watch import GcWatch  # noqa: E402
 
 RATE = 48_000
@@ -151,8 +152,8 @@ class Ear:
             self._hook_reports(receiver)
 
     def rtp(self, kind: str, pts: int) -> int | None:
-        """The RTP timestamp of a decoded frame (client.webrtc.rtp_timestamp)."""
-        return rtp_timestamp(self.receivers.get(kind), pts)
+        """The RTP timestamp of a decoded frame (protocol.rtp_receiver)."""
+        return frame_rtp_timestamp(self.receivers.get(kind), pts)
 
     def _hook_reports(self, receiver) -> None:
         from aiortc.rtp import RtcpSrPacket
@@ -259,7 +260,6 @@ async def listen_in_process(url: str, token: str, room: str, count: int, size: i
             for _ in range(count)]
     for ear in ears:
         await ear.viewer.start()
-        release_at_marker(ear.viewer)
         ear.hook()
     await asyncio.gather(*(e.viewer.next_frame() for e in ears))
     pauses: list[float] = []  # this process's collector pauses while recording (ms)

@@ -231,29 +231,14 @@ async def transport_bytes(viewer: WhepViewer) -> int:
                if type(s).__name__ == "RTCTransportStats")
 
 
-def release_at_marker(viewer: WhepViewer) -> None:
-    """Make the viewer's video receiver hand a frame to the decoder at its last packet (the
-    RTP marker bit), as browsers do, with the server's own WHIP buffer
-    (server/webrtc/jitter.py). aiortc's stock jitter buffer releases a frame only when the
-    next frame's first packet arrives, which adds one frame interval (33 ms at 30 fps, 200 ms
-    at 5 fps) to every WebRTC latency measured here but not to a browser's."""
-    from server.webrtc.jitter import release_on_marker
-
-    for receiver in viewer.pc.getReceivers():
-        if receiver.track.kind == "video":  # before the first packet: ICE is not up yet
-            release_on_marker(receiver)
-
-
 async def run_webrtc(url: str, token: str, codec: str, run: Run, pid: int | None,
                      seconds: float, rate: float, samples: int, marker: bool = True) -> None:
     room = await new_room(url, token)
     run.motion = motion = Motion()
     try:
         viewer = WhepViewer(url, room, token, width=run.size, height=run.size, fps=rate, seat=0,
-                            stamp=True, codec=codec, timeout_s=60)
+                            stamp=True, codec=codec, release_at_marker=marker, timeout_s=60)
         await viewer.start()
-        if marker:
-            release_at_marker(viewer)
         try:
             await viewer.wait_open()
             welcome = await viewer.welcome()

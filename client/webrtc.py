@@ -10,7 +10,10 @@ It offers a recvonly video (VP8 and H.264, ``codec`` first when given) and the d
 ``telesplat``; ``voices=n`` adds n recvonly Opus audio m-lines (the room's seats 0..n-1, in
 the same MediaStream as the video: :meth:`next_audio`; with ``voice_mix`` the first carries
 the room's one mix of them), ``microphone=track`` a sendonly one
-the server forwards to the viewers when this peer performs; the answer's ``Location`` is
+the server forwards to the viewers when this peer performs. Each video frame is decoded at its
+last packet (the RTP marker bit), as a browser does (protocol/rtp_receiver.py;
+``release_at_marker=False`` keeps aiortc's buffer, which waits for the next frame's first
+packet: one frame interval later). The answer's ``Location`` is
 DELETEd by :meth:`close`. HTTP refusals raise :class:`WhepError` with the status and the
 server's ``detail``.
 """
@@ -46,7 +49,7 @@ class WhepViewer:
                  role: Literal["perform", "watch"] | None = None, stamp: bool = False,
                  codec: Literal["vp8", "h264"] | None = None, data_channel: bool = True,
                  voices: int = 0, microphone: Any = None, voice_mix: bool = False,
-                 timeout_s: float = 20.0) -> None:
+                 release_at_marker: bool = True, timeout_s: float = 20.0) -> None:
         query = {k: v for k, v in {"width": width, "height": height, "fps": fps, "seat": seat,
                                    "role": role, "stamp": int(stamp) if stamp else None,
                                    "voice": "mix" if voice_mix else None,
@@ -59,6 +62,7 @@ class WhepViewer:
         self.data_channel = data_channel
         self.voices = voices
         self.microphone = microphone
+        self.release_at_marker = release_at_marker
         self._audio: list[asyncio.Future] = []  # the received voices' tracks, seat order
         self.timeout_s = timeout_s
         self.location: str | None = None
@@ -85,6 +89,8 @@ class WhepViewer:
         )
         from aiortc.rtcrtpsender import RTCRtpSender
 
+        from protocol.rtp_receiver import release_on_marker
+
         loop = asyncio.get_running_loop()
         # max-bundle: with aiortc's default a second voice line stays on a transport that
         # never connects (server/webrtc/negotiate.py's configuration says how)
@@ -93,6 +99,8 @@ class WhepViewer:
         self._track = loop.create_future()
         self._channel_open = asyncio.Event()
         transceiver = pc.addTransceiver("video", direction="recvonly")
+        if self.release_at_marker:  # decoded at its last packet, as a browser does
+            release_on_marker(transceiver.receiver)
         voices = [pc.addTransceiver("audio", direction="recvonly") for _ in range(self.voices)]
         self._audio = [loop.create_future() for _ in voices]
         if self.microphone is not None:
@@ -238,14 +246,3 @@ def answered_codec(answer_sdp: str) -> str | None:
         if media.kind == "video" and media.rtp.codecs:
             return media.rtp.codecs[0].mimeType
     return None
-
-
-TIMESTAMP_MAPPER = "_RTCRtpReceiver__timestamp_mapper"  # aiortc 1.16's: RTP -> frame pts
-
-
-def rtp_timestamp(receiver: Any, pts: int) -> int | None:
-    """The RTP timestamp of the frame ``receiver`` (an aiortc ``RTCRtpReceiver``) decoded
-    with ``pts``: aiortc counts a track's pts from the first frame it decoded, which need not
-    be the first packet a hook saw. None before its first frame (or if aiortc moved it)."""
-    origin = getattr(getattr(receiver, TIMESTAMP_MAPPER, None), "_origin", None)
-    return None if origin is None else (pts + origin) % 2**32

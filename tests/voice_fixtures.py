@@ -86,10 +86,10 @@ def note_rtp_arrivals(v) -> dict[str, Callable[[int], float | None]]:
     were not seen): when a frame or a click reached viewer ``v`` (a WhepViewer), before its
     decoding (a viewer sharing its process with the server decodes at wandering times).
     Keyed by the RTP timestamp itself and looked up through aiortc's own pts origin
-    (client.webrtc.rtp_timestamp): counted from the first packet seen instead, a packet
-    before this hook would shift every key, and on the capture clock frames one tick apart
-    would then pair with others seconds away."""
-    from client.webrtc import rtp_timestamp
+    (protocol.rtp_receiver.frame_rtp_timestamp): counted from the first packet seen instead,
+    a packet before this hook would shift every key, and on the capture clock frames one tick
+    apart would then pair with others seconds away."""
+    from protocol.rtp_receiver import frame_rtp_timestamp
 
     arrivals: dict[str, dict[int, float]] = {"audio": {}, "video": {}}
     lookups = {}
@@ -101,7 +101,7 @@ def note_rtp_arrivals(v) -> dict[str, Callable[[int], float | None]]:
             await original(packet, arrival_time_ms=arrival_time_ms)
 
         def lookup(pts: int, kind=kind, receiver=receiver) -> float | None:
-            return arrivals[kind].get(rtp_timestamp(receiver, pts))
+            return arrivals[kind].get(frame_rtp_timestamp(receiver, pts))
 
         receiver._handle_rtp_packet = note
         lookups[kind] = lookup

@@ -21,6 +21,7 @@ from aiortc import RTCPeerConnection
 from aiortc.mediastreams import VIDEO_CLOCK_RATE
 
 from protocol import Request, encode
+from protocol.rtp_receiver import release_on_marker
 
 from ..context import ServerContext
 from ..rooms.join import seat_participant, serve
@@ -33,7 +34,6 @@ from .audio import VoiceTrack, opus_payload_type, publish_voice, refuse_voice
 from .channel import DataChannel
 from .encoders import install_encoder
 from .ingest import ingest
-from .jitter import release_on_marker
 from .negotiate import Kind, Offer, answer, configuration
 from .publisher_clock import PublisherClock
 from .sctp import GuardLimits, SctpGuard

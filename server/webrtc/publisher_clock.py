@@ -23,14 +23,11 @@ from __future__ import annotations
 from typing import Any
 
 from protocol.messages import MAX_CAPTURE_TIME
+from protocol.rtp_receiver import RTP_WRAP, frame_rtp_timestamp
 
-RTP_WRAP = 2**32
 NTP_FRACTION = 2**32  # NTP's 32.32 fixed point
 ORIGIN_MARGIN_S = 3600.0  # media stamped up to this long before the first report stays >= 0
 RTCP_HANDLER = "_handle_rtcp_packet"  # RTCRtpReceiver's entry for each routed RTCP packet
-# aiortc 1.16's RTCRtpReceiver: RTP timestamp -> frame pts (tests/test_webrtc_jitter.py fails
-# if it moves)
-TIMESTAMP_MAPPER = "_RTCRtpReceiver__timestamp_mapper"
 
 
 def signed_ticks(a: int, b: int) -> int:
@@ -108,10 +105,3 @@ class TrackReports:
 
         setattr(receiver, RTCP_HANDLER, handle)
         return True
-
-
-def frame_rtp_timestamp(receiver: Any, pts: int | None) -> int | None:
-    """The RTP timestamp of the frame ``receiver`` decoded with ``pts`` (aiortc counts pts from
-    its first decoded frame); None when unknown."""
-    origin = getattr(getattr(receiver, TIMESTAMP_MAPPER, None), "_origin", None)
-    return None if origin is None or pts is None else (pts + origin) % RTP_WRAP
