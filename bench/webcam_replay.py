@@ -37,7 +37,7 @@ def _top_level_split(text: str) -> list[str]:
 
 def parse_variants(text: str) -> dict[str, dict]:
     """'a:hold_arms=1,edge_margin=0.02;b:fit.temporal_weight=2' -> {"": {}, "a": {...}}
-    (values parsed as Python literals; fit.X changes the FitConfig)."""
+    (values parsed as Python literals; fit.X changes the drive's FitConfig: under "fit")."""
     import ast
     import dataclasses
 
@@ -52,8 +52,10 @@ def parse_variants(text: str) -> dict[str, dict]:
             key, _, value = pair.partition("=")
             (fit if key.startswith("fit.") else changes)[key.removeprefix("fit.")] = \
                 ast.literal_eval(value)
+        dataclasses.replace(base, fit=dataclasses.replace(base.fit, **fit),
+                            **changes)  # unknown fields fail here, before any fitting
         if fit:
-            changes["fit"] = dataclasses.replace(base.fit, **fit)
+            changes["fit"] = fit  # changed on each drive's own fit (protocol.with_variant)
         out[label.strip()] = changes
     return out
 

@@ -254,5 +254,23 @@ def test_replay_variants_take_tuples_and_fit_fields():
         "a:fit.world_direction_bones=((11,13),(12,11)),fit.world_direction_weight=30.0;"
         "b:world_min_cutoff=3.0")
     assert got[""] == {} and got["b"] == {"world_min_cutoff": 3.0}
-    assert got["a"]["fit"].world_direction_bones == ((11, 13), (12, 11))
-    assert got["a"]["fit"].world_direction_weight == 30.0
+    assert got["a"]["fit"] == {"world_direction_bones": ((11, 13), (12, 11)),
+                               "world_direction_weight": 30.0}
+    with pytest.raises(TypeError):
+        replay.parse_variants("c:fit.no_such_field=1")
+
+
+def test_a_variant_changes_the_drives_own_fit():
+    """A variant of the arm_cues drive that names its bones changes them and keeps the other
+    cues (applied before the drive's cues, they were silently overwritten)."""
+    from avatar_core.synth.tracking_eval.protocol import with_variant
+    from avatar_core.synth.tracking_eval.protocol_drives import drive_config
+    from avatar_core.track.fit.sequence import ARM_CUES, SequenceFitConfig
+
+    bones = ((11, 13), (23, 11))
+    config = with_variant(drive_config("arm_cues", SequenceFitConfig()),
+                          {"hold_arms": True, "fit": {"world_direction_bones": bones}})
+    assert config.fit.world_direction_bones == bones and config.hold_arms
+    assert config.fit.world_direction_weight == ARM_CUES["world_direction_weight"]
+    assert with_variant(drive_config("live", SequenceFitConfig()), {}).fit == \
+        SequenceFitConfig().fit

@@ -326,15 +326,26 @@ def drive_observations(rec: Recording, i: int, drive: str):
     return obs
 
 
+def with_variant(config, changes: dict):
+    """`config` (a SequenceFitConfig, as its drive fits) with a variant's `changes`: its
+    fields, and under "fit" a dict of FitConfig fields changed on the drive's own fit. Applied
+    after the drive's configuration, so that a variant of `arm_cues` naming
+    `world_direction_bones` changes them instead of being overwritten by the drive's cues."""
+    top = {k: v for k, v in changes.items() if k != "fit"}
+    fit = dataclasses.replace(config.fit, **changes.get("fit", {}))
+    return dataclasses.replace(config, **top, fit=fit)
+
+
 def fit_recording(rec: Recording, *, drives: Sequence[str] = DEFAULT_DRIVES,
                   score_size: tuple[int, int] = (320, 240), model_dir=None,
                   fit_config=None, curve: bool = True,
                   variants: dict[str, dict] | None = None,
                   progress: Progress | None = None) -> RunResult:
     """Fit every drive on the recorded frames and score it (`run_condition`'s second half).
-    `variants`: label -> `SequenceFitConfig` fields to change; each drive is fitted once per
-    variant, frame by frame side by side, as "drive" (label "") or "drive+label"; or, where
-    `drives` names "drive+label" entries itself, just those."""
+    `variants`: label -> `SequenceFitConfig` fields to change over each drive's own
+    configuration (`with_variant`); each drive is fitted once per variant, frame by frame side
+    by side, as "drive" (label "") or "drive+label"; or, where `drives` names "drive+label"
+    entries itself, just those."""
     from avatar_core.gaussians.animate import synthetic_package
     from avatar_core.synth.actor import Actor
     from avatar_core.synth.model_writer import ensure_models
@@ -359,7 +370,7 @@ def fit_recording(rec: Recording, *, drives: Sequence[str] = DEFAULT_DRIVES,
     fits, inputs = {}, {}
     for d, label in pairs:
         name = f"{d}+{label}" if label else d
-        config = drive_config(d, dataclasses.replace(cfg, **variants[label]))
+        config = with_variant(drive_config(d, cfg), variants[label])
         fits[name], inputs[name] = SequenceFit(body_model, betas, config), d
     res = RunResult(condition, rec.fps, truth, {d: [] for d in fits},
                     {d: [] for d in fits}, {d: [] for d in fits}, list(rec.track_ms),
