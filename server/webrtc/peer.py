@@ -58,7 +58,6 @@ class WebRTCPeer:
         self.guard = SctpGuard(GuardLimits.from_settings(ctx.settings), self._too_large,
                                metrics=ctx.metrics, name=resource)
         self.track: LatestFrameTrack | None = None
-        self._flush_before_close = False  # a last message queued: let it out before closing
         self.epoch: CaptureEpoch | None = None  # webrtc_sender_clock = capture: both tracks'
         self.publisher_clock = PublisherClock()  # what it publishes, on its reports' clock
         self.participant: Session | None = None
@@ -202,7 +201,6 @@ class WebRTCPeer:
         self.channel.send_last(encode(error_message(
             "too_large", f"a data-channel message of more than {limit} bytes (the answer's "
                          "a=max-message-size, webrtc_max_message_bytes): the peer is closed")))
-        self._flush_before_close = True
         self._close_soon(f"a data-channel message passed {size} bytes "
                          f"(webrtc_max_message_bytes {limit})")
 
@@ -233,7 +231,8 @@ class WebRTCPeer:
                  self.kind, reason, self.guard.summary())
         try:
             self.guard.stop()  # nothing more reaches the session
-            if self._flush_before_close and not await self.guard.flush(
+            # refused: its too_large was queued last (_too_large); let it out before the abort
+            if self.guard.refused and not await self.guard.flush(
                     self.ctx.settings.webrtc_close_flush_s):
                 log.info("WebRTC peer %s: its last message was not acknowledged within "
                          "webrtc_close_flush_s", self.resource)
