@@ -131,6 +131,23 @@ def _webcam_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def webcam_fit_config(args):
+    """The FitConfig `eval --protocol webcam` fits with, or None for the live path's own: the
+    live fit (arm cues included) with --embedding / --world-weight / --image-z-weight changed,
+    or with --no-arm-cues the 2D fit the cues were measured against."""
+    if not (args.embedding or args.world_weight or args.image_z_weight or args.no_arm_cues):
+        return None
+    import dataclasses
+
+    from .track.fit.embedding import load_embedding
+    from .track.fit.sequence import SequenceFitConfig, live_config
+
+    base = SequenceFitConfig() if args.no_arm_cues else live_config()
+    return dataclasses.replace(
+        base.fit, embedding=load_embedding(args.embedding) if args.embedding else None,
+        world_weight=args.world_weight, image_z_weight=args.image_z_weight)
+
+
 def _eval(args: argparse.Namespace) -> int:
     from .metrics.evaluate import evaluate
     from .metrics.report import result_markdown
@@ -138,18 +155,7 @@ def _eval(args: argparse.Namespace) -> int:
     if args.protocol == "webcam":
         from .metrics.webcam import evaluate_webcam, webcam_markdown
 
-        fit_config = None
-        if args.embedding or args.world_weight or args.image_z_weight:
-            import dataclasses
-
-            from .track.fit.embedding import load_embedding
-            from .track.fit.sequence import live_config
-
-            # the live fit (arm cues included) with these changed, not a fit from scratch
-            fit_config = dataclasses.replace(
-                live_config().fit,
-                embedding=load_embedding(args.embedding) if args.embedding else None,
-                world_weight=args.world_weight, image_z_weight=args.image_z_weight)
+        fit_config = webcam_fit_config(args)
         with tqdm(desc="evaluating webcam", unit="frame") as bar:
             result = evaluate_webcam(
                 args.avatar, args.dataset, max_frames=args.max_views,
@@ -600,6 +606,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="webcam protocol: weight of BlazePose's world-z term in the fit")
     ev.add_argument("--image-z-weight", type=float, default=0.0,
                     help="webcam protocol: weight of BlazePose's image-z term in the fit")
+    ev.add_argument("--no-arm-cues", action="store_true",
+                    help="webcam protocol: fit without BlazePose's world bone directions and "
+                         "the elbow hinge (the 2D fit; the live path has them)")
     _add_body_models(ev)
     ev.set_defaults(func=_eval)
 

@@ -106,3 +106,24 @@ def test_bad_arguments_fail_before_any_work(avatar, dataset_dir):
     for kw in ({"frame_stride": 0}, {"max_frames": 0}, {"max_images": -1}):
         with pytest.raises(ValueError, match="at least 1"):
             evaluate_webcam(avatar, dataset_dir, **kw)
+
+
+def test_the_fit_flags_change_the_live_fit_or_drop_its_arm_cues():
+    """`eval --protocol webcam` fits as the live path does (None: its own config); the flags
+    change that fit, and --no-arm-cues gives the 2D fit the cues were measured against."""
+    import argparse
+
+    from avatar_core.cli import webcam_fit_config
+    from avatar_core.track.fit.sequence import ARM_CUES, SequenceFitConfig, live_config
+
+    def config(**flags):
+        return webcam_fit_config(argparse.Namespace(**{
+            "embedding": None, "world_weight": 0.0, "image_z_weight": 0.0,
+            "no_arm_cues": False, **flags}))
+
+    assert config() is None
+    weighted = config(world_weight=2.0)
+    assert weighted.world_weight == 2.0
+    assert weighted.world_direction_weight == ARM_CUES["world_direction_weight"]
+    assert config(no_arm_cues=True) == SequenceFitConfig().fit != live_config().fit
+    assert config(no_arm_cues=True, image_z_weight=0.1).world_direction_weight == 0.0
