@@ -37,21 +37,18 @@ def main() -> None:
     from avatar_core.synth.tracking_eval import protocol as wp
     from avatar_core.track.fit import correspondence as cor
     from avatar_core.track.fit.embedding import load_embedding
-    from avatar_core.track.fit.sequence import SequenceFitConfig, with_arm_cues
 
     full = load_embedding()
     face = np.arange(cor.FACE_SLICE.start, cor.FACE_SLICE.stop)
     head = cor.POSE_SLICE.start + np.flatnonzero(full.joint[cor.POSE_SLICE] == JOINT["head"])
-    cues = with_arm_cues(SequenceFitConfig(fov_x_deg=wp.FOV_X_DEG)).fit
+    # changes on the arm_cues drive's own fit (protocol.with_variant)
     variants = {
-        "cues": {"fit": cues},
-        "face": {"fit": dataclasses.replace(cues, embedding=rows_only(full, face))},
-        "facehead": {"fit": dataclasses.replace(
-            cues, embedding=rows_only(full, np.concatenate([face, head])))}}
+        "face": {"fit": {"embedding": rows_only(full, face)}},
+        "facehead": {"fit": {"embedding": rows_only(full, np.concatenate([face, head]))}}}
     with open(args.recording, "rb") as f:
         rec = pickle.load(f)
-    res = wp.fit_recording(rec, drives=[f"live+{v}" for v in variants], variants=variants,
-                           curve=False)
+    res = wp.fit_recording(rec, drives=["arm_cues", *(f"arm_cues+{v}" for v in variants)],
+                           variants=variants, curve=False)
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         with open(args.out, "wb") as f:
