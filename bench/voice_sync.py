@@ -37,6 +37,7 @@ import argparse
 import asyncio
 import fractions
 import itertools
+import math
 import multiprocessing
 import os
 import sys
@@ -67,6 +68,47 @@ EVENT_EVERY_S = 0.7
 OPEN_S = 0.3
 JAW_OPEN = 0.5
 CLICK_LEVEL = 0.3
+
+
+class JawDrives:
+    """A webcam performer's drives: the current jaw, ``drive_hz`` times a second (0: only at
+    the jaw's edges). ``edges="tick"``: a jaw edge is one of those drives, the schedule going
+    on from it, as a tracker sends one drive per camera frame and the frame that catches the
+    open mouth is the one at the click; the performer never exceeds ``drive_hz``.
+    ``"extra"`` (the benches before 2026-11-27's fifth session): an edge is a drive between
+    two ticks, so at 30 drives/s the performer sends 32.9 a second into a 30 fps cap, and an
+    edge may lose its frame to the next tick's drive (docs/benchmarks.md, "The frame-rate cap
+    as a rate")."""
+
+    def __init__(self, send, drive_hz: float, edges: str = "tick") -> None:
+        if edges not in ("tick", "extra"):
+            raise ValueError(f"edges {edges!r}: tick or extra")
+        self.send, self.drive_hz, self.edges = send, drive_hz, edges
+        self.angle = 0.0
+        self.seq = iter(range(1, 10**9))
+        self.next_tick = 0.0  # time.monotonic() of the next scheduled drive
+
+    def _drive(self) -> None:
+        now = time.monotonic()
+        self.send(Drive(seq=next(self.seq), smplx={"jaw_pose": [self.angle, 0.0, 0.0]},
+                        t_capture=now))
+        self.next_tick = now + 1 / self.drive_hz if self.drive_hz else math.inf
+
+    def jaw(self, angle: float) -> None:
+        """A jaw edge, driven now."""
+        self.angle = angle
+        tick = self.next_tick
+        self._drive()
+        if self.edges == "extra":
+            self.next_tick = tick  # the ticks keep their own schedule
+
+    async def run(self, until: float, alive=lambda: True) -> None:
+        while self.drive_hz and time.monotonic() < until and alive():
+            delay = self.next_tick - time.monotonic()
+            if delay > 0:
+                await asyncio.sleep(delay)  # an edge meanwhile moves the tick: re-check
+            else:
+                self._drive()
 
 
 def click_microphone(on_click, sent_at: list[float]):
@@ -344,30 +386,19 @@ def loop_lag_text(before: dict[str, float], after: dict[str, float]) -> str:
 
 async def run(url: str, token: str, viewers: int, events: int, size: int,
               open_pixels: int, pid: int, voice: bool = True, processes: int = 4,
-              mouth_clock: str = "arrival", drive_hz: float = 30.0) -> dict:
+              mouth_clock: str = "arrival", drive_hz: float = 30.0,
+              edges: str = "tick") -> dict:
     async with httpx.AsyncClient(base_url=url, timeout=30) as http:
         room = (await http.post("/v1/rooms", headers={"Authorization": f"Bearer {token}"},
                                 json={"seats": [{"avatar": "demo"}]})).json()["id"]
     fired: list[float] = []
-    seq = iter(range(1, 10**6))
     performer: WhepViewer | None = None
     sent_at: list[float] = []
-    pose = {"jaw": 0.0}
-
-    def jaw(angle: float) -> None:
-        pose["jaw"] = angle
-        performer.send(Drive(seq=next(seq), smplx={"jaw_pose": [angle, 0.0, 0.0]},
-                             t_capture=time.monotonic()))
-
-    async def tracker(until: float) -> None:
-        """A webcam performer's drives: the current jaw, ``drive_hz`` times a second."""
-        while drive_hz and time.monotonic() < until and performer.channel.readyState == "open":
-            jaw(pose["jaw"])
-            await asyncio.sleep(1 / drive_hz)
+    drives = JawDrives(lambda drive: performer.send(drive), drive_hz, edges)
 
     def clicked() -> None:
         fired.append(time.monotonic())
-        jaw(JAW_OPEN)
+        drives.jaw(JAW_OPEN)
 
     mic = click_microphone(clicked, sent_at)
     performer = WhepViewer(url, room, token, width=size, height=size, role="perform", seat=0,
@@ -399,7 +430,8 @@ async def run(url: str, token: str, viewers: int, events: int, size: int,
         end = time.monotonic() + 2.0 + 3.0 + events * EVENT_EVERY_S
         for go in gos:
             go.put(end)
-        drives = asyncio.create_task(tracker(end - 3.0))
+        tracker = asyncio.create_task(drives.run(
+            end - 3.0, lambda: performer.channel.readyState == "open"))
         await asyncio.sleep(2.0)  # the closed-mouth reference settles
         cpu0, t0 = cpu_seconds(pid), time.monotonic()
         sent_from = len(sent_at)
@@ -409,10 +441,10 @@ async def run(url: str, token: str, viewers: int, events: int, size: int,
             else:
                 clicked()
             await asyncio.sleep(OPEN_S)
-            jaw(0.0)
+            drives.jaw(0.0)
             await asyncio.sleep(EVENT_EVERY_S - OPEN_S)
         cpu = (cpu_seconds(pid) - cpu0) / (time.monotonic() - t0)
-        await drives
+        await tracker
         mic_gap = float(np.diff(sent_at[sent_from:]).max() * 1e3) if voice else float("nan")
         records = []
         for _ in workers:
@@ -517,18 +549,21 @@ def main() -> int:
                                                          "(0: in the performer's process)")
     parser.add_argument("--drive-hz", default="30", help="drives a second between events "
                         "(a webcam performer's rate; 0: only at the jaw's edges), e.g. 0,30")
+    parser.add_argument("--edge-drive", default="tick", help="tick (a jaw edge is one of "
+                        "the drive-hz drives) or extra (a drive between them, as before "
+                        "2026-11-27's fifth session), e.g. tick,extra")
     parser.add_argument("--mouth-clock", default="arrival", help="arrival (the frame's last "
                         "RTP packet, as the click's), decode, or arrival,decode")
     add_server_voice_args(parser)
     args = parser.parse_args()
     print("| pacing | sender clock | voice_max_delay_s | viewers | processes | mouth clock | "
-          "drives/s | cap bit/s | events | paired | "
+          "drives/s | edge drive | cap bit/s | events | paired | "
           "missed | "
           "median ms | p5 / p95 ms | min / max ms | within -45/+125 | mouth after event ms | "
           "click after event ms | on the sender reports' clock: median (p5 / p95) ms, within | "
           "longest audio gap ms "
           "(viewers / mic) | server overflow drops | voice | server CPU s/s |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---" * 23 + "|")
     most = max(int(v) for v in args.viewers.split(","))
     os.environ["TELESPLAT_WEBRTC_MAX_PEERS"] = str(most + 2)  # the viewers and the performer
     caps = [int(c) for c in args.caps.split(",")]
@@ -543,16 +578,16 @@ def main() -> int:
         with tempfile.TemporaryDirectory() as tmp:
             proc, url, token = start_server(Path(tmp), 1, 64, args.avatar)
             try:
-                for n, procs, clock, hz, voice in itertools.product(
+                for n, procs, clock, hz, edges, voice in itertools.product(
                         [int(v) for v in args.viewers.split(",")],
                         [int(p) for p in args.processes.split(",")],
                         args.mouth_clock.split(","), [float(h) for h in args.drive_hz.split(",")],
-                        args.voice.split(",")):
+                        args.edge_drive.split(","), args.voice.split(",")):
                     r = asyncio.run(run(url, token, n, args.events, args.size,
                                         args.open_pixels, proc.pid, voice == "on", procs,
-                                        clock, hz))
+                                        clock, hz, edges))
                     print(f"| {pacing} | {sender_clock} | {delay} | {n} | {procs} | {clock} | "
-                          f"{hz:g} | {cap or 'default'} | "
+                          f"{hz:g} | {edges} | {cap or 'default'} | "
                           f"{r['events']} | {r['paired']} | {r['missed']} | {r['median_ms']:.0f} | "
                           f"{r['p5_ms']:.0f} / {r['p95_ms']:.0f} | {r['min_ms']:.0f} / "
                           f"{r['max_ms']:.0f} | {r['within']:.0%} | {r['mouth_lag']} | "

@@ -46,13 +46,13 @@ from voice_sync import (  # noqa: E402
     EVENT_EVERY_S,
     JAW_OPEN,
     OPEN_S,
+    JawDrives,
     add_server_voice_args,
     click_microphone,
     server_voice_runs,
 )
 
 from client.webrtc import WhepViewer  # noqa: E402
-from protocol import Drive  # noqa: E402
 
 STAMP_ROWS = 12  # the frame stamp's strip (<= 8 px cells) and the codec's bleed below it
 
@@ -64,9 +64,13 @@ const rec = window.__sync = {mouth: [], clicks: [], frames: 0, blocks: 0, error:
 setInterval(() => window.telesplat.session.pc.getStats().then((stats) => {
   const row = {t: performance.now()};
   stats.forEach((s) => {
-    if (s.type === 'inbound-rtp') row[s.kind] = [s.jitterBufferDelay, s.jitterBufferEmittedCount,
-                                                 s.jitterBufferTargetDelay,
-                                                 s.jitterBufferMinimumDelay];
+    if (s.type === 'inbound-rtp') {
+      row[s.kind] = [s.jitterBufferDelay, s.jitterBufferEmittedCount, s.jitterBufferTargetDelay,
+                     s.jitterBufferMinimumDelay];
+      // Chromium's own estimate of the capture instant (the sender reports' NTP clock, ms)
+      // of what it plays out now: its sync, without the page's WebAudio tap
+      row[s.kind + 'Playout'] = s.estimatedPlayoutTimestamp;
+    }
   });
   rec.stats.push(row);
 }), 200);
@@ -128,6 +132,7 @@ registerProcessor('onset', Onset);`;
     ac.createMediaStreamSource(audio.srcObject).connect(node).connect(ac.destination);
     await ac.resume();
     rec.context = ac.state;
+    rec.latency = {base: ac.baseLatency * 1000, output: ac.outputLatency * 1000};
   } catch (err) { rec.error = String(err); }
 })();
 """
@@ -151,38 +156,26 @@ window.telesplat.session.pc.getStats().then((stats) => {
 
 
 async def perform(url: str, token: str, room: str, size: int, events: int, drive_hz: float,
-                  driver, open_pixels: int) -> dict:
-    seq = iter(range(1, 10**6))
-    pose = {"jaw": 0.0}
+                  driver, open_pixels: int, edges: str = "tick") -> dict:
     performer: WhepViewer | None = None
-
-    def jaw(angle: float) -> None:
-        pose["jaw"] = angle
-        performer.send(Drive(seq=next(seq), smplx={"jaw_pose": [angle, 0.0, 0.0]},
-                             t_capture=time.monotonic()))
-
-    async def tracker(until: float) -> None:
-        while drive_hz and time.monotonic() < until:
-            jaw(pose["jaw"])
-            await asyncio.sleep(1 / drive_hz)
-
-    mic = click_microphone(lambda: jaw(JAW_OPEN), [])
+    drives = JawDrives(lambda drive: performer.send(drive), drive_hz, edges)
+    mic = click_microphone(lambda: drives.jaw(JAW_OPEN), [])
     performer = WhepViewer(url, room, token, width=128, height=128, role="perform", seat=0,
                            microphone=mic, timeout_s=60)
     async with performer:
         await performer.wait_open()
         await asyncio.to_thread(join_page, driver, url, token, room, size, open_pixels)
         end = time.monotonic() + 2.0 + events * EVENT_EVERY_S
-        drives = asyncio.create_task(tracker(end))
+        tracker = asyncio.create_task(drives.run(end))
         await asyncio.sleep(2.0)
         await asyncio.to_thread(driver.execute_script, "window.__sync.reference = true;")
         await asyncio.sleep(0.5)
         for _ in range(events):
             mic.fire()
             await asyncio.sleep(OPEN_S)
-            jaw(0.0)
+            drives.jaw(0.0)
             await asyncio.sleep(EVENT_EVERY_S - OPEN_S)
-        await drives
+        await tracker
         await asyncio.sleep(1.0)
         rec = await asyncio.to_thread(driver.execute_script, "return window.__sync;")
         rec["buffers"] = await asyncio.to_thread(driver.execute_async_script, JITTER_BUFFERS)
@@ -267,6 +260,19 @@ def explain(rec: dict) -> str:
     return "; ".join(parts)
 
 
+def playout_skew(rec: dict) -> str:
+    """Chromium's own view of its sync: over the getStats polls, video's minus audio's
+    ``estimatedPlayoutTimestamp`` (the capture instants each track plays at that poll; > 0:
+    the voice plays older capture than the picture, i.e. late, as the offset's sign)."""
+    skew = [r["videoPlayout"] - r["audioPlayout"] for r in rec.get("stats", [])
+            if r.get("videoPlayout") and r.get("audioPlayout")]
+    if not skew:
+        return "estimatedPlayoutTimestamp: not given"
+    return (f"estimatedPlayoutTimestamp video - audio: median {np.median(skew):.0f} ms, "
+            f"p5-p95 {np.percentile(skew, 5):.0f}-{np.percentile(skew, 95):.0f} "
+            f"({len(skew)} polls); WebAudio latency ms {rec.get('latency')}")
+
+
 def offsets(rec: dict) -> list[float]:
     clicks = np.asarray(rec["clicks"])
     out = []
@@ -292,7 +298,7 @@ def run_once(args) -> dict:
                                             headers={"Authorization": f"Bearer {token}"})
                             ).json()["id"]
                 return await perform(url, token, room, args.size, args.events, args.drive_hz,
-                                     driver, args.open_pixels)
+                                     driver, args.open_pixels, args.edge_drive)
 
             return asyncio.run(run())
         finally:
@@ -308,15 +314,19 @@ def main() -> int:
                         "#size menu: 256, 384, 512, 768)")
     parser.add_argument("--open-pixels", type=int, default=8)
     parser.add_argument("--drive-hz", type=float, default=30.0)
+    parser.add_argument("--edge-drive", default="tick", choices=("tick", "extra"),
+                        help="a jaw edge is one of the drive-hz drives, or a drive between "
+                             "them (bench/voice_sync.py's JawDrives)")
     parser.add_argument("--avatar", default="synthetic")
     add_server_voice_args(parser)
     args = parser.parse_args()
 
     os.environ["TELESPLAT_WEBRTC_MAX_PEERS"] = "4"
-    print("| viewer | pacing | sender clock | voice_max_delay_s | drives/s | events | paired | "
+    print("| viewer | pacing | sender clock | voice_max_delay_s | drives/s | edge drive | events "
+          "| paired | "
           "median ms | p5 / p95 ms | min / max ms | within -45/+125 | jitter buffer ms: "
           "audio (target) / video (target) |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---" * 13 + "|")
     for pacing, clock, delay in server_voice_runs(args):
         rec = run_once(args)
         arr = np.asarray(offsets(rec))
@@ -324,13 +334,14 @@ def main() -> int:
               f"{rec['blocks']}, mouth edges {len(rec['mouth'])}, clicks {len(rec['clicks'])}, "
               f"audio {rec.get('context')}, error {rec['error']}, getStats {rec['buffers']}; "
               f"offsets ms {[round(x) for x in arr]}", file=sys.stderr, flush=True)
-        print(f"# {pacing} {clock} {delay}, per event: {explain(rec)}", file=sys.stderr,
-              flush=True)
+        print(f"# {pacing} {clock} {delay}, per event: {explain(rec)}; "
+              f"{playout_skew(rec)}", file=sys.stderr, flush=True)
         b = rec["buffers"]
         buffers = (f"{b.get('audio', '-')} ({b.get('audio_target', '-')}) / "
                    f"{b.get('video', '-')} ({b.get('video_target', '-')})")
         if len(arr):
             print(f"| Chromium | {pacing} | {clock} | {delay} | {args.drive_hz:g} | "
+                  f"{args.edge_drive} | "
                   f"{args.events} | {len(arr)} | "
                   f"{np.median(arr):.0f} | {np.percentile(arr, 5):.0f} / "
                   f"{np.percentile(arr, 95):.0f} | {arr.min():.0f} / {arr.max():.0f} | "

@@ -226,9 +226,11 @@ def test_absurd_drives_are_refused_and_the_next_frame_renders(srv):
 
 
 def test_a_tiny_max_fps_is_woken_by_the_next_request(tmp_path):
-    """max_fps 0.001 (allowed here) puts the loop to wait ~1000 s; max_fps 30 wakes it."""
+    """max_fps 0.001 (allowed here) puts the loop to wait ~1000 s; max_fps 30 wakes it.
+    ``frame_burst`` 1: with a burst the drive's frame would not wait at all."""
     limits = Limits(min_fps=0.001)
-    with run_server(tmp_path, limits=limits, default_width=64, default_height=64) as server:
+    with run_server(tmp_path, limits=limits, default_width=64, default_height=64,
+                    frame_burst=1) as server:
         async def run():
             async with stream(server) as ws:
                 await recv_until(ws, is_type("frame"))

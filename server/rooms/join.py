@@ -205,7 +205,8 @@ async def seat_participant(ctx: ServerContext, room: Room, role: str, seat: int,
         config=SessionConfig(s.limits, s.jpeg_quality, s.jpeg_quality_moving,
                              s.stats_interval_s, inbound_limits(s),
                              MovingViewCost(s.moving_view_settle_ms / 1000,
-                                            s.moving_view_scale, s.moving_view_quality)),
+                                            s.moving_view_scale, s.moving_view_quality),
+                             s.frame_burst),
         request=effective, view=View(orbit=Orbit()), session_count=lambda: ctx.slots.count)
     try:
         live.join(session)

@@ -28,7 +28,6 @@ import concurrent.futures
 import contextlib
 import dataclasses
 import logging
-import math
 import statistics
 import time
 import uuid
@@ -62,6 +61,7 @@ from ..metrics import ServerMetrics
 from .capture_clock import ArrivalClock
 from .drive import DriveState, fit_drive
 from .encoders import check_request
+from .frame_cap import FrameRateCap
 from .inbound import InboundDecoder, InboundLimits
 from .scene import Frame, FrameJob, Scene
 from .scheduler import RenderScheduler
@@ -112,6 +112,7 @@ class SessionConfig:
     stats_interval_s: float
     inbound: InboundLimits = InboundLimits()
     moving: MovingViewCost = MovingViewCost()
+    frame_burst: int = 2  # frames that may start back to back under max_fps (frame_cap.py)
 
 
 def error_message(code: str, message: str, answers: dict | None = None) -> Error:
@@ -149,6 +150,7 @@ class Session:
         self._preview_shown = False  # the last frame sent was a preview: a full one follows
         self.session_count = session_count  # () -> int, for stats
         self.bucket = TokenBucket(self.limits.max_messages_per_s)
+        self.frame_cap = FrameRateCap(config.frame_burst)  # max_fps as a rate
         self._rate_noticed = -RATE_NOTICE_S  # when the client was last told it is too fast
         self._rate_dropped = 0
         self.inbound = InboundDecoder(self.limits, config.inbound)
@@ -339,17 +341,17 @@ class Session:
                         raw=self.transport.raw_frames, preview=preview,
                         render_scale=cost.render_scale if preview else 1.0)
 
-    def _next_frame_at(self, started: float) -> float:
+    def _next_frame_at(self) -> float:
         """When the next frame may start: the frame-rate cap and the fair share of render
         time, both read now (a request or another session may have changed them)."""
         now = asyncio.get_running_loop().time()  # time.monotonic, as the scheduler's
-        return max(started + 1.0 / self.request.max_fps,
+        return max(self.frame_cap.earliest(self.request.max_fps),
                    now + self.scene.workers.pace_s(self.share_key))
 
-    async def _pace(self, started: float) -> None:
+    async def _pace(self) -> None:
         """Wait until the next frame may start; inputs keep coalescing meanwhile."""
         loop = asyncio.get_running_loop()
-        while (delay := self._next_frame_at(started) - loop.time()) > 0:
+        while (delay := self._next_frame_at() - loop.time()) > 0:
             self._wake.clear()
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(self._wake.wait(), delay)
@@ -357,13 +359,12 @@ class Session:
     async def _render_loop(self) -> None:
         if not self.transport.renders:
             await asyncio.get_running_loop().create_future()  # until the session ends
-        started = -math.inf
         while True:
             await self._until_dirty()
-            await self._pace(started)
+            await self._pace()
             self._dirty.clear()
             job = self._snapshot()
-            started = asyncio.get_running_loop().time()
+            self.frame_cap.started(asyncio.get_running_loop().time(), self.request.max_fps)
             self._asked = job.versions
             future = self.scene.submit(job)
             self._inflight = future  # kept after a cancel: teardown waits for it to finish

@@ -1,0 +1,32 @@
+"""A session's frame-rate cap as a rate, not a minimum interval (GCRA, the leaky bucket).
+
+A drive arriving a little early for a strict ``1 / max_fps`` interval waits for the slot, and
+at matched rates (a 30 Hz tracker, a 30 fps cap) those waits add up and coalesce drives: a
+jaw-opening drive can lose its frame to the next drive and be shown one drive late
+(docs/benchmarks.md, "The frame-rate cap as a rate"). With a burst of ``burst`` frames a frame
+may start up to ``burst - 1`` intervals ahead of the cap's schedule; over any span the count
+stays at most ``span * max_fps + burst``. ``burst`` 1 is the strict interval.
+"""
+
+from __future__ import annotations
+
+import math
+
+
+class FrameRateCap:
+    """When the next frame may start at ``fps`` frames a second on average, ``burst`` at
+    most back to back: the generic cell-rate algorithm's theoretical arrival time."""
+
+    def __init__(self, burst: int = 2) -> None:
+        if burst < 1:
+            raise ValueError(f"burst {burst} must be >= 1")
+        self.burst = burst
+        self._due = -math.inf  # when the next frame is due on the cap's schedule
+
+    def earliest(self, fps: float) -> float:
+        """The earliest start (time.monotonic()) for the next frame."""
+        return self._due - (self.burst - 1) / fps
+
+    def started(self, at: float, fps: float) -> None:
+        """A frame started at ``at``: its slot is taken."""
+        self._due = max(self._due, at) + 1.0 / fps
