@@ -72,9 +72,9 @@ CLICK_LEVEL = 0.3
 
 class JawDrives:
     """A webcam performer's drives: the current jaw, ``drive_hz`` times a second (0: only at
-    the jaw's edges). ``edges="tick"``: a jaw edge is one of those drives, the schedule going
-    on from it, as a tracker sends one drive per camera frame and the frame that catches the
-    open mouth is the one at the click; the performer never exceeds ``drive_hz``.
+    the jaw's edges). ``edges="tick"``: a jaw edge is one of those drives and the schedule
+    goes on from it (the next drive 1 / ``drive_hz`` later), as a tracker's camera frame that
+    catches the open mouth is the one at the click; only the interval before an edge is short.
     ``"extra"`` (the benches before 2026-11-27's fifth session): an edge is a drive between
     two ticks, so at 30 drives/s the performer sends 32.9 a second into a 30 fps cap, and an
     edge may lose its frame to the next tick's drive (docs/benchmarks.md, "The frame-rate cap
@@ -333,6 +333,36 @@ def viewer_process(args: tuple, ready, go, results) -> None:
         raise
 
 
+def machine_watch(end: float, out) -> None:
+    """A separate, otherwise idle process: each time a 2 ms sleep wakes more than 20 ms late
+    (the machine itself held it: a virtual machine's stolen time, or every core busy), its
+    (time.monotonic() it slept at, ms late)."""
+    late = []
+    while (now := time.monotonic()) < end:
+        time.sleep(0.002)
+        if (held := time.monotonic() - now - 0.002) > 0.020:
+            late.append((now, held * 1e3))
+    out.put(late)
+
+
+def steal_ms() -> float:
+    """The machine's stolen time so far (/proc/stat, all cores; 0 where not given)."""
+    try:
+        fields = Path("/proc/stat").read_text().split("\n", 1)[0].split()
+        return float(fields[8]) * 1000 / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return 0.0
+
+
+def stall_text(stalls: list, gaps: list[tuple[float, float]], steal: float) -> str:
+    """The machine watch against a viewer's audio gaps longer than 60 ms (start, end)."""
+    held = [ms for _, ms in stalls]
+    both = sum(any(a - 0.01 <= t <= b for t, _ in stalls) for a, b in gaps)
+    return (f"machine watch: {len(held)} wakes later than 20 ms (longest "
+            f"{max(held, default=0):.0f} ms), stolen time {steal:.0f} ms; the first viewer's "
+            f"audio gaps over 60 ms: {len(gaps)}, {both} of them with the machine held")
+
+
 def lag_text(lags: list[float]) -> str:
     """"median (p5-p95)" in ms of the times from the events."""
     if not lags:
@@ -428,6 +458,10 @@ async def run(url: str, token: str, viewers: int, events: int, size: int,
             raise RuntimeError(f"viewers joined {joined} of {counts}: {results.get(True, 5)}")
         before = server_voice_counts(url, token)
         end = time.monotonic() + 2.0 + 3.0 + events * EVENT_EVERY_S
+        stalls_out = ctx.Queue()
+        watch = ctx.Process(target=machine_watch, args=(end, stalls_out), daemon=True)
+        watch.start()
+        steal0 = steal_ms()
         for go in gos:
             go.put(end)
         tracker = asyncio.create_task(drives.run(
@@ -456,6 +490,9 @@ async def run(url: str, token: str, viewers: int, events: int, size: int,
             if processes:
                 w.join(30)
         after = server_voice_counts(url, token)
+        stalls = await asyncio.to_thread(stalls_out.get, True, 60)
+        steal = steal_ms() - steal0
+        watch.join(10)
     offsets, missed, gaps, mouth_lags, click_lags = [], 0, [], [], []
     for rec in records:
         for f, mouth, click in zip(fired, pair(fired, rec["mouth"]), pair(fired, rec["clicks"]),
@@ -477,6 +514,10 @@ async def run(url: str, token: str, viewers: int, events: int, size: int,
     print("# first viewer's longest audio gaps: (s after the first event, ms, packets missing) "
           f"{[(round(at[i] - fired[0], 2), round((at[i + 1] - at[i]) * 1e3), int((seqs[i + 1] - seqs[i] - 1) % 65536)) for i in sorted(worst)]}",  # noqa: E501
           file=sys.stderr, flush=True)
+    span = (at >= fired[0] - 0.5) & (at <= fired[-1] + EVENT_EVERY_S)
+    long_gaps = [(a, b) for a, b, inside in zip(at[:-1], at[1:], span[:-1], strict=True)
+                 if inside and b - a > 0.060]
+    print(f"# {stall_text(stalls, long_gaps, steal)}", file=sys.stderr, flush=True)
     print(f"# {viewers} viewers in {processes} processes, mouth at {mouth_clock}: fired "
           f"{len(fired)}, peers lost {sum(r['lost'] for r in records)}, mouth edges "
           f"{[len(r['mouth']) for r in records]}, clicks {[len(r['clicks']) for r in records]},"

@@ -132,7 +132,7 @@ class Settings(BaseModel):
     default_height: int = Field(512, ge=16, description="Frame height until a request sets it.")
     default_max_fps: float = Field(30.0, gt=0, description="Per-session frame-rate cap until "
                                                            "a request sets it (<= limits.max_fps).")
-    frame_burst: int = Field(2, ge=1, le=8, description="Frames a session may start back to "
+    frame_burst: int = Field(1, ge=1, le=8, description="Frames a session may start back to "
                                                     "back under its max_fps, which caps the "
                                                     "average rate (1: a strict 1/max_fps "
                                                     "interval between frames).")

@@ -1,11 +1,11 @@
 """A session's frame-rate cap as a rate, not a minimum interval (GCRA, the leaky bucket).
 
-A drive arriving a little early for a strict ``1 / max_fps`` interval waits for the slot, and
-at matched rates (a 30 Hz tracker, a 30 fps cap) those waits add up and coalesce drives: a
-jaw-opening drive can lose its frame to the next drive and be shown one drive late
-(docs/benchmarks.md, "The frame-rate cap as a rate"). With a burst of ``burst`` frames a frame
-may start up to ``burst - 1`` intervals ahead of the cap's schedule; over any span the count
-stays at most ``span * max_fps + burst``. ``burst`` 1 is the strict interval.
+A drive arriving a little early for a strict ``1 / max_fps`` interval waits for its slot: at
+matched rates (a 30 Hz tracker, a 30 fps cap) the frames lock to the latest arrival phase seen.
+With a burst of ``burst`` frames a frame may start up to ``burst - 1`` intervals ahead of the
+cap's schedule; over any span the count stays at most ``span * max_fps + burst``. ``burst`` 1
+(the server's default) is the strict interval: a burst gained one viewer 5 ms and cost 16
+viewers sharing renders on 2 cores 40 ms (docs/benchmarks.md, "The frame-rate cap as a rate").
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ class FrameRateCap:
     """When the next frame may start at ``fps`` frames a second on average, ``burst`` at
     most back to back: the generic cell-rate algorithm's theoretical arrival time."""
 
-    def __init__(self, burst: int = 2) -> None:
+    def __init__(self, burst: int = 1) -> None:
         if burst < 1:
             raise ValueError(f"burst {burst} must be >= 1")
         self.burst = burst

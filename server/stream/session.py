@@ -112,7 +112,7 @@ class SessionConfig:
     stats_interval_s: float
     inbound: InboundLimits = InboundLimits()
     moving: MovingViewCost = MovingViewCost()
-    frame_burst: int = 2  # frames that may start back to back under max_fps (frame_cap.py)
+    frame_burst: int = 1  # frames that may start back to back under max_fps (frame_cap.py)
 
 
 def error_message(code: str, message: str, answers: dict | None = None) -> Error:
