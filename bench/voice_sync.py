@@ -3,7 +3,8 @@
 Starts its own server (bench/stream.py's start_server). A performer (aiortc, WHEP with
 role=perform and a microphone track) opens the jaw at each event and, in the same instant, puts
 a 5 ms click in its next 20 ms audio frame; 300 ms later the jaw closes; ``--drive-hz`` drives
-the current jaw between (a webcam tracker's rate; 0: drives at the jaw's edges only).
+the current jaw between (a webcam tracker's rate; 0: drives at the jaw's edges only), an edge
+being one of them (``--edge-drive tick``) or a drive between them (``extra``: JawDrives).
 ``--viewers`` aiortc WHEP viewers (one recvonly audio line each, video released at its RTP
 marker as a browser does), spread over ``--processes`` worker processes (0: in the performer's
 process), record for every event, on time.monotonic() (one clock for every process):
