@@ -82,9 +82,12 @@ def test_a_burst_below_one_is_refused():
         FrameRateCap(0)
 
 
-def test_a_lower_rate_applies_from_the_next_slot():
+def test_a_new_rate_applies_at_once_to_the_wait_for_the_next_frame():
+    """As with the strict interval before: a request's max_fps changes the pending wait."""
     cap = FrameRateCap(1)
     cap.started(0.0, 30)
-    assert cap.earliest(1) == pytest.approx(1 / 30)  # the slot already given stays
-    cap.started(1 / 30, 1)
-    assert cap.earliest(1) == pytest.approx(1 / 30 + 1)
+    assert cap.earliest(1) == pytest.approx(1.0)
+    assert cap.earliest(0.001) == pytest.approx(1000.0)
+    assert cap.earliest(60) == pytest.approx(1 / 60)
+    cap.started(1 / 60, 60)
+    assert cap.earliest(60) == pytest.approx(2 / 60)

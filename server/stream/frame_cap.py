@@ -15,18 +15,19 @@ import math
 
 class FrameRateCap:
     """When the next frame may start at ``fps`` frames a second on average, ``burst`` at
-    most back to back: the generic cell-rate algorithm's theoretical arrival time."""
+    most back to back: the generic cell-rate algorithm, its schedule kept as where the last
+    frame's slot began so that a new ``fps`` applies at once to the wait for the next."""
 
     def __init__(self, burst: int = 1) -> None:
         if burst < 1:
             raise ValueError(f"burst {burst} must be >= 1")
         self.burst = burst
-        self._due = -math.inf  # when the next frame is due on the cap's schedule
+        self._slot = -math.inf  # where the last frame's slot began on the cap's schedule
 
     def earliest(self, fps: float) -> float:
         """The earliest start (time.monotonic()) for the next frame."""
-        return self._due - (self.burst - 1) / fps
+        return self._slot + 1.0 / fps - (self.burst - 1) / fps
 
     def started(self, at: float, fps: float) -> None:
         """A frame started at ``at``: its slot is taken."""
-        self._due = max(self._due, at) + 1.0 / fps
+        self._slot = max(self._slot + 1.0 / fps, at)
