@@ -61,8 +61,9 @@ const [openPixels, stampRows] = arguments;
 const rec = window.__sync = {mouth: [], clicks: [], frames: 0, blocks: 0, error: null,
                              mouthMeta: [], stats: [], arrivals: []};
 // every 200 ms, each track's jitter-buffer totals (their deltas: the delay of that window)
+let lastDisplay = null;  // the newest frame's expectedDisplayTime (rVFC), for the polls below
 setInterval(() => window.telesplat.session.pc.getStats().then((stats) => {
-  const row = {t: performance.now()};
+  const row = {t: performance.now(), lastDisplay};
   stats.forEach((s) => {
     if (s.type === 'inbound-rtp') {
       row[s.kind] = [s.jitterBufferDelay, s.jitterBufferEmittedCount, s.jitterBufferTargetDelay,
@@ -97,6 +98,7 @@ function onFrame(now, meta) {
     }
     open = isOpen;
   }
+  lastDisplay = meta.expectedDisplayTime;
   if (meta.receiveTime) rec.arrivals.push([meta.receiveTime, meta.rtpTimestamp]);
   rec.frames++;
   video.requestVideoFrameCallback(onFrame);
@@ -260,17 +262,28 @@ def explain(rec: dict) -> str:
     return "; ".join(parts)
 
 
+def playout_skews(rec: dict) -> list[float]:
+    """Chromium's own view of its sync, per getStats poll: the capture instant (the sender
+    reports' NTP clock) the picture shows at the poll less the one the voice plays (> 0: the
+    voice plays older capture than the picture, i.e. late, as the offset's sign). A track's
+    ``estimatedPlayoutTimestamp`` is its last played media's: the picture's is its last
+    frame's, so it is carried forward by the time since that frame's display (rVFC)."""
+    out = []
+    for r in rec.get("stats", []):
+        video, audio, shown = r.get("videoPlayout"), r.get("audioPlayout"), r.get("lastDisplay")
+        if video and audio and shown is not None and 0 <= r["t"] - shown < 200:
+            out.append(video + (r["t"] - shown) - audio)
+    return out
+
+
 def playout_skew(rec: dict) -> str:
-    """Chromium's own view of its sync: over the getStats polls, video's minus audio's
-    ``estimatedPlayoutTimestamp`` (the capture instants each track plays at that poll; > 0:
-    the voice plays older capture than the picture, i.e. late, as the offset's sign)."""
-    skew = [r["videoPlayout"] - r["audioPlayout"] for r in rec.get("stats", [])
-            if r.get("videoPlayout") and r.get("audioPlayout")]
+    skew = playout_skews(rec)
     if not skew:
         return "estimatedPlayoutTimestamp: not given"
-    return (f"estimatedPlayoutTimestamp video - audio: median {np.median(skew):.0f} ms, "
-            f"p5-p95 {np.percentile(skew, 5):.0f}-{np.percentile(skew, 95):.0f} "
-            f"({len(skew)} polls); WebAudio latency ms {rec.get('latency')}")
+    return (f"Chromium's own sync (estimatedPlayoutTimestamp, the picture's carried to the "
+            f"poll) video - audio: median {np.median(skew):.0f} ms, p5-p95 "
+            f"{np.percentile(skew, 5):.0f}-{np.percentile(skew, 95):.0f} ({len(skew)} polls); "
+            f"WebAudio latency ms {rec.get('latency')}")
 
 
 def offsets(rec: dict) -> list[float]:
@@ -325,8 +338,8 @@ def main() -> int:
     print("| viewer | pacing | sender clock | voice_max_delay_s | drives/s | edge drive | events "
           "| paired | "
           "median ms | p5 / p95 ms | min / max ms | within -45/+125 | jitter buffer ms: "
-          "audio (target) / video (target) |")
-    print("|---" * 13 + "|")
+          "audio (target) / video (target) | Chromium's own sync: median (p5 / p95) ms |")
+    print("|---" * 14 + "|")
     for pacing, clock, delay in server_voice_runs(args):
         rec = run_once(args)
         arr = np.asarray(offsets(rec))
@@ -339,13 +352,17 @@ def main() -> int:
         b = rec["buffers"]
         buffers = (f"{b.get('audio', '-')} ({b.get('audio_target', '-')}) / "
                    f"{b.get('video', '-')} ({b.get('video_target', '-')})")
+        skew = playout_skews(rec)
+        own = (f"{np.median(skew):.0f} ({np.percentile(skew, 5):.0f} / "
+               f"{np.percentile(skew, 95):.0f})" if skew else "-")
         if len(arr):
             print(f"| Chromium | {pacing} | {clock} | {delay} | {args.drive_hz:g} | "
                   f"{args.edge_drive} | "
                   f"{args.events} | {len(arr)} | "
                   f"{np.median(arr):.0f} | {np.percentile(arr, 5):.0f} / "
                   f"{np.percentile(arr, 95):.0f} | {arr.min():.0f} / {arr.max():.0f} | "
-                  f"{((arr >= -45) & (arr <= 125)).mean():.0%} | {buffers} |", flush=True)
+                  f"{((arr >= -45) & (arr <= 125)).mean():.0%} | {buffers} | {own} |",
+                  flush=True)
     return 0
 
 
