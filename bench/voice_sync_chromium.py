@@ -279,7 +279,11 @@ def playout_skews(rec: dict) -> list[float]:
 def playout_skew(rec: dict) -> str:
     skew = playout_skews(rec)
     if not skew:
-        return "estimatedPlayoutTimestamp: not given"
+        rows = rec.get("stats", [])
+        return (f"estimatedPlayoutTimestamp: not given (of {len(rows)} polls, video's in "
+                f"{sum(bool(r.get('videoPlayout')) for r in rows)}, audio's in "
+                f"{sum(bool(r.get('audioPlayout')) for r in rows)}, a frame shown before in "
+                f"{sum(r.get('lastDisplay') is not None for r in rows)})")
     return (f"Chromium's own sync (estimatedPlayoutTimestamp, the picture's carried to the "
             f"poll) video - audio: median {np.median(skew):.0f} ms, p5-p95 "
             f"{np.percentile(skew, 5):.0f}-{np.percentile(skew, 95):.0f} ({len(skew)} polls); "
