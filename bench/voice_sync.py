@@ -387,6 +387,10 @@ def server_voice_counts(url: str, token: str) -> dict[str, float]:
             gen = line.split('generation="')[1].split('"')[0]
             le = line.split('le="')[1].split('"')[0]
             out[f"gc{gen} <= {le}"] = float(line.rsplit(" ", 1)[1])
+        elif line.startswith("telesplat_voice_gap_ms_bucket{"):
+            stage = line.split('stage="')[1].split('"')[0]
+            le = line.split('le="')[1].split('"')[0]
+            out[f"gap {stage} <= {le}"] = float(line.rsplit(" ", 1)[1])
         elif line.startswith("telesplat_gc_pause_ms_sum{"):
             gen = line.split('generation="')[1].split('"')[0]
             out[f"gc{gen} ms"] = float(line.rsplit(" ", 1)[1])
@@ -401,6 +405,25 @@ def gc_text(before: dict[str, float], after: dict[str, float]) -> str:
     parts = [f"gen {g}: {diff(f'gc{g} <= +Inf'):.0f} ({diff(f'gc{g} ms'):.0f} ms, "
              f"{diff(f'gc{g} <= +Inf') - diff(f'gc{g} <= 50.0'):.0f} > 50 ms)"
              for g in (0, 1, 2)]
+    return "; ".join(parts)
+
+
+def voice_gap_text(before: dict[str, float], after: dict[str, float]) -> str:
+    """The server's own voice gaps during a run (voice_gap_ms): as the seat got the packets
+    (in) and as the viewers' tracks took them (out), how many were longer than 50 / 75 / 100
+    ms, and the bucket the longest fell in."""
+    def diff(key: str) -> float:
+        return after.get(key, 0) - before.get(key, 0)
+    parts = []
+    for stage in ("in", "out"):
+        edges = sorted({float(k.rsplit(" ", 1)[1]) for k in after
+                        if k.startswith(f"gap {stage} <= ") and not k.endswith("+Inf")})
+        total = diff(f"gap {stage} <= +Inf")
+        longer = {le: total - diff(f"gap {stage} <= {le}") for le in (50.0, 75.0, 100.0)}
+        top = next((le for le in edges if diff(f"gap {stage} <= {le}") == total), None)
+        parts.append(f"{stage}: {total:.0f} gaps, longer than 50 / 75 / 100 ms: "
+                     f"{longer[50.0]:.0f} / {longer[75.0]:.0f} / {longer[100.0]:.0f}, the "
+                     f"longest <= {top if top is not None else '+Inf'} ms")
     return "; ".join(parts)
 
 
@@ -518,7 +541,8 @@ async def run(url: str, token: str, viewers: int, events: int, size: int,
     span = (at >= fired[0] - 0.5) & (at <= fired[-1] + EVENT_EVERY_S)
     long_gaps = [(a, b) for a, b, inside in zip(at[:-1], at[1:], span[:-1], strict=True)
                  if inside and b - a > 0.060]
-    print(f"# {stall_text(stalls, long_gaps, steal)}", file=sys.stderr, flush=True)
+    print(f"# {stall_text(stalls, long_gaps, steal)}; the server's voice gaps: "
+          f"{voice_gap_text(before, after)}", file=sys.stderr, flush=True)
     print(f"# {viewers} viewers in {processes} processes, mouth at {mouth_clock}: fired "
           f"{len(fired)}, peers lost {sum(r['lost'] for r in records)}, mouth edges "
           f"{[len(r['mouth']) for r in records]}, clicks {[len(r['clicks']) for r in records]},"

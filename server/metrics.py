@@ -59,6 +59,11 @@ class ServerMetrics:
             "peer that may not publish a voice; overflow: a listener's buffer was full; "
             "unmixed: left out of a room's mix past voice_mix_max_seats)",
             ["outcome"], registry=r)
+        self.voice_gap_ms = Histogram(
+            "telesplat_voice_gap_ms", "Time between consecutive voice packets (each starting "
+            "where the last one's audio ended), by stage: in, as the seat got them; out, as "
+            "each listener (a viewer's track, a mix) took them", ["stage"],
+            buckets=LATENCY_BUCKETS_MS, registry=r)
 
         self.loop_lag_ms = Histogram(
             "telesplat_event_loop_lag_ms", "How late the event loop woke from a "

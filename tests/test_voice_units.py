@@ -260,3 +260,31 @@ def test_speaking_presence_is_sent_at_most_once_per_interval():
     assert len(sent) >= 2 and sent[0][1].seats[0].speaking and not sent[-1][1].seats[0].speaking
     assert min(np.diff(times)) >= 0.5  # 16 flips of the voice, no update closer than that
     assert len(sent) < 16
+
+
+def test_gaps_between_packets_that_follow_each_other_are_counted_at_both_stages():
+    """voice_gap_ms{stage}: in as the seat got them, out as a listener took them; a silence
+    (the media time jumps) or a packet of no known length is no gap."""
+    from server.metrics import ServerMetrics
+
+    metrics = ServerMetrics()
+    seat = SeatVoice(Settings(voice_max_delay_s=0.0), metrics)
+    listener = seat.subscribe()
+    start = time.monotonic()  # each packet is released at its arrival (bounded: 0.4 s)
+    at = [start + t for t in (0.0, 0.02, 0.1, 0.12, 0.4)]  # an 80 ms gap, then a silence
+    rtp = [0, 960, 1920, 2880, 2880 + 960 * 3]
+
+    async def run():
+        for t, ts in zip(at, rtp, strict=True):
+            assert seat.publish("p", b"\xf8\x00", ts, t) == "forwarded"
+            await listener.next()
+
+    asyncio.run(run())
+
+    def count(stage: str, le: str) -> float:
+        return metrics.registry.get_sample_value(
+            "telesplat_voice_gap_ms_bucket", {"stage": stage, "le": le})
+
+    assert count("in", "+Inf") == 3  # three packets followed the one before in media time
+    assert count("in", "75.0") == 2 and count("in", "100.0") == 3  # 20, 80 and 20 ms
+    assert count("out", "+Inf") == 3 and count("out", "75.0") <= 2  # out follows in

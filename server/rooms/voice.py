@@ -79,6 +79,23 @@ class VoicePacket:
     paced: float | None = None  # when it typically arrives (monotonic): its even cadence
     tracking: bool = False  # came while its seat's webcam image was being tracked
     captured_at: float | None = None  # its capture instant on this server's clock (monotonic)
+    ticks: int = 0    # its audio's duration (48 kHz ticks; 0: not known)
+
+
+class GapWatch:
+    """The time between packets that follow each other in media time (one starts where the
+    last one's audio ended), into ``voice_gap_ms{stage}``: silences and restarts stay out."""
+
+    def __init__(self, metrics: Any, stage: str) -> None:
+        self._histogram = None if metrics is None else metrics.voice_gap_ms.labels(stage)
+        self._end: int | None = None  # media time where the last packet's audio ended
+        self._at = 0.0
+
+    def saw(self, packet: VoicePacket, now: float) -> None:
+        if self._histogram is not None and packet.ticks:
+            if packet.media_ts == self._end:
+                self._histogram.observe((now - self._at) * 1e3)
+            self._end, self._at = packet.media_ts + packet.ticks, now
 
 
 class Listener:
@@ -100,6 +117,7 @@ class Listener:
         self._ready = asyncio.Event()
         self.closed = False
         self.overflowed = 0
+        self._gaps = GapWatch(voice._metrics, "out")
 
     def put(self, packet: VoicePacket) -> bool:
         """Queue ``packet``; False when the oldest had to go to make room."""
@@ -113,6 +131,12 @@ class Listener:
 
     async def next(self) -> VoicePacket | None:
         """The next packet once its release time has come; None once closed."""
+        packet = await self._release()
+        if packet is not None:
+            self._gaps.saw(packet, time.monotonic())
+        return packet
+
+    async def _release(self) -> VoicePacket | None:
         while not self.closed:
             if not self._queue:
                 self._ready.clear()
@@ -212,6 +236,7 @@ class SeatVoice:
         self._last_out = 0                   # its place on the seat's timeline
         self._publisher: object | None = None
         self._capture_clock = ArrivalClock()  # the publisher's media time on our clock
+        self._gaps = GapWatch(metrics, "in")
 
     @property
     def speaking(self) -> bool:
@@ -236,14 +261,16 @@ class SeatVoice:
         this server's clock, so voice and frames land there by one transit estimate (without
         either: the media time through this voice's own clock)."""
         now = time.monotonic() if now is None else now
-        outcome = self._check(payload, now)
+        outcome, ticks = self._check(payload, now)
         if outcome == "forwarded":
             media_ts = self._timeline(publisher, rtp_ts, now)
             captured_at = (clock.observe(t_capture, now)
                            if clock is not None and t_capture is not None
                            else self._capture_clock.observe(media_ts / CLOCK_RATE, now))
             packet = VoicePacket(payload, media_ts, now, t_capture, self.drive_arrived(),
-                                 self._paced(media_ts, now), self.tracking(), captured_at)
+                                 self._paced(media_ts, now), self.tracking(), captured_at,
+                                 ticks)
+            self._gaps.saw(packet, now)
             self.last_packet_at = now
             self._heard(level_dbov, now)
             for listener in list(self.listeners):
@@ -252,20 +279,21 @@ class SeatVoice:
         self._count(outcome)
         return outcome
 
-    def _check(self, payload: bytes, now: float) -> str:
+    def _check(self, payload: bytes, now: float) -> tuple[str, int]:
+        """The outcome, and the packet's duration in 48 kHz ticks (0 unless valid)."""
         if len(payload) > self.max_packet_bytes:
-            return "too_large"
+            return "too_large", 0
         try:
-            packet_duration_ms(payload)
+            ticks = round(packet_duration_ms(payload) * CLOCK_RATE / 1000)
         except OpusPacketError:
-            return "garbage"
+            return "garbage", 0
         self._tokens = min(self.max_bytes_per_s,
                            self._tokens + (now - self._tokens_at) * self.max_bytes_per_s)
         self._tokens_at = now
         if len(payload) > self._tokens:
-            return "rate"
+            return "rate", ticks
         self._tokens -= len(payload)
-        return "forwarded"
+        return "forwarded", ticks
 
     def _timeline(self, publisher: object, rtp_ts: int, now: float) -> int:
         if publisher is self._publisher and self._last_in is not None:
