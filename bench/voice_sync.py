@@ -325,7 +325,10 @@ async def listen_in_process(url: str, token: str, room: str, count: int, size: i
              "lost": e.lost, "gc_max_ms": gc_max_ms} for e in ears]
 
 
-def viewer_process(args: tuple, ready, go, results) -> None:
+def viewer_process(args: tuple, ready, go, results, nice: int = 0) -> None:
+    """One viewer process; ``nice``: how much lower its priority than the bench's (viewers
+    elsewhere, off the server's and the performer's cores)."""
+    os.nice(nice)
     try:
         results.put(asyncio.run(listen_in_process(*args, ready, go)))
     except BaseException as exc:  # the parent waits for a result: say what went wrong
@@ -344,6 +347,15 @@ def machine_watch(end: float, out) -> None:
         if (held := time.monotonic() - now - 0.002) > 0.020:
             late.append((now, held * 1e3))
     out.put(late)
+
+
+async def loop_holds(until: float, into: list[float]) -> None:
+    """How late this process's event loop wakes from 5 ms sleeps, each time it is later than
+    20 ms (ms): the performer's loop runs the microphone, the drives and aiortc's sender."""
+    while (now := time.monotonic()) < until:
+        await asyncio.sleep(0.005)
+        if (held := time.monotonic() - now - 0.005) > 0.020:
+            into.append(held * 1e3)
 
 
 def steal_ms() -> float:
@@ -441,7 +453,7 @@ def loop_lag_text(before: dict[str, float], after: dict[str, float]) -> str:
 async def run(url: str, token: str, viewers: int, events: int, size: int,
               open_pixels: int, pid: int, voice: bool = True, processes: int = 4,
               mouth_clock: str = "arrival", drive_hz: float = 30.0,
-              edges: str = "tick") -> dict:
+              edges: str = "tick", viewer_nice: int = 0) -> dict:
     async with httpx.AsyncClient(base_url=url, timeout=30) as http:
         room = (await http.post("/v1/rooms", headers={"Authorization": f"Bearer {token}"},
                                 json={"seats": [{"avatar": "demo"}]})).json()["id"]
@@ -474,7 +486,7 @@ async def run(url: str, token: str, viewers: int, events: int, size: int,
         else:
             workers = [ctx.Process(target=viewer_process, daemon=True, args=(
                 (url, token, room, c, size, open_pixels, mouth_clock, voice), ready, go,
-                results)) for c, go in zip(counts, gos, strict=True)]
+                results, viewer_nice)) for c, go in zip(counts, gos, strict=True)]
             for w in workers:
                 w.start()
         joined = [await asyncio.to_thread(ready.get, True, 300) for _ in workers]
@@ -490,6 +502,11 @@ async def run(url: str, token: str, viewers: int, events: int, size: int,
             go.put(end)
         tracker = asyncio.create_task(drives.run(
             end - 3.0, lambda: performer.channel.readyState == "open"))
+        own_pauses: list[float] = []  # the performer's process: collections, loop holds (ms)
+        own_holds: list[float] = []
+        own_gc = GcWatch(lambda generation, ms: own_pauses.append(ms))
+        own_gc.start()
+        holds = asyncio.create_task(loop_holds(end - 3.0, own_holds))
         await asyncio.sleep(2.0)  # the closed-mouth reference settles
         cpu0, t0 = cpu_seconds(pid), time.monotonic()
         sent_from = len(sent_at)
@@ -503,6 +520,8 @@ async def run(url: str, token: str, viewers: int, events: int, size: int,
             await asyncio.sleep(EVENT_EVERY_S - OPEN_S)
         cpu = (cpu_seconds(pid) - cpu0) / (time.monotonic() - t0)
         await tracker
+        await holds
+        own_gc.stop()
         mic_gap = float(np.diff(sent_at[sent_from:]).max() * 1e3) if voice else float("nan")
         records = []
         for _ in workers:
@@ -542,7 +561,10 @@ async def run(url: str, token: str, viewers: int, events: int, size: int,
     long_gaps = [(a, b) for a, b, inside in zip(at[:-1], at[1:], span[:-1], strict=True)
                  if inside and b - a > 0.060]
     print(f"# {stall_text(stalls, long_gaps, steal)}; the server's voice gaps: "
-          f"{voice_gap_text(before, after)}", file=sys.stderr, flush=True)
+          f"{voice_gap_text(before, after)}; the performer's process: loop held over 20 ms "
+          f"{len(own_holds)} times (longest {max(own_holds, default=0):.0f} ms), collector "
+          f"pauses over 20 ms {sum(p > 20 for p in own_pauses)} (longest "
+          f"{max(own_pauses, default=0):.0f} ms)", file=sys.stderr, flush=True)
     print(f"# {viewers} viewers in {processes} processes, mouth at {mouth_clock}: fired "
           f"{len(fired)}, peers lost {sum(r['lost'] for r in records)}, mouth edges "
           f"{[len(r['mouth']) for r in records]}, clicks {[len(r['clicks']) for r in records]},"
@@ -618,6 +640,9 @@ def main() -> int:
     parser.add_argument("--edge-drive", default="tick", help="tick (a jaw edge is one of "
                         "the drive-hz drives) or extra (a drive between them, as before "
                         "2026-11-27's fifth session), e.g. tick,extra")
+    parser.add_argument("--viewer-nice", type=int, default=0, help="the viewer processes' "
+                        "niceness over the bench's: on one machine, 16 viewers take the cores "
+                        "the performer and the server need (viewers are elsewhere in use)")
     parser.add_argument("--mouth-clock", default="arrival", help="arrival (the frame's last "
                         "RTP packet, as the click's), decode, or arrival,decode")
     add_server_voice_args(parser)
@@ -651,7 +676,7 @@ def main() -> int:
                         args.edge_drive.split(","), args.voice.split(",")):
                     r = asyncio.run(run(url, token, n, args.events, args.size,
                                         args.open_pixels, proc.pid, voice == "on", procs,
-                                        clock, hz, edges))
+                                        clock, hz, edges, args.viewer_nice))
                     print(f"| {pacing} | {sender_clock} | {delay} | {n} | {procs} | {clock} | "
                           f"{hz:g} | {edges} | {cap or 'default'} | "
                           f"{r['events']} | {r['paired']} | {r['missed']} | {r['median_ms']:.0f} | "
