@@ -175,6 +175,10 @@ def test_arrival_clock_takes_the_quickest_recent_transit_and_restarts_on_a_jump(
     assert clock.resets == 1
     with pytest.raises(ValueError, match="window_s"):
         ArrivalClock(window_s=0)
+    # stamp + (arrived - stamp) rounds 3.6e-12 s past arrived here: never later than arrived
+    stamp, arrived = 76377.4618976614, 12550.690257394217
+    assert stamp + (arrived - stamp) > arrived
+    assert ArrivalClock().observe(stamp, arrived) == arrived
 
 
 def test_capture_stamps_and_epoch():

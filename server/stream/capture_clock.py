@@ -40,7 +40,9 @@ class ArrivalClock:
         self._window.append((arrived, offset))
         while self._window[0][0] < arrived - self.window_s:
             self._window.popleft()
-        return stamp + self._window[0][1]
+        # the quickest transit is at most this sample's: captured no later than it arrived
+        # (min: float rounding of stamp + (arrived - stamp) can land 1e-9 ms past it)
+        return min(stamp + self._window[0][1], arrived)
 
     def stamp_of(self, at: float) -> float | None:
         """The inverse: instant ``at`` on this server's clock as a stamp of the sender's clock
