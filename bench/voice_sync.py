@@ -61,7 +61,8 @@ from webrtc import cpu_seconds  # noqa: E402
 from client.webrtc import WhepViewer  # noqa: E402
 from protocol import Drive  # noqa: E402
 from protocol.rtp_receiver import frame_rtp_timestamp  # noqa: E402
-from server.loop_watch import GcWatch  # noqa: E402
+from server.loop_watch import GcWatch, LoopWatch  # noqa: E402
+from server.metrics import ServerMetrics  # noqa: E402
 
 RATE = 48_000
 FRAME = 960
@@ -349,15 +350,6 @@ def machine_watch(end: float, out) -> None:
     out.put(late)
 
 
-async def loop_holds(until: float, into: list[float]) -> None:
-    """How late this process's event loop wakes from 5 ms sleeps, each time it is later than
-    20 ms (ms): the performer's loop runs the microphone, the drives and aiortc's sender."""
-    while (now := time.monotonic()) < until:
-        await asyncio.sleep(0.005)
-        if (held := time.monotonic() - now - 0.005) > 0.020:
-            into.append(held * 1e3)
-
-
 def steal_ms() -> float:
     """The machine's stolen time so far (/proc/stat, all cores; 0 where not given)."""
     try:
@@ -374,6 +366,20 @@ def stall_text(stalls: list, gaps: list[tuple[float, float]], steal: float) -> s
     return (f"machine watch: {len(held)} wakes later than 20 ms (longest "
             f"{max(held, default=0):.0f} ms), stolen time {steal:.0f} ms; the first viewer's "
             f"audio gaps over 60 ms: {len(gaps)}, {both} of them with the machine held")
+
+
+def own_text(metrics: ServerMetrics, loop: LoopWatch) -> str:
+    """The performer's process over a run: its loop's wakes later than 20 ms and its
+    collector's pauses longer than 20 ms (server.loop_watch's probes, ``metrics`` their own)."""
+    def count(name: str, labels: dict, le: str) -> float:
+        return metrics.registry.get_sample_value(f"{name}_bucket", {**labels, "le": le}) or 0.0
+    late = count("telesplat_event_loop_lag_ms", {}, "+Inf") - count(
+        "telesplat_event_loop_lag_ms", {}, "20.0")
+    gen = [{"generation": str(g)} for g in (0, 1, 2)]
+    pauses = sum(count("telesplat_gc_pause_ms", g, "+Inf") - count("telesplat_gc_pause_ms", g,
+                                                                     "20.0") for g in gen)
+    return (f"loop held over 20 ms {late:.0f} times (longest {loop.worst_ms:.0f} ms), "
+            f"collector pauses over 20 ms {pauses:.0f}")
 
 
 def lag_text(lags: list[float]) -> str:
@@ -409,11 +415,16 @@ def server_voice_counts(url: str, token: str) -> dict[str, float]:
     return out
 
 
+def delta(before: dict[str, float], after: dict[str, float], key: str) -> float:
+    """A /metrics count over a run (server_voice_counts before and after)."""
+    return after.get(key, 0) - before.get(key, 0)
+
+
 def gc_text(before: dict[str, float], after: dict[str, float]) -> str:
     """The server's garbage-collector pauses during a run, per generation: how many, their
     total and how many were longer than 50 ms."""
     def diff(key: str) -> float:
-        return after.get(key, 0) - before.get(key, 0)
+        return delta(before, after, key)
     parts = [f"gen {g}: {diff(f'gc{g} <= +Inf'):.0f} ({diff(f'gc{g} ms'):.0f} ms, "
              f"{diff(f'gc{g} <= +Inf') - diff(f'gc{g} <= 50.0'):.0f} > 50 ms)"
              for g in (0, 1, 2)]
@@ -425,7 +436,7 @@ def voice_gap_text(before: dict[str, float], after: dict[str, float]) -> str:
     (in) and as the viewers' tracks took them (out), how many were longer than 50 / 75 / 100
     ms, and the bucket the longest fell in."""
     def diff(key: str) -> float:
-        return after.get(key, 0) - before.get(key, 0)
+        return delta(before, after, key)
     parts = []
     for stage in ("in", "out"):
         edges = sorted({float(k.rsplit(" ", 1)[1]) for k in after
@@ -441,11 +452,10 @@ def voice_gap_text(before: dict[str, float], after: dict[str, float]) -> str:
 
 def loop_lag_text(before: dict[str, float], after: dict[str, float]) -> str:
     """How often the server's event loop woke later than 50, 100 and 250 ms during a run."""
+    wakes = delta(before, after, "loop lag <= +Inf")
+
     def late(le: str) -> float:
-        inf, within = "loop lag <= +Inf", f"loop lag <= {le}"
-        return (after.get(inf, 0) - before.get(inf, 0)) - (after.get(within, 0)
-                                                             - before.get(within, 0))
-    wakes = after.get("loop lag <= +Inf", 0) - before.get("loop lag <= +Inf", 0)
+        return wakes - delta(before, after, f"loop lag <= {le}")
     return (f"{wakes:.0f} wakes, later than 50 / 100 / 250 ms: {late('50.0'):.0f} / "
             f"{late('100.0'):.0f} / {late('250.0'):.0f}")
 
@@ -502,11 +512,13 @@ async def run(url: str, token: str, viewers: int, events: int, size: int,
             go.put(end)
         tracker = asyncio.create_task(drives.run(
             end - 3.0, lambda: performer.channel.readyState == "open"))
-        own_pauses: list[float] = []  # the performer's process: collections, loop holds (ms)
-        own_holds: list[float] = []
-        own_gc = GcWatch(lambda generation, ms: own_pauses.append(ms))
+        # the performer's process (its loop runs the microphone, the drives and aiortc's
+        # sender): the server's own probes, into a registry of its own
+        own_metrics = ServerMetrics()
+        own_loop = LoopWatch(own_metrics, interval_s=0.005, stall_ms=0)
+        own_loop.start()
+        own_gc = GcWatch.into(own_metrics)
         own_gc.start()
-        holds = asyncio.create_task(loop_holds(end - 3.0, own_holds))
         await asyncio.sleep(2.0)  # the closed-mouth reference settles
         cpu0, t0 = cpu_seconds(pid), time.monotonic()
         sent_from = len(sent_at)
@@ -520,7 +532,7 @@ async def run(url: str, token: str, viewers: int, events: int, size: int,
             await asyncio.sleep(EVENT_EVERY_S - OPEN_S)
         cpu = (cpu_seconds(pid) - cpu0) / (time.monotonic() - t0)
         await tracker
-        await holds
+        await own_loop.stop()
         own_gc.stop()
         mic_gap = float(np.diff(sent_at[sent_from:]).max() * 1e3) if voice else float("nan")
         records = []
@@ -561,10 +573,8 @@ async def run(url: str, token: str, viewers: int, events: int, size: int,
     long_gaps = [(a, b) for a, b, inside in zip(at[:-1], at[1:], span[:-1], strict=True)
                  if inside and b - a > 0.060]
     print(f"# {stall_text(stalls, long_gaps, steal)}; the server's voice gaps: "
-          f"{voice_gap_text(before, after)}; the performer's process: loop held over 20 ms "
-          f"{len(own_holds)} times (longest {max(own_holds, default=0):.0f} ms), collector "
-          f"pauses over 20 ms {sum(p > 20 for p in own_pauses)} (longest "
-          f"{max(own_pauses, default=0):.0f} ms)", file=sys.stderr, flush=True)
+          f"{voice_gap_text(before, after)}; the performer's process: "
+          f"{own_text(own_metrics, own_loop)}", file=sys.stderr, flush=True)
     print(f"# {viewers} viewers in {processes} processes, mouth at {mouth_clock}: fired "
           f"{len(fired)}, peers lost {sum(r['lost'] for r in records)}, mouth edges "
           f"{[len(r['mouth']) for r in records]}, clicks {[len(r['clicks']) for r in records]},"

@@ -276,8 +276,16 @@ def playout_skews(rec: dict) -> list[float]:
     return out
 
 
-def playout_skew(rec: dict) -> str:
-    skew = playout_skews(rec)
+def spread_text(values: list[float]) -> str:
+    """"median (p5 / p95)" in ms, or "-"."""
+    if not values:
+        return "-"
+    p5, p50, p95 = np.percentile(values, [5, 50, 95])
+    return f"{p50:.0f} ({p5:.0f} / {p95:.0f})"
+
+
+def playout_skew(rec: dict, skew: list[float]) -> str:
+    """Chromium's own sync (``skew``: playout_skews) for the log, or why it was not given."""
     if not skew:
         rows = rec.get("stats", [])
         return (f"estimatedPlayoutTimestamp: not given (of {len(rows)} polls, video's in "
@@ -285,9 +293,8 @@ def playout_skew(rec: dict) -> str:
                 f"{sum(bool(r.get('audioPlayout')) for r in rows)}, a frame shown before in "
                 f"{sum(r.get('lastDisplay') is not None for r in rows)})")
     return (f"Chromium's own sync (estimatedPlayoutTimestamp, the picture's carried to the "
-            f"poll) video - audio: median {np.median(skew):.0f} ms, p5-p95 "
-            f"{np.percentile(skew, 5):.0f}-{np.percentile(skew, 95):.0f} ({len(skew)} polls); "
-            f"WebAudio latency ms {rec.get('latency')}")
+            f"poll) video - audio, median (p5 / p95) ms: {spread_text(skew)} ({len(skew)} "
+            f"polls); WebAudio latency ms {rec.get('latency')}")
 
 
 def offsets(rec: dict) -> list[float]:
@@ -351,21 +358,19 @@ def main() -> int:
               f"{rec['blocks']}, mouth edges {len(rec['mouth'])}, clicks {len(rec['clicks'])}, "
               f"audio {rec.get('context')}, error {rec['error']}, getStats {rec['buffers']}; "
               f"offsets ms {[round(x) for x in arr]}", file=sys.stderr, flush=True)
+        skew = playout_skews(rec)
         print(f"# {pacing} {clock} {delay}, per event: {explain(rec)}; "
-              f"{playout_skew(rec)}", file=sys.stderr, flush=True)
+              f"{playout_skew(rec, skew)}", file=sys.stderr, flush=True)
         b = rec["buffers"]
         buffers = (f"{b.get('audio', '-')} ({b.get('audio_target', '-')}) / "
                    f"{b.get('video', '-')} ({b.get('video_target', '-')})")
-        skew = playout_skews(rec)
-        own = (f"{np.median(skew):.0f} ({np.percentile(skew, 5):.0f} / "
-               f"{np.percentile(skew, 95):.0f})" if skew else "-")
         if len(arr):
             print(f"| Chromium | {pacing} | {clock} | {delay} | {args.drive_hz:g} | "
                   f"{args.edge_drive} | "
                   f"{args.events} | {len(arr)} | "
                   f"{np.median(arr):.0f} | {np.percentile(arr, 5):.0f} / "
                   f"{np.percentile(arr, 95):.0f} | {arr.min():.0f} / {arr.max():.0f} | "
-                  f"{((arr >= -45) & (arr <= 125)).mean():.0%} | {buffers} | {own} |",
+                  f"{((arr >= -45) & (arr <= 125)).mean():.0%} | {buffers} | {spread_text(skew)} |",
                   flush=True)
     return 0
 

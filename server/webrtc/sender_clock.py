@@ -28,9 +28,10 @@ from typing import Any, Protocol
 from aiortc import clock as aiortc_clock
 from aiortc.rtp import RtcpSrPacket
 
+from protocol.rtp_receiver import RTP_WRAP
+
 log = logging.getLogger(__name__)
 
-RTP_WRAP = 2**32
 STAMPS_KEPT = 512  # timestamps a track remembers (>= 10 s of audio, 17 s of 30 fps video;
 #                    a report names one sent within its last 0.5-1.5 s)
 
