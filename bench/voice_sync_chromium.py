@@ -12,16 +12,19 @@ records, on the page's clock (performance.now()):
   AudioWorklet on the page's received track, mapped to performance time by
   ``AudioContext.getOutputTimestamp()``;
 - offset = click - mouth, each mouth edge paired with the click nearest it within half an
-  event interval. Chromium lip-syncs the tracks itself (one MediaStream, RTCP sender reports).
+  event interval. Chromium lip-syncs the tracks itself (one MediaStream, RTCP sender reports),
+  and the page holds its picture while a voice plays (client/web/lipsync.js).
 
 Runs side by side, one fresh server each: every combination of ``--pacing``,
-``--sender-clock`` (the server's ``webrtc_sender_clock``: capture or send) and
-``--max-delay-s`` (its ``voice_max_delay_s``; "default": unset). Per track the page's
+``--sender-clock`` (the server's ``webrtc_sender_clock``: capture or send),
+``--max-delay-s`` (its ``voice_max_delay_s``; "default": unset) and ``--hold`` (the page's
+hold as it ships, none, or a fixed one). Per track the page's
 getStats() at the end: the mean jitter-buffer delay and target delay (ms), and the mean delay
 Chromium's A/V sync added (RtpStreamsSynchronizer shows as the gap between them).
 
     nice -n 10 .venv/bin/python bench/voice_sync_chromium.py [--events 50] [--drive-hz 30]
         [--pacing even,frames] [--sender-clock capture,send] [--max-delay-s default,0]
+        [--hold page,off,60] [--settle-s 15]
 """
 
 from __future__ import annotations
@@ -157,8 +160,25 @@ window.telesplat.session.pc.getStats().then((stats) => {
 """
 
 
+# the video receiver's jitterBufferTarget (ms): how long Chromium holds the picture at least
+VIDEO_TARGET = """for (const r of window.telesplat.session.pc.getReceivers())
+  if (r.track.kind === 'video') r.jitterBufferTarget = arguments[0];"""
+
+
+def hold_setting(text: str) -> str | float:
+    """``--hold``'s value: "page" (the page's lip sync), "off" (``?lipsync=0``) or a fixed
+    jitterBufferTarget in ms (the page's lip sync off)."""
+    if text in ("page", "off"):
+        return text
+    ms = float(text)
+    if not 0 <= ms <= 10_000:
+        raise argparse.ArgumentTypeError(f"a hold is page, off or 0-10000 ms, not {text!r}")
+    return ms
+
+
 async def perform(url: str, token: str, room: str, size: int, events: int, drive_hz: float,
-                  driver, open_pixels: int, edges: str = "tick") -> dict:
+                  driver, open_pixels: int, edges: str = "tick", hold: str | float = "page",
+                  settle_s: float = 2.0) -> dict:
     performer: WhepViewer | None = None
     drives = JawDrives(lambda drive: performer.send(drive), drive_hz, edges)
     mic = click_microphone(lambda: drives.jaw(JAW_OPEN), [])
@@ -166,10 +186,10 @@ async def perform(url: str, token: str, room: str, size: int, events: int, drive
                            microphone=mic, timeout_s=60)
     async with performer:
         await performer.wait_open()
-        await asyncio.to_thread(join_page, driver, url, token, room, size, open_pixels)
-        end = time.monotonic() + 2.0 + events * EVENT_EVERY_S
+        await asyncio.to_thread(join_page, driver, url, token, room, size, open_pixels, hold)
+        end = time.monotonic() + settle_s + events * EVENT_EVERY_S
         tracker = asyncio.create_task(drives.run(end))
-        await asyncio.sleep(2.0)
+        await asyncio.sleep(settle_s)
         await asyncio.to_thread(driver.execute_script, "window.__sync.reference = true;")
         await asyncio.sleep(0.5)
         for _ in range(events):
@@ -181,15 +201,21 @@ async def perform(url: str, token: str, room: str, size: int, events: int, drive
         await asyncio.sleep(1.0)
         rec = await asyncio.to_thread(driver.execute_script, "return window.__sync;")
         rec["buffers"] = await asyncio.to_thread(driver.execute_async_script, JITTER_BUFFERS)
+        rec["hold"] = await asyncio.to_thread(
+            driver.execute_script, "const l = window.telesplat.session.lipSync; "
+            "return l ? {hold: l.hold} : null;")
         return rec
 
 
-def join_page(driver, url: str, token: str, room: str, size: int, open_pixels: int) -> None:
+def join_page(driver, url: str, token: str, room: str, size: int, open_pixels: int,
+              hold: str | float = "page") -> None:
     from tests.test_client_browser import wait_for
     from tests.test_webrtc_browser import wait_playing
 
     link = httpx.post(f"{url}/v1/rooms/{room}/invitations", json={"scope": "watch"},
                       headers={"Authorization": f"Bearer {token}"}, timeout=30).json()["link"]
+    if hold != "page":  # the page's lip sync off
+        link = link.replace("?", "?lipsync=0&", 1) if "?" in link else f"{link}?lipsync=0"
     driver.get(f"{url}{link}")
     wait_playing(driver, 512)  # the page's default, then its #size menu's choice
     driver.execute_script("""const size = document.getElementById('size');
@@ -197,6 +223,8 @@ def join_page(driver, url: str, token: str, room: str, size: int, open_pixels: i
     wait_for(driver, f"document.getElementById('video').videoWidth === {size}", 60, "the size")
     wait_for(driver, "document.querySelector('#voices audio')", 60, "the seat's <audio>")
     driver.execute_script(RECORDER, open_pixels, STAMP_ROWS)
+    if not isinstance(hold, str):  # the picture held this long at least (before the events)
+        driver.execute_script(VIDEO_TARGET, hold)
     wait_for(driver, "window.__sync.blocks > 10 || window.__sync.error", 30, "the worklet")
 
 
@@ -276,6 +304,12 @@ def playout_skews(rec: dict) -> list[float]:
     return out
 
 
+def hold_text(hold: str | float, page: dict | None) -> str:
+    """The --hold setting, and the page's own hold at the end when its lip sync ran."""
+    setting = hold if isinstance(hold, str) else f"{hold:g} ms"
+    return f"{setting} ({page['hold']} ms)" if page else setting
+
+
 def spread_text(values: list[float]) -> str:
     """"median (p5 / p95)" in ms, or "-"."""
     if not values:
@@ -308,7 +342,7 @@ def offsets(rec: dict) -> list[float]:
     return out
 
 
-def run_once(args) -> dict:
+def run_once(args, hold: str | float = "page") -> dict:
     """One server (its settings from the environment), one page, one take."""
     from tests.test_webrtc_browser import make_webrtc_chromium
 
@@ -322,7 +356,8 @@ def run_once(args) -> dict:
                                             headers={"Authorization": f"Bearer {token}"})
                             ).json()["id"]
                 return await perform(url, token, room, args.size, args.events, args.drive_hz,
-                                     driver, args.open_pixels, args.edge_drive)
+                                     driver, args.open_pixels, args.edge_drive, hold,
+                                     args.settle_s)
 
             return asyncio.run(run())
         finally:
@@ -342,36 +377,48 @@ def main() -> int:
                         help="a jaw edge is one of the drive-hz drives, or a drive between "
                              "them (bench/voice_sync.py's JawDrives)")
     parser.add_argument("--avatar", default="synthetic")
+    parser.add_argument("--hold", default="page",
+                        help="how the page holds its picture for the voice, per run, side by "
+                             "side with the server settings: page (its lip sync, "
+                             "client/web/lipsync.js), off (?lipsync=0: Chromium's own sync "
+                             "only) or a fixed video jitterBufferTarget in ms; e.g. page,off,60")
+    parser.add_argument("--settle-s", type=float, default=15.0,
+                        help="drives before the first event, for Chromium's sync and the "
+                             "page's hold to settle")
     add_server_voice_args(parser)
     args = parser.parse_args()
+    holds = [hold_setting(t) for t in args.hold.split(",")]
 
     os.environ["TELESPLAT_WEBRTC_MAX_PEERS"] = "4"
     print("| viewer | pacing | sender clock | voice_max_delay_s | drives/s | edge drive | events "
           "| paired | "
           "median ms | p5 / p95 ms | min / max ms | within -45/+125 | jitter buffer ms: "
-          "audio (target) / video (target) | Chromium's own sync: median (p5 / p95) ms |")
-    print("|---" * 14 + "|")
-    for pacing, clock, delay in server_voice_runs(args):
-        rec = run_once(args)
-        arr = np.asarray(offsets(rec))
-        print(f"# {pacing} {clock} {delay}: frames {rec['frames']}, audio blocks "
-              f"{rec['blocks']}, mouth edges {len(rec['mouth'])}, clicks {len(rec['clicks'])}, "
-              f"audio {rec.get('context')}, error {rec['error']}, getStats {rec['buffers']}; "
-              f"offsets ms {[round(x) for x in arr]}", file=sys.stderr, flush=True)
-        skew = playout_skews(rec)
-        print(f"# {pacing} {clock} {delay}, per event: {explain(rec)}; "
-              f"{playout_skew(rec, skew)}", file=sys.stderr, flush=True)
-        b = rec["buffers"]
-        buffers = (f"{b.get('audio', '-')} ({b.get('audio_target', '-')}) / "
-                   f"{b.get('video', '-')} ({b.get('video_target', '-')})")
-        if len(arr):
-            print(f"| Chromium | {pacing} | {clock} | {delay} | {args.drive_hz:g} | "
-                  f"{args.edge_drive} | "
-                  f"{args.events} | {len(arr)} | "
-                  f"{np.median(arr):.0f} | {np.percentile(arr, 5):.0f} / "
-                  f"{np.percentile(arr, 95):.0f} | {arr.min():.0f} / {arr.max():.0f} | "
-                  f"{((arr >= -45) & (arr <= 125)).mean():.0%} | {buffers} | {spread_text(skew)} |",
-                  flush=True)
+          "audio (target) / video (target) | Chromium's own sync: median (p5 / p95) ms "
+          "| picture hold: setting (the page's at the end, ms) |")
+    print("|---" * 15 + "|")
+    for pacing, clock, delay in server_voice_runs(args):  # sets the server's environment
+        for hold in holds:
+            rec = run_once(args, hold)
+            arr = np.asarray(offsets(rec))
+            print(f"# {pacing} {clock} {delay} hold {hold}: frames {rec['frames']}, audio blocks "
+                  f"{rec['blocks']}, mouth edges {len(rec['mouth'])}, clicks {len(rec['clicks'])}, "
+                  f"audio {rec.get('context')}, error {rec['error']}, getStats {rec['buffers']}; "
+                  f"offsets ms {[round(x) for x in arr]}", file=sys.stderr, flush=True)
+            skew = playout_skews(rec)
+            print(f"# {pacing} {clock} {delay} hold {hold}, per event: {explain(rec)}; "
+                  f"{playout_skew(rec, skew)}", file=sys.stderr, flush=True)
+            b = rec["buffers"]
+            buffers = (f"{b.get('audio', '-')} ({b.get('audio_target', '-')}) / "
+                       f"{b.get('video', '-')} ({b.get('video_target', '-')})")
+            if len(arr):
+                print(f"| Chromium | {pacing} | {clock} | {delay} | {args.drive_hz:g} | "
+                      f"{args.edge_drive} | "
+                      f"{args.events} | {len(arr)} | "
+                      f"{np.median(arr):.0f} | {np.percentile(arr, 5):.0f} / "
+                      f"{np.percentile(arr, 95):.0f} | {arr.min():.0f} / {arr.max():.0f} | "
+                      f"{((arr >= -45) & (arr <= 125)).mean():.0%} | {buffers} | "
+                      f"{spread_text(skew)} | {hold_text(hold, rec.get('hold'))} |",
+                      flush=True)
     return 0
 
 

@@ -76,6 +76,13 @@ def test_a_performer_page_speaks_and_a_viewer_page_hears_it(server, room):  # no
             raise AssertionError(f"{missed}; page voices {voices}; server "
                                  f"{voice_counts(server, room['id'])}") from missed
         assert heard["volume"] == 1 and heard["muted"] is False
+        # A voice plays: the viewer holds its picture for it (client/web/lipsync.js); the
+        # performer, who hears no voice (its own seat's is not sent back), does not.
+        hold = wait_for(viewer, "window.telesplat.session.lipSync.hold === 60 && window."
+                                "telesplat.session.pc.getReceivers().find(r => r.track.kind "
+                                "=== 'video').jitterBufferTarget", 10, "the picture's hold")
+        assert hold == 60
+        assert performer.execute_script("return window.telesplat.session.lipSync.hold") == 0
         assert "speaking: seat 0" in viewer.find_element("id", "speaking").text
         # Presence says so too (the server's flag, from the level Chromium puts in each packet).
         says = "document.getElementById('presence').textContent.includes('performing, speaking')"

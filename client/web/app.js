@@ -263,6 +263,7 @@ async function whepSession(target) {
   const media = await voiceMedia(target);
   return new WhepSession(roomId, token, {
     video, stamps: true, query: { width: size, height: size, name: myName, ...query }, media,
+    lipSync: params.get("lipsync") !== "0",
   });
 }
 

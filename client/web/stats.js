@@ -106,6 +106,7 @@ function rtcRows(s) {
     ["dropped", rtc.framesDropped == null ? "–" : String(rtc.framesDropped)],
     ["jitter", fmt(rtc.jitterMs, 1, " ms")],
     ["rtt", fmt(rtc.rttMs, 0, " ms")],
+    ["lip-sync hold", fmt(rtc.lipSyncHoldMs, 0, " ms")],
     ["ping", fmt(s.rttMs, 0, " ms")],
     ["frame", rtc.size || "–"],
   ];

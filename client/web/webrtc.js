@@ -4,6 +4,7 @@
 // labelled "telesplat". WhepSession has Session's interface (session.js): `ready` resolves to
 // the welcome, the same send methods, the same events, so app.js drives either transport.
 
+import { LipSync } from "./lipsync.js";
 import { ProtocolError, encode } from "./protocol.js";
 import { rtcSample, rtcSummary, watchStamps } from "./rtcstats.js";
 import { MessageSession } from "./session.js";
@@ -102,9 +103,11 @@ async function httpError(response) {
 export class WhepSession extends MessageSession {
   /** `video`: the <video> the track plays in; `query`: WHEP query (width, height, fps, seat,
    *  name); `stamps`: frames carry their drive seq (stamp=1), read back for the latency;
-   *  `media(pc)`: adds more m-lines before the offer (voice.js: microphone, seats' voices). */
+   *  `media(pc)`: adds more m-lines before the offer (voice.js: microphone, seats' voices);
+   *  `lipSync`: hold the picture while a voice plays, which the browser plays late
+   *  (lipsync.js). */
   constructor(roomId, token, { video, query = {}, iceServers = [], stamps = false,
-    media = null } = {}) {
+    media = null, lipSync = true } = {}) {
     super();
     this.transport = "webrtc";
     this.url = whepUrl(roomId, stamps ? { ...query, stamp: 1 } : query);
@@ -116,6 +119,7 @@ export class WhepSession extends MessageSession {
     this._sample = null;
     this.pc = new RTCPeerConnection({ iceServers });
     this.pc.addTransceiver("video", { direction: "recvonly" });
+    this.lipSync = lipSync ? new LipSync(this.pc) : null;
     media?.(this.pc);
     this.channel = this.pc.createDataChannel(CHANNEL_LABEL, { ordered: true });
     this.channel.binaryType = "arraybuffer";
@@ -182,12 +186,15 @@ export class WhepSession extends MessageSession {
     return super.request(track);
   }
 
-  /** Sample getStats() and keep the overlay's figures in `this.rtc`. */
+  /** Sample getStats() and keep the overlay's figures in `this.rtc`; the lip sync reads
+   *  the same report. */
   async poll() {
     if (this.closed) return this.rtc;
-    const sample = rtcSample(await this.pc.getStats());
+    const report = await this.pc.getStats();
+    this.lipSync?.update(report);
+    const sample = rtcSample(report);
     if (sample) {
-      this.rtc = rtcSummary(this._sample, sample);
+      this.rtc = { ...rtcSummary(this._sample, sample), lipSyncHoldMs: this.lipSync?.hold ?? null };
       this._sample = sample;
     }
     return this.rtc;
