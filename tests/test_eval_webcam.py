@@ -47,12 +47,14 @@ def avatar(synthetic_files):
 @pytest.fixture(scope="module")
 def result(avatar, dataset_dir, tmp_path_factory):
     out = tmp_path_factory.mktemp("webcam_out")
-    return evaluate_webcam(avatar, dataset_dir, out_dir=out, max_images=2), out
+    frames = []
+    return evaluate_webcam(avatar, dataset_dir, out_dir=out, max_images=2,
+                           on_frame=frames.append), out, frames
 
 
 @needs_models
 def test_the_table_has_three_finite_drives(result):
-    r, out = result
+    r, out, _ = result
     assert list(r.drives) == list(DRIVES)
     for drive, row in r.drives.items():
         assert set(row) == set(METRICS)
@@ -68,7 +70,7 @@ def test_the_table_has_three_finite_drives(result):
 
 @needs_models
 def test_latency_budget_and_files(result):
-    r, out = result
+    r, out, _ = result
     assert set(STAGES) <= set(r.latency_ms) and "live path" in r.latency_ms
     for stage, v in r.latency_ms.items():
         assert math.isfinite(v["median"]) and v["p95"] >= v["median"] >= 0, stage
@@ -79,6 +81,49 @@ def test_latency_budget_and_files(result):
     md = (out / "webcam.md").read_text()
     assert "| webcam tracking (live config) |" in md and "| live path |" in md
     assert len(r.images) == 2 and all((out / p).is_file() for p in r.images)
+
+
+@needs_models
+def test_each_scored_frame_reaches_on_frame(result, dataset_dir):
+    r, _, frames = result
+    assert len(frames) == r.num_frames and len({f.key for f in frames}) == r.num_frames
+    ds = load_dataset(dataset_dir)
+    for f in frames:
+        np.testing.assert_allclose(f.camera.R, ds.cameras[r.webcam_camera].camera.R)
+        assert f.webcam["global_orient"].shape == (3,)
+        assert np.isfinite(f.webcam["global_orient"]).all()
+        assert set(f.truth) >= {"global_orient", "body_pose"}
+        assert f.observations.weights.shape == f.observations.pixels.shape[:1]
+
+
+def test_root_error_axes_are_the_webcams(dataset_dir):
+    """bench/webcam_root.py: a root leaned about the webcam's own x axis by 10 deg reads as
+    10 deg about x, whatever the webcam's place in the studio."""
+    import importlib.util
+    import sys
+    from pathlib import Path
+
+    from scipy.spatial.transform import Rotation
+
+    path = Path(__file__).resolve().parents[1] / "bench" / "webcam_root.py"
+    spec = importlib.util.spec_from_file_location("webcam_root", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    cam = load_dataset(dataset_dir).cameras["cam01"].camera
+    truth = {"global_orient": np.array([0.1, -0.3, 0.05]), "body_pose": np.zeros(63)}
+    lean = Rotation.from_matrix(cam.R.T @ Rotation.from_euler("x", 10, degrees=True).as_matrix()
+                                @ cam.R)
+    fit = {**truth, "global_orient": (lean * Rotation.from_rotvec(truth["global_orient"]))
+           .as_rotvec()}
+    np.testing.assert_allclose(module.root_error_axes(fit, truth, cam), [10, 0, 0], atol=1e-9)
+    np.testing.assert_allclose(module.root_error_axes(truth, truth, cam), 0, atol=1e-9)
+    # in the webcam's frame as the fit states it (y and z flipped: x keeps its sign) the
+    # fitted root is the true one turned 10 deg about x
+    before = Rotation.from_rotvec(np.radians(module.root_in_webcam(truth["global_orient"], cam)))
+    after = Rotation.from_rotvec(np.radians(module.root_in_webcam(fit["global_orient"], cam)))
+    np.testing.assert_allclose(np.degrees((after * before.inv()).as_rotvec()), [10, 0, 0],
+                               atol=1e-9)
 
 
 @needs_models

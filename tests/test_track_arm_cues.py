@@ -114,8 +114,9 @@ def test_direction_pairs_need_both_landmarks_and_a_bone(model_and_betas, cued):
     pairs = world_cues.direction_pairs(obs, weight, 10.0)
     assert pairs is not None
     a, b, u, w = pairs
-    # Only the left upper arm: the others have no length, a NaN or an infinity.
-    assert list(a) == [POSE + 11] and list(b) == [POSE + 13]
+    # Only the left upper arm: the others have no length, a NaN or an infinity. An end of one
+    # landmark is its row twice (an end's point is the mean of its rows).
+    assert a.tolist() == [[POSE + 11] * 2] and b.tolist() == [[POSE + 13] * 2]
     np.testing.assert_allclose(u, [[0.0, -1.0, 0.0]])  # down, in the camera frame (y up)
     assert world_cues.direction_pairs(obs, weight, 0.0) is None
     weight[POSE + 13] = 0.0
@@ -232,11 +233,46 @@ def test_the_live_path_carries_the_arm_cues_and_the_plain_config_none():
     assert plain.body_temporal_weight is None
 
 
+def test_the_torso_axis_runs_from_the_hips_midpoint_to_the_shoulders(model_and_betas, cued):
+    """Its ends are midpoints; the hips, left out of the 2D fit, still start it."""
+    obs = empty_observations((640, 480))
+    obs.world = np.full((33, 3), np.nan)
+    obs.world[[23, 24]] = [[0.1, 0.0, 0.0], [-0.1, 0.0, 0.2]]   # hips, y down
+    obs.world[[11, 12]] = [[0.2, -0.5, 0.0], [-0.2, -0.5, 0.2]]  # shoulders above them
+    weight = np.ones(cor.NUM_KEYPOINTS)
+    weight[[POSE + 23, POSE + 24]] = 0.0  # as observations.MISMATCHED_ROWS leaves them
+    a, b, u, _ = world_cues.direction_pairs(obs, weight, 10.0, world_cues.TORSO_AXIS)
+    assert a.tolist() == [[POSE + 23, POSE + 24]] and b.tolist() == [[POSE + 11, POSE + 12]]
+    np.testing.assert_allclose(u, [[0.0, 1.0, 0.0]])  # up, in the camera frame (y up)
+    # The model's axis: the mean of the two rows at each end, with its Jacobian.
+    points = np.zeros((cor.NUM_KEYPOINTS, 3))
+    points[[POSE + 23, POSE + 24]] = [[0.1, 0.0, 0.0], [-0.1, 0.0, 0.0]]
+    points[[POSE + 11, POSE + 12]] = [[0.2, 0.4, 0.3], [-0.2, 0.4, 0.3]]  # leaning 36.9 deg
+    d_points = np.random.default_rng(0).normal(size=(cor.NUM_KEYPOINTS, 3, 4))
+    pairs = (a, b, u, np.ones(1))
+    r, jac = world_cues.direction_residuals(points, d_points, pairs, jacobian=True)
+    np.testing.assert_allclose(r, [0.0, 0.8 - 1.0, 0.6], atol=1e-12)
+    step = 1e-6 * np.arange(1, 5)
+    r2, _ = world_cues.direction_residuals(points + d_points @ step, d_points, pairs, False)
+    np.testing.assert_allclose(r2 - r, jac @ step, atol=1e-10)
+    # A landmark out of the 2D fit and not WORLD_ONLY keeps its bone out.
+    obs.world[13] = [0.3, -0.2, 0.0]
+    weight[POSE + 13] = 0.0
+    assert world_cues.direction_pairs(obs, weight, 10.0, ((11, 13),)) is None
+    # A hip that is not seen (no world point): no axis.
+    obs.world[23] = np.nan
+    assert world_cues.direction_pairs(obs, weight, 10.0, world_cues.TORSO_AXIS) is None
+
+
 @pytest.mark.parametrize("fields", [{"elbow_extension_deg": math.nan},
                                     {"elbow_extension_deg": -5.0},
                                     {"world_direction_bones": ((11, 33),)},
                                     {"world_direction_bones": ((11, 11),)},
-                                    {"world_direction_bones": ((11, 13, 15),)}])
+                                    {"world_direction_bones": ((11, 13, 15),)},
+                                    {"world_direction_bones": (((23, 24, 11), 12),)},
+                                    {"world_direction_bones": (((11, 12), (12, 11)),)},
+                                    {"world_direction_bones": (((23, 23), 11),)},
+                                    {"world_direction_bones": (("hip", 11),)}])
 def test_bad_arm_cue_settings_are_refused(model_and_betas, fields):
     with pytest.raises(ValueError, match=next(iter(fields))):
         FrameFitter(*model_and_betas, FitConfig(**fields))

@@ -113,6 +113,18 @@ class WebcamResult:
 # -- cameras and parameters ----------------------------------------------------------------
 
 
+@dataclass
+class WebcamFrame:
+    """One frame of the webcam protocol: the webcam's parameters (the root in the studio's
+    world, as scored), the truth, what the tracker observed, and the webcam."""
+
+    key: Any
+    webcam: dict[str, np.ndarray]
+    truth: dict[str, np.ndarray]
+    observations: Any   # track.fit.observations.Observations
+    camera: Camera
+
+
 def _view_dir(cam: Camera) -> np.ndarray:
     return cam.R[2]  # the optical axis in the world (R: world -> camera, OpenCV)
 
@@ -285,11 +297,13 @@ def evaluate_webcam(avatar: str | Path | LoadedAvatar, dataset: str | Path | Dat
                     frame_stride: int = 1, max_frames: int | None = None,
                     size: int | None = None, out_dir: str | Path | None = None,
                     max_images: int = 4, model_dir: Path | None = None,
-                    progress: Progress | None = None, fit_config=None) -> WebcamResult:
+                    progress: Progress | None = None, fit_config=None,
+                    on_frame: Callable[[WebcamFrame], None] | None = None) -> WebcamResult:
     """The webcam protocol (module docstring); writes ``webcam.json`` / ``webcam.md`` and
     ``images/`` (ground truth | webcam-driven render | error) with ``out_dir``. `fit_config`:
     the live fit's `FitConfig` (default: as the server runs it), e.g. with the learned
-    landmark embedding and the 3D cues."""
+    landmark embedding and the 3D cues. `on_frame`: called with each frame's
+    :class:`WebcamFrame` (diagnostics: bench/webcam_root.py)."""
     if frame_stride < 1 or (max_frames is not None and max_frames < 1) or max_images < 0:
         raise ValueError("frame_stride and max_frames must be at least 1, max_images >= 0")
     ds = dataset if isinstance(dataset, Dataset) else load_dataset(dataset)
@@ -337,7 +351,8 @@ def evaluate_webcam(avatar: str | Path | LoadedAvatar, dataset: str | Path | Dat
                 image = decode_image(_jpeg(src.view(seq, frame, webcam_name).rgb))
                 result = tracker.track(image)
                 t1 = time.perf_counter()
-                fitted = sequence_fit.step(from_track_result(result), frame / fps)
+                observations = from_track_result(result)
+                fitted = sequence_fit.step(observations, frame / fps)
                 t2 = time.perf_counter()
                 if i:  # the first frame warms the models up
                     track_ms.append((t1 - t0) * 1e3)
@@ -357,6 +372,8 @@ def evaluate_webcam(avatar: str | Path | LoadedAvatar, dataset: str | Path | Dat
                 scorer.score("trackers", key, {k: v[frame] for k, v in tracked.items()},
                              truth_out, gt, keep, true_row)
                 pred = scorer.score("webcam", key, webcam, truth_out, gt, keep, true_row)
+                if on_frame is not None:
+                    on_frame(WebcamFrame(key, webcam, true_row, observations, webcam_cam))
                 # the root is what a monocular fit of an upper body sees worst: this row
                 # shows how much of the webcam's error is the rest (a diagnostic, not live)
                 scorer.score("webcam_true_root", key,

@@ -139,12 +139,13 @@ class FitConfig:
     # (`world_cues.py`; 0: off). Set on held-out renders (docs/tracking.md).
     world_weight: float = 0.0
     image_z_weight: float = 0.0
-    # Each bone of `world_direction_bones` ((from, to) BlazePose landmarks) toward its
+    # Each bone of `world_direction_bones` ((from, to), each end one BlazePose landmark or
+    # two: their midpoint) toward its
     # direction in BlazePose's metric world landmarks (`world_cues.direction_residuals`), per
     # rad^2 (0: off): its world bones are far nearer the truth than a monocular fit's
     # (docs/tracking.md).
     world_direction_weight: float = 0.0
-    world_direction_bones: tuple[tuple[int, int], ...] = world_cues.ARM_BONES
+    world_direction_bones: tuple[tuple, ...] = world_cues.ARM_BONES
     dtype: torch.dtype = torch.float64
 
 
@@ -187,11 +188,10 @@ class FrameFitter:
         if math.isnan(cfg.elbow_extension_deg) or cfg.elbow_extension_deg < 0:
             raise ValueError(f"elbow_extension_deg must be >= 0 (180 or more: off), got "
                              f"{cfg.elbow_extension_deg}")
-        if any(len(b) != 2 or not all(0 <= i < cor.NUM_POSE for i in b) or b[0] == b[1]
-               for b in cfg.world_direction_bones):
-            raise ValueError(f"world_direction_bones must be (from, to) pairs of distinct "
-                             f"BlazePose landmarks in [0, {cor.NUM_POSE}), got "
-                             f"{cfg.world_direction_bones}")
+        if not all(world_cues.valid_bone(b) for b in cfg.world_direction_bones):
+            raise ValueError(f"world_direction_bones must be (from, to) pairs, each end one "
+                             f"BlazePose landmark in [0, {cor.NUM_POSE}) or two (their "
+                             f"midpoint), the ends distinct, got {cfg.world_direction_bones}")
         self.keypoints = BodyKeypoints(model, dtype=self.config.dtype)  # the reference model
         self.num_expression = model.num_expression
         n_betas = self.keypoints.model.num_betas

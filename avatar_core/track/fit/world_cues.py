@@ -54,37 +54,67 @@ def world_residuals(depth, d_depth, pairs, focal: float, px_scale: float, jacobi
     return np.nan_to_num(r), jac
 
 
-# Bones whose world direction the direction term pulls toward BlazePose's: (from, to) in its
-# numbering: the upper arms and forearms; and the shoulders' line (it carries the torso's yaw).
+# Bones whose world direction the direction term pulls toward BlazePose's: (from, to), each
+# end one landmark in its numbering or two (their midpoint). The upper arms and forearms; the
+# shoulders' line (it carries the torso's yaw); the torso's axis, the hips' midpoint to the
+# shoulders' (it carries the lean, which the 2D points cannot tell toward the camera from away
+# from it: BlazePose's axis is 1-3 deg from the true one, docs/tracking.md).
 ARM_BONES = ((11, 13), (13, 15), (12, 14), (14, 16))
 SHOULDER_LINE = ((12, 11),)
+TORSO_AXIS = (((23, 24), (11, 12)),)
+# Landmarks left out of the 2D fit (observations.MISMATCHED_ROWS: BlazePose's hips lie ~26 px
+# wider than the hip joints) whose world points a bone may still use: their midpoint is the
+# hip joints' within the torso axis' accuracy above.
+WORLD_ONLY = frozenset((23, 24))
+MAX_END_LANDMARKS = 2
 # BlazePose's world axes (x right, y down, z away from the camera) -> the fit's camera frame
 # (x right, y up, z toward the camera): measured on the studio recordings, where this sign
 # choice puts the shoulders' line 3-6 deg from the truth and every other choice >= 170 deg.
 WORLD_TO_CAMERA = np.array([1.0, -1.0, -1.0])
 
 
+def bone_end(end) -> tuple[int, ...]:
+    """A bone's end as its landmarks: an int is one, a tuple its own."""
+    return (int(end),) if isinstance(end, int | np.integer) else tuple(int(i) for i in end)
+
+
+def valid_bone(bone) -> bool:
+    """(from, to), each end 1-2 distinct BlazePose landmarks, the two ends different."""
+    if len(bone) != 2:
+        return False
+    try:
+        ends = [bone_end(e) for e in bone]
+    except (TypeError, ValueError):
+        return False
+    return (all(1 <= len(e) <= MAX_END_LANDMARKS and len(set(e)) == len(e)
+                and all(0 <= i < cor.NUM_POSE for i in e) for e in ends)
+            and set(ends[0]) != set(ends[1]))
+
+
 def direction_pairs(obs, weight: np.ndarray, w: float, bones=ARM_BONES
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
-    """(from rows [D], to rows [D], target unit directions [D, 3] in the camera frame,
-    sqrt weight [D]) of the `bones` ((from, to) BlazePose landmarks) whose two landmarks are
-    used and have finite, distinct world points; None: none (or `w` 0, or no world
-    landmarks)."""
+    """(from rows [D, 2], to rows [D, 2] (an end's keypoint rows, their mean its point; one
+    landmark is its row twice), target unit directions [D, 3] in the camera frame, sqrt
+    weight [D]) of the `bones` whose landmarks are all used (or `WORLD_ONLY`) and have finite
+    world points, distinct ends; None: none (or `w` 0, or no world landmarks)."""
     if w <= 0 or obs.world is None:
         return None
     base = cor.POSE_SLICE.start
     rows = []
-    for a, b in bones:
-        if weight[base + a] <= 0 or weight[base + b] <= 0:
+    for bone in bones:
+        ends = [bone_end(e) for e in bone]
+        if any(weight[base + i] <= 0 and i not in WORLD_ONLY for e in ends for i in e):
             continue
-        v = (obs.world[b] - obs.world[a]) * WORLD_TO_CAMERA
+        a, b = (obs.world[list(e)].mean(axis=0) for e in ends)
+        v = (b - a) * WORLD_TO_CAMERA
         n = float(np.linalg.norm(v))
         if np.isfinite(n) and n > 1e-6:
-            rows.append((base + a, base + b, v / n))
+            rows.append(tuple(np.resize(np.asarray(e) + base, MAX_END_LANDMARKS)
+                              for e in ends) + (v / n,))
     if not rows:
         return None
     a, b, u = zip(*rows, strict=True)
-    return np.array(a), np.array(b), np.stack(u), np.full(len(rows), np.sqrt(w))
+    return np.stack(a), np.stack(b), np.stack(u), np.full(len(rows), np.sqrt(w))
 
 
 def direction_residuals(points, d_points, pairs, jacobian: bool):
@@ -92,7 +122,7 @@ def direction_residuals(points, d_points, pairs, jacobian: bool):
     BlazePose's, weighted. `points` [K, 3] the model's keypoints (camera frame), `d_points`
     [K, 3, N] their derivatives."""
     a, b, target, sqrt_w = pairs
-    v = points[b] - points[a]                                       # [D, 3]
+    v = points[b].mean(axis=1) - points[a].mean(axis=1)             # [D, 3]
     length = np.maximum(np.linalg.norm(v, axis=1), 1e-9)
     u = v / length[:, None]
     r = (sqrt_w[:, None] * (u - target)).reshape(-1)
@@ -100,7 +130,7 @@ def direction_residuals(points, d_points, pairs, jacobian: bool):
     if jacobian:
         # d(v/|v|) = (I - u u^T) dv / |v|
         proj = (np.eye(3)[None] - u[:, :, None] * u[:, None, :]) / length[:, None, None]
-        dv = d_points[b] - d_points[a]                              # [D, 3, N]
+        dv = d_points[b].mean(axis=1) - d_points[a].mean(axis=1)    # [D, 3, N]
         jac = (sqrt_w[:, None, None] * np.einsum("dij,djn->din", proj, dv)).reshape(
             -1, dv.shape[-1])
     return np.nan_to_num(r), jac

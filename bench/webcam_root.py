@@ -1,0 +1,145 @@
+"""Where a webcam-driven avatar's root goes wrong (issue 28): `telesplat eval --protocol
+webcam` on a trained avatar, once per fit variant, with the root's error split along the
+webcam's own axes, the true and fitted root in the webcam's frame, and BlazePose's world torso
+axis (the hips' midpoint to the shoulders') against the true one. With `--recordings`, only
+that axis, on the studio protocol's recordings (bench/webcam_replay.py --record).
+
+    ARMS="(11,13),(13,15),(12,14),(14,16),(12,11)"
+    OMP_NUM_THREADS=1 PYTHONPATH=. python bench/webcam_root.py \
+        out/e28/work/finetune_fixed/avatar_final out/e28/noisy_data \
+        --variants "torso:fit.world_direction_bones=($ARMS,((23,24),(11,12)))"
+    PYTHONPATH=. python bench/webcam_root.py --recordings /tmp/w28/rec
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from webcam_replay import parse_variants  # noqa: E402
+
+from avatar_core.body.skeleton import JOINT  # noqa: E402
+from avatar_core.metrics import webcam as W  # noqa: E402
+from avatar_core.synth.tracking_eval.protocol import with_variant  # noqa: E402
+from avatar_core.track.fit.sequence import live_config  # noqa: E402
+from avatar_core.track.fit.world_cues import WORLD_TO_CAMERA  # noqa: E402
+
+HIPS, SHOULDERS = (23, 24), (11, 12)
+
+
+def angle_deg(u: np.ndarray, v: np.ndarray) -> float:
+    u, v = u / np.linalg.norm(u), v / np.linalg.norm(v)
+    return float(np.degrees(np.arccos(np.clip(u @ v, -1.0, 1.0))))
+
+
+def root_in_webcam(global_orient: np.ndarray, cam) -> np.ndarray:
+    """A root (rotation vector in the studio's world) in the webcam's frame as the fit
+    states it (x right, y up, z toward the camera), as a rotation vector in degrees."""
+    to_world = Rotation.from_matrix(cam.R.T @ W._OPENCV_FROM_MODEL)
+    return np.degrees((to_world.inv() * Rotation.from_rotvec(global_orient)).as_rotvec())
+
+
+def root_error_axes(fit: dict, truth: dict, cam) -> np.ndarray:
+    """[3] the root's error (fit after truth, degrees) about the webcam's x (right: a lean
+    toward or away from it), y (down: a turn) and z (the optical axis: a roll)."""
+    err = W._world_rotations(fit)[0] @ W._world_rotations(truth)[0].T   # the studio's frame
+    return np.degrees(Rotation.from_matrix(cam.R @ err @ cam.R.T).as_rotvec())
+
+
+def torso_axis_error(frame: W.WebcamFrame, body_model) -> float | None:
+    """BlazePose's world torso axis against the true one (the body model's hip and shoulder
+    joints in the webcam's frame), degrees; None when a hip or shoulder is not seen."""
+    world = frame.observations.world
+    if world is None or not np.isfinite(world[[*HIPS, *SHOULDERS]]).all():
+        return None
+    seen = (world[list(SHOULDERS)].mean(0) - world[list(HIPS)].mean(0)) * WORLD_TO_CAMERA
+    out = body_model({k: np.asarray(v)[None] for k, v in frame.truth.items()})
+    joints = np.asarray(out.joints[0].detach().cpu().numpy(), dtype=np.float64)
+    mid = lambda names: joints[[JOINT[n] for n in names]].mean(0)  # noqa: E731
+    true = frame.camera.R @ (mid(("left_shoulder", "right_shoulder"))
+                             - mid(("left_hip", "right_hip")))
+    return angle_deg(seen, W._OPENCV_FROM_MODEL @ true)
+
+
+def torso_axis(world: np.ndarray) -> np.ndarray:
+    """[3] the hips' midpoint to the shoulders' of [33, 3] points."""
+    return world[list(SHOULDERS)].mean(0) - world[list(HIPS)].mean(0)
+
+
+def recordings_torso(folder: Path) -> None:
+    """BlazePose's world torso axis against the true pose points, per recording."""
+    import pickle
+
+    print("| recording | frames with both hips seen | torso axis error median / p90 deg | "
+          "lean toward the camera, median deg: BlazePose / true |")
+    print("|---" * 4 + "|")
+    for path in sorted(folder.glob("*.pkl")):
+        with open(path, "rb") as f:
+            rec = pickle.load(f)
+        errors, leans = [], []
+        for obs, true_points in zip(rec.live, rec.true_points, strict=True):
+            if obs.world is None or not np.isfinite(obs.world[[*HIPS, *SHOULDERS]]).all():
+                continue
+            seen = torso_axis(obs.world) * WORLD_TO_CAMERA  # the fit's frame, as true_points
+            true = torso_axis(np.asarray(true_points))
+            errors.append(angle_deg(seen, true))
+            leans.append([np.degrees(np.arctan2(v[2], v[1])) for v in (seen, true)])
+        if not errors:
+            print(f"| {path.stem} | 0 of {len(rec.live)} | - | - |")
+            continue
+        lean = np.median(leans, axis=0)
+        print(f"| {path.stem} | {len(errors)} of {len(rec.live)} | {np.median(errors):.1f} / "
+              f"{np.percentile(errors, 90):.1f} | {lean[0]:+.1f} / {lean[1]:+.1f} |")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("avatar", nargs="?")
+    ap.add_argument("dataset", nargs="?")
+    ap.add_argument("--recordings", type=Path, help="the studio protocol's recordings only")
+    ap.add_argument("--size", type=int, default=128)
+    ap.add_argument("--max-frames", type=int, default=None)
+    ap.add_argument("--variants", default="", help="as bench/webcam_replay.py's: "
+                    "'label:fit.field=value;...' over the live configuration")
+    args = ap.parse_args()
+    if args.recordings:
+        recordings_torso(args.recordings)
+        return 0
+    if not (args.avatar and args.dataset):
+        ap.error("an avatar and a dataset, or --recordings")
+    dataset = W.load_dataset(args.dataset)
+    avatar = W.load_avatar(args.avatar)
+    print("| fit | PSNR dB | with the true root dB | root deg | root error about the webcam's "
+          "x / y / z, mean deg | true root in the webcam frame | fitted root in the webcam "
+          "frame | BlazePose's torso axis against the truth, median deg |")
+    print("|---" * 8 + "|")
+    for label, changes in parse_variants(args.variants).items():
+        frames: list[W.WebcamFrame] = []
+        fit = with_variant(live_config(), changes).fit
+        res = W.evaluate_webcam(avatar, dataset, size=args.size, max_frames=args.max_frames,
+                                fit_config=fit, on_frame=frames.append)
+        axes = np.array([root_error_axes(f.webcam, f.truth, f.camera) for f in frames])
+        true_root = np.array([root_in_webcam(f.truth["global_orient"], f.camera)
+                              for f in frames])
+        fit_root = np.array([root_in_webcam(f.webcam["global_orient"], f.camera)
+                             for f in frames])
+        torso = [e for f in frames
+                 if (e := torso_axis_error(f, avatar.animator.body_model)) is not None]
+        webcam, true_root_drive = res.drives["webcam"], res.drives["webcam_true_root"]
+        vec = lambda a: " / ".join(f"{x:+.1f}" for x in a.mean(0))  # noqa: E731
+        torso_text = f"{np.median(torso):.1f} of {len(torso)} frames" if torso else "-"
+        print(f"| {label or 'live'} | {webcam['psnr']:.2f} | {true_root_drive['psnr']:.2f} | "
+              f"{webcam['deg_root']:.1f} | {vec(axes)} | {vec(true_root)} | {vec(fit_root)} | "
+              f"{torso_text} |", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
