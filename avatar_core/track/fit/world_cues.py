@@ -57,14 +57,15 @@ def world_residuals(depth, d_depth, pairs, focal: float, px_scale: float, jacobi
 # Bones whose world direction the direction term pulls toward BlazePose's: (from, to), each
 # end one landmark in its numbering or two (their midpoint). The upper arms and forearms; the
 # shoulders' line (it carries the torso's yaw); the torso's axis, the hips' midpoint to the
-# shoulders' (it carries the lean, which the 2D points cannot tell toward the camera from away
-# from it: BlazePose's axis is 1-3 deg from the true one, docs/tracking.md).
+# shoulders' (it carries the lean, which 2D points cannot tell toward the camera from away from
+# it; not in the live cues: BlazePose's axis was 3 deg off on one take and 8-9 on another,
+# docs/results.md "The root's lean and BlazePose's torso axis").
 ARM_BONES = ((11, 13), (13, 15), (12, 14), (14, 16))
 SHOULDER_LINE = ((12, 11),)
 TORSO_AXIS = (((23, 24), (11, 12)),)
 # Landmarks left out of the 2D fit (observations.MISMATCHED_ROWS: BlazePose's hips lie ~26 px
-# wider than the hip joints) whose world points a bone may still use: their midpoint is the
-# hip joints' within the torso axis' accuracy above.
+# wider than the hip joints) whose world points a bone may still use: the width cancels in
+# their midpoint.
 WORLD_ONLY = frozenset((23, 24))
 MAX_END_LANDMARKS = 2
 # BlazePose's world axes (x right, y down, z away from the camera) -> the fit's camera frame
