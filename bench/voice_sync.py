@@ -154,13 +154,15 @@ def click_microphone(on_click, sent_at: list[float]):
     return Mic()
 
 
-def set_process_nice(delta: int, base: int | None = None) -> int:
-    """Every thread of this process (the performer's loop, aiortc's encoder threads) at
-    ``base + delta`` niceness (``base``: the main thread's now); returns ``base``. Linux
-    keeps a niceness per thread, so each is set; negative needs CAP_SYS_NICE."""
-    base = os.getpriority(os.PRIO_PROCESS, 0) if base is None else base
-    if delta or base != os.getpriority(os.PRIO_PROCESS, 0):
-        for tid in os.listdir("/proc/self/task"):
+def set_process_nice(delta: int, base: int | None = None, pid: int | str = "self") -> int:
+    """Every thread of process ``pid`` (this one: the performer's loop, aiortc's encoder
+    threads) at ``base + delta`` niceness (``base``: its main thread's now); returns ``base``.
+    Linux keeps a niceness per thread (new ones take their creator's), so each is set;
+    negative needs CAP_SYS_NICE."""
+    main = 0 if pid == "self" else int(pid)
+    base = os.getpriority(os.PRIO_PROCESS, main) if base is None else base
+    if delta or base != os.getpriority(os.PRIO_PROCESS, main):
+        for tid in os.listdir(f"/proc/{pid}/task"):
             with contextlib.suppress(ProcessLookupError):
                 os.setpriority(os.PRIO_PROCESS, int(tid), base + delta)
     return base
@@ -692,6 +694,9 @@ def main() -> int:
                         "niceness over the bench's while the events run, all its threads "
                         "(negative, as root: a performer that does not wait for the cores the "
                         "server and the viewers share, as a remote one would not)")
+    parser.add_argument("--server-nice", type=int, default=0, help="the server's niceness "
+                        "over the bench's, all its threads (negative, as root: a server whose "
+                        "cores the viewers and the performer do not share)")
     parser.add_argument("--viewer-nice", type=int, default=0, help="the viewer processes' "
                         "niceness over the bench's: on one machine, 16 viewers take the cores "
                         "the performer and the server need (viewers are elsewhere in use)")
@@ -720,6 +725,7 @@ def main() -> int:
             os.environ["TELESPLAT_WEBRTC_MIN_BITRATE"] = str(min(cap, 250_000))
         with tempfile.TemporaryDirectory() as tmp:
             proc, url, token = start_server(Path(tmp), 1, 64, args.avatar)
+            set_process_nice(args.server_nice, pid=proc.pid)
             try:
                 for n, procs, clock, hz, edges, voice in itertools.product(
                         [int(v) for v in args.viewers.split(",")],
