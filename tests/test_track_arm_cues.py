@@ -241,6 +241,12 @@ def test_the_torso_axis_runs_from_the_hips_midpoint_to_the_shoulders(model_and_b
     obs.world[[11, 12]] = [[0.2, -0.5, 0.0], [-0.2, -0.5, 0.2]]  # shoulders above them
     weight = np.ones(cor.NUM_KEYPOINTS)
     weight[[POSE + 23, POSE + 24]] = 0.0  # as observations.MISMATCHED_ROWS leaves them
+    # below the frame (640 x 480) or within 2% of its edge, BlazePose's hips count for nothing
+    obs.pixels[[POSE + 23, POSE + 24]] = [[300.0, 450.0], [340.0, 520.0]]
+    assert world_cues.direction_pairs(obs, weight, 10.0, world_cues.TORSO_AXIS) is None
+    obs.pixels[POSE + 24] = [340.0, 470.0]
+    assert world_cues.direction_pairs(obs, weight, 10.0, world_cues.TORSO_AXIS) is None
+    obs.pixels[POSE + 24] = [340.0, 460.0]  # 20 px inside, as the other
     a, b, u, _ = world_cues.direction_pairs(obs, weight, 10.0, world_cues.TORSO_AXIS)
     assert a.tolist() == [[POSE + 23, POSE + 24]] and b.tolist() == [[POSE + 11, POSE + 12]]
     np.testing.assert_allclose(u, [[0.0, 1.0, 0.0]])  # up, in the camera frame (y up)
@@ -264,6 +270,24 @@ def test_the_torso_axis_runs_from_the_hips_midpoint_to_the_shoulders(model_and_b
     assert world_cues.direction_pairs(obs, weight, 10.0, world_cues.TORSO_AXIS) is None
 
 
+def test_the_torso_axis_weight_adds_its_bone_to_the_arm_bones(model_and_betas, cued):
+    """`FitConfig.torso_axis_weight`: the axis joins the arm bones at its own weight."""
+    obs = empty_observations((640, 480))
+    obs.world = np.zeros((33, 3))
+    obs.world[13] = [0.0, 0.3, 0.0]
+    obs.world[[11, 12]] = [[0.2, -0.5, 0.0], [-0.2, -0.5, 0.0]]
+    obs.pixels[[POSE + 23, POSE + 24]] = [[300.0, 400.0], [340.0, 400.0]]  # hips in view
+    weight = np.ones(cor.NUM_KEYPOINTS)
+    arms = world_cues.direction_pairs(obs, weight, 100.0, ((11, 13),))
+    torso = world_cues.direction_pairs(obs, weight, 4.0, world_cues.TORSO_AXIS)
+    a, b, u, w = world_cues.joined_pairs(arms, None, torso)
+    assert a.tolist() == [[POSE + 11] * 2, [POSE + 23, POSE + 24]]
+    assert b.tolist() == [[POSE + 13] * 2, [POSE + 11, POSE + 12]]
+    np.testing.assert_allclose(w, [10.0, 2.0])  # each at the root of its own weight
+    assert world_cues.joined_pairs(None, None) is None
+    assert world_cues.joined_pairs(None, torso) is torso
+
+
 @pytest.mark.parametrize("fields", [{"elbow_extension_deg": math.nan},
                                     {"elbow_extension_deg": -5.0},
                                     {"world_direction_bones": ((11, 33),)},
@@ -272,7 +296,9 @@ def test_the_torso_axis_runs_from_the_hips_midpoint_to_the_shoulders(model_and_b
                                     {"world_direction_bones": (((23, 24, 11), 12),)},
                                     {"world_direction_bones": (((11, 12), (12, 11)),)},
                                     {"world_direction_bones": (((23, 23), 11),)},
-                                    {"world_direction_bones": (("hip", 11),)}])
+                                    {"world_direction_bones": (("hip", 11),)},
+                                    {"torso_axis_weight": -1.0},
+                                    {"torso_axis_weight": math.inf}])
 def test_bad_arm_cue_settings_are_refused(model_and_betas, fields):
     with pytest.raises(ValueError, match=next(iter(fields))):
         FrameFitter(*model_and_betas, FitConfig(**fields))

@@ -35,11 +35,14 @@ def test_framings_fill_the_webcam_from_the_head_down(actor):
     cam = wp.webcam_camera()
     near = wp.framed_transl(actor, cam, "head_shoulders")
     far = wp.framed_transl(actor, cam, "waist_up")
-    assert -near[2] < -far[2]  # head-and-shoulders is closer
+    farther = wp.framed_transl(actor, cam, "hips_in_view")
+    assert -near[2] < -far[2] < -farther[2]  # head-and-shoulders is closest
+    assert "hips_in_view" not in wp.DEFAULT_FRAMINGS  # measured on request only
     rest = {"betas": np.asarray(actor.betas)}
-    for transl in (near, far):
+    for transl in (near, far, farther):
         posed = evaluate_params(actor, [{**rest, "transl": transl}], cam)
         assert posed.visible["face"].all()  # the whole face in the image
+
     with pytest.raises(ValueError, match="unknown framing"):
         wp.framed_transl(actor, cam, "full_body")
 

@@ -57,8 +57,11 @@ from .scene import FOV_X_DEG, background, render_frame, webcam_camera
 TAKE = ("wave", "clapping", "pointing", "hands_to_face", "reach_out")
 MIN_TAKE_S = 10.0
 # Framing: the image's top at the head joint + HEAD_TOP_M, its bottom at this joint's height
-# (+ offset, m): head-and-shoulders ends at the chest, waist-up at the pelvis.
-FRAMINGS = {"head_shoulders": ("spine3", -0.05), "waist_up": ("pelvis", 0.0)}
+# (+ offset, m): head-and-shoulders ends at the chest, waist-up at the pelvis (BlazePose's hips
+# fall just below the frame), hips-in-view 15 cm below it (both hips in the picture).
+FRAMINGS = {"head_shoulders": ("spine3", -0.05), "waist_up": ("pelvis", 0.0),
+            "hips_in_view": ("pelvis", -0.15)}
+DEFAULT_FRAMINGS = ("head_shoulders", "waist_up")  # the protocol's; hips_in_view on request
 HEAD_TOP_M = 0.30
 FRAMING_MARGIN = 1.05
 SCORE_ANGLE_DEG = 30.0

@@ -14,6 +14,7 @@ import numpy as np
 from .protocol import (
     CURVE_SETTINGS,
     DEFAULT_DRIVES,
+    DEFAULT_FRAMINGS,
     FRAMINGS,
     MIN_TAKE_S,
     TAKE,
@@ -86,7 +87,7 @@ def summarise(runs: list[RunResult]) -> dict[str, Any]:
         if any(len(r.track_ms) > 1 for r in runs) else float("nan")}
 
 
-def run_protocol(identities: Sequence[int] = (0, 1), framings: Sequence[str] = tuple(FRAMINGS),
+def run_protocol(identities: Sequence[int] = (0, 1), framings: Sequence[str] = DEFAULT_FRAMINGS,
                  fps: float = 15.0, *, max_frames: int | None = None,
                  score_size: tuple[int, int] = (320, 240),
                  drives: Sequence[str] = DEFAULT_DRIVES,

@@ -146,6 +146,10 @@ class FitConfig:
     # (docs/tracking.md).
     world_direction_weight: float = 0.0
     world_direction_bones: tuple[tuple, ...] = world_cues.ARM_BONES
+    # The torso's axis (`world_cues.TORSO_AXIS`, while both hips are in view) toward
+    # BlazePose's, per rad^2 (0: off; the live cues' 2: docs/results.md "The root's lean and
+    # BlazePose's torso axis").
+    torso_axis_weight: float = 0.0
     dtype: torch.dtype = torch.float64
 
 
@@ -181,7 +185,7 @@ class FrameFitter:
         self.config = config or FitConfig()
         cfg = self.config
         for name in ("arm_prior", "temporal_weight", "body_temporal_weight",
-                     "elbow_hinge_weight", "world_direction_weight"):
+                     "elbow_hinge_weight", "world_direction_weight", "torso_axis_weight"):
             value = getattr(cfg, name)
             if value is not None and not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a finite weight >= 0, got {value}")
@@ -502,9 +506,13 @@ class FrameFitter:
                            max(camera.width, camera.height) / 100.0,
                            x.copy() if warm else None, self._depth_pairs(obs, weight),
                            self._world_pairs(obs, weight),
-                           world_cues.direction_pairs(obs, weight,
-                                                      self.config.world_direction_weight,
-                                                      self.config.world_direction_bones))
+                           world_cues.joined_pairs(
+                               world_cues.direction_pairs(obs, weight,
+                                                          self.config.world_direction_weight,
+                                                          self.config.world_direction_bones),
+                               world_cues.direction_pairs(obs, weight,
+                                                          self.config.torso_axis_weight,
+                                                          world_cues.TORSO_AXIS)))
         stats = {"iterations": 0, "evaluations": 0}
         if not warm:  # coarse to fine: place the head and torso first, then the limbs
             n = self.config.placement_iterations

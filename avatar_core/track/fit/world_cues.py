@@ -58,15 +58,18 @@ def world_residuals(depth, d_depth, pairs, focal: float, px_scale: float, jacobi
 # end one landmark in its numbering or two (their midpoint). The upper arms and forearms; the
 # shoulders' line (it carries the torso's yaw); the torso's axis, the hips' midpoint to the
 # shoulders' (it carries the lean, which 2D points cannot tell toward the camera from away from
-# it; not in the live cues: BlazePose's axis was 3 deg off on one take and 8-9 on another,
-# docs/results.md "The root's lean and BlazePose's torso axis").
+# it: docs/results.md "The root's lean and BlazePose's torso axis").
 ARM_BONES = ((11, 13), (13, 15), (12, 14), (14, 16))
 SHOULDER_LINE = ((12, 11),)
 TORSO_AXIS = (((23, 24), (11, 12)),)
 # Landmarks left out of the 2D fit (observations.MISMATCHED_ROWS: BlazePose's hips lie ~26 px
-# wider than the hip joints) whose world points a bone may still use: the width cancels in
-# their midpoint.
+# wider than the hip joints) whose world points a bone may still use (the width cancels in
+# their midpoint), while their image points lie at least WORLD_ONLY_MARGIN (of the image's
+# longer side) inside the picture: BlazePose also places hips below the frame, with
+# visibility over 0.5, and there the torso's axis cost up to 1.8 dB where with the hips in
+# view it gained 1.9-3.5 dB (docs/results.md).
 WORLD_ONLY = frozenset((23, 24))
+WORLD_ONLY_MARGIN = 0.02
 MAX_END_LANDMARKS = 2
 # BlazePose's world axes (x right, y down, z away from the camera) -> the fit's camera frame
 # (x right, y up, z toward the camera): measured on the studio recordings, where this sign
@@ -96,15 +99,23 @@ def direction_pairs(obs, weight: np.ndarray, w: float, bones=ARM_BONES
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
     """(from rows [D, 2], to rows [D, 2] (an end's keypoint rows, their mean its point; one
     landmark is its row twice), target unit directions [D, 3] in the camera frame, sqrt
-    weight [D]) of the `bones` whose landmarks are all used (or `WORLD_ONLY`) and have finite
-    world points, distinct ends; None: none (or `w` 0, or no world landmarks)."""
+    weight [D]) of the `bones` whose landmarks are all used (or `WORLD_ONLY` and in view) and
+    have finite world points, distinct ends; None: none (or `w` 0, or no world landmarks)."""
     if w <= 0 or obs.world is None:
         return None
     base = cor.POSE_SLICE.start
     rows = []
+    w_img, h_img = obs.image_size
+    margin = WORLD_ONLY_MARGIN * max(w_img, h_img)
+
+    def in_view(row: int) -> bool:
+        x, y = obs.pixels[row, :2]
+        return bool(margin <= x < w_img - margin and margin <= y < h_img - margin)
+
     for bone in bones:
         ends = [bone_end(e) for e in bone]
-        if any(weight[base + i] <= 0 and i not in WORLD_ONLY for e in ends for i in e):
+        if any(weight[base + i] <= 0 and not (i in WORLD_ONLY and in_view(base + i))
+               for e in ends for i in e):
             continue
         a, b = (obs.world[list(e)].mean(axis=0) for e in ends)
         v = (b - a) * WORLD_TO_CAMERA
@@ -116,6 +127,14 @@ def direction_pairs(obs, weight: np.ndarray, w: float, bones=ARM_BONES
         return None
     a, b, u = zip(*rows, strict=True)
     return np.stack(a), np.stack(b), np.stack(u), np.full(len(rows), np.sqrt(w))
+
+
+def joined_pairs(*pairs):
+    """`direction_pairs` results as one (the Nones left out); None: all None."""
+    given = [p for p in pairs if p is not None]
+    if len(given) < 2:
+        return given[0] if given else None
+    return tuple(np.concatenate(parts) for parts in zip(*given, strict=True))
 
 
 def direction_residuals(points, d_points, pairs, jacobian: bool):
