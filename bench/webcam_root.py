@@ -42,14 +42,13 @@ def angle_deg(u: np.ndarray, v: np.ndarray) -> float:
 def root_in_webcam(global_orient: np.ndarray, cam) -> np.ndarray:
     """A root (rotation vector in the studio's world) in the webcam's frame as the fit
     states it (x right, y up, z toward the camera), as a rotation vector in degrees."""
-    to_world = Rotation.from_matrix(cam.R.T @ W._OPENCV_FROM_MODEL)
-    return np.degrees((to_world.inv() * Rotation.from_rotvec(global_orient)).as_rotvec())
+    return np.degrees(W.webcam_orient(global_orient, cam))
 
 
 def root_error_axes(fit: dict, truth: dict, cam) -> np.ndarray:
     """[3] the root's error (fit after truth, degrees) about the webcam's x (right: a lean
     toward or away from it), y (down: a turn) and z (the optical axis: a roll)."""
-    err = W._world_rotations(fit)[0] @ W._world_rotations(truth)[0].T   # the studio's frame
+    err = W.world_rotations(fit)[0] @ W.world_rotations(truth)[0].T   # the studio's frame
     return np.degrees(Rotation.from_matrix(cam.R @ err @ cam.R.T).as_rotvec())
 
 
@@ -65,7 +64,7 @@ def torso_axis_error(frame: W.WebcamFrame, body_model) -> float | None:
     mid = lambda names: joints[[JOINT[n] for n in names]].mean(0)  # noqa: E731
     true = frame.camera.R @ (mid(("left_shoulder", "right_shoulder"))
                              - mid(("left_hip", "right_hip")))
-    return angle_deg(seen, W._OPENCV_FROM_MODEL @ true)
+    return angle_deg(seen, W.OPENCV_FROM_MODEL @ true)
 
 
 def torso_axis(world: np.ndarray) -> np.ndarray:

@@ -124,6 +124,12 @@ def test_root_error_axes_are_the_webcams(dataset_dir):
     after = Rotation.from_rotvec(np.radians(module.root_in_webcam(fit["global_orient"], cam)))
     np.testing.assert_allclose(np.degrees((after * before.inv()).as_rotvec()), [10, 0, 0],
                                atol=1e-9)
+    # webcam_orient undoes what the evaluation scores the fitted root by
+    from avatar_core.metrics.webcam import _world_orient, webcam_orient
+
+    rotvec = np.array([0.2, -0.1, 0.3])
+    np.testing.assert_allclose(webcam_orient(_world_orient(rotvec, cam), cam), rotvec,
+                               atol=1e-12)
 
 
 @needs_models

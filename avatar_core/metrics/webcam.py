@@ -79,7 +79,7 @@ STAGES = ("track", "fit", "pose", "render")
 JPEG_QUALITY = 90        # what a browser / client sends the server
 SCORE_ANGLE_DEG = 30.0   # default score camera: the front camera nearest this from the webcam
 TRUE_PARAMS_NPZ = "true_params.npz"
-_OPENCV_FROM_MODEL = np.diag([1.0, -1.0, -1.0])  # track.fit.camera: y and z flipped
+OPENCV_FROM_MODEL = np.diag([1.0, -1.0, -1.0])  # track.fit.camera: y and z flipped
 
 Progress = Callable[[int, int], None]
 
@@ -171,8 +171,15 @@ def _truth(ds: Dataset, seq: str, tracked: dict[str, np.ndarray]) -> tuple[dict,
 
 def _world_orient(global_orient: np.ndarray, webcam: Camera) -> np.ndarray:
     """The fitted root rotation (relative to the webcam) in the studio's world."""
-    to_world = Rotation.from_matrix(webcam.R.T @ _OPENCV_FROM_MODEL)
+    to_world = Rotation.from_matrix(webcam.R.T @ OPENCV_FROM_MODEL)
     return (to_world * Rotation.from_rotvec(global_orient)).as_rotvec()
+
+
+def webcam_orient(global_orient: np.ndarray, webcam: Camera) -> np.ndarray:
+    """A root in the studio's world (rotation vector) relative to the webcam, in the fit's
+    camera frame: `_world_orient`'s inverse."""
+    to_world = Rotation.from_matrix(webcam.R.T @ OPENCV_FROM_MODEL)
+    return (to_world.inv() * Rotation.from_rotvec(global_orient)).as_rotvec()
 
 
 def _fov_x_deg(cam: Camera) -> float:
@@ -246,7 +253,7 @@ class _Scorer:
         return pred
 
 
-def _world_rotations(params: Mapping[str, np.ndarray]) -> np.ndarray:
+def world_rotations(params: Mapping[str, np.ndarray]) -> np.ndarray:
     """[22, 3, 3] world rotations of the body joints (root and body_pose; no hands)."""
     local = np.concatenate([np.asarray(params["global_orient"], dtype=np.float64).reshape(1, 3),
                             np.asarray(params["body_pose"], dtype=np.float64).reshape(-1, 3)])
@@ -260,7 +267,7 @@ def _world_rotations(params: Mapping[str, np.ndarray]) -> np.ndarray:
 def joint_angle_errors(params: Mapping[str, np.ndarray], truth: Mapping[str, np.ndarray]
                        ) -> dict[str, float]:
     """`ANGLE_JOINTS` -> mean world-rotation error (deg) of its joints."""
-    a, b = _world_rotations(params), _world_rotations(truth)
+    a, b = world_rotations(params), world_rotations(truth)
     out = {}
     for key, joints in ANGLE_JOINTS.items():
         errs = []
