@@ -67,7 +67,7 @@ TORSO_AXIS = (((23, 24), (11, 12)),)
 # their midpoint), while their image points lie at least WORLD_ONLY_MARGIN (of the image's
 # longer side) inside the picture: BlazePose also places hips below the frame, with
 # visibility over 0.5, and there the torso's axis cost up to 1.8 dB where with the hips in
-# view it gained 1.9-3.5 dB (docs/results.md).
+# view it gained 2.1-2.7 dB (docs/results.md).
 WORLD_ONLY = frozenset((23, 24))
 WORLD_ONLY_MARGIN = 0.02
 MAX_END_LANDMARKS = 2
