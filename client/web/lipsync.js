@@ -3,9 +3,10 @@
 // StreamSynchronization, kMinDeltaMs), and here the voice arrives 20-30 ms before the picture
 // (the render). Chromium left the voice 27-41 ms behind the picture on this page; holding the
 // picture at least PICTURE_HOLD_MS (the video receiver's jitterBufferTarget) brought it to
-// -3..+12 ms in 7 of 8 runs, the picture shown 22-27 ms later (docs/benchmarks.md, "Lip sync past Chromium's
-// own"). A controller on the browser's playout estimates (estimatedPlayoutTimestamp) was
-// measured too and chased Chromium's sync instead of settling: the hold is fixed.
+// -3..+12 ms in 7 of 8 runs, the picture shown 22-27 ms later (docs/benchmarks.md, "Lip sync
+// past Chromium's own"). A controller on the browser's playout estimates
+// (estimatedPlayoutTimestamp) was measured too and chased Chromium's sync instead of
+// settling: the hold is fixed.
 // It applies only while a voice is heard, so a silent room's picture is not held. Off with
 // `?lipsync=0`.
 
