@@ -154,6 +154,11 @@ def click_microphone(on_click, sent_at: list[float]):
     return Mic()
 
 
+def longest_gap_ms(times: list[float]) -> float:
+    """The longest step between consecutive instants (s), in ms; NaN for fewer than two."""
+    return float(np.diff(times).max() * 1e3) if len(times) > 1 else float("nan")
+
+
 def set_process_nice(delta: int, base: int | None = None, pid: int | str = "self") -> int:
     """Every thread of process ``pid`` (this one: the performer's loop, aiortc's encoder
     threads) at ``base + delta`` niceness (``base``: its main thread's now); returns ``base``.
@@ -416,12 +421,17 @@ def own_text(metrics: ServerMetrics, loop: LoopWatch) -> str:
             f"collector pauses over 20 ms {pauses:.0f}")
 
 
+def spread_text(values: list[float], between: str = " / ") -> str:
+    """"median (p5 / p95)" in ms, or "-"."""
+    if not values:
+        return "-"
+    p5, p50, p95 = np.percentile(values, [5, 50, 95])
+    return f"{p50:.0f} ({p5:.0f}{between}{p95:.0f})"
+
+
 def lag_text(lags: list[float]) -> str:
     """"median (p5-p95)" in ms of the times from the events."""
-    if not lags:
-        return "-"
-    p5, p50, p95 = np.percentile(lags, [5, 50, 95])
-    return f"{p50:.0f} ({p5:.0f}-{p95:.0f})"
+    return spread_text(lags, "-")
 
 
 def server_voice_counts(url: str, token: str) -> dict[str, float]:
@@ -571,9 +581,7 @@ async def run(url: str, token: str, viewers: int, events: int, size: int,
         await own_loop.stop()
         own_gc.stop()
         set_process_nice(0, niceness)
-        mic_gap = float(np.diff(sent_at[sent_from:]).max() * 1e3) if voice else float("nan")
-        send_gap = (float(np.diff(sent_rtp[rtp_from:]).max() * 1e3)
-                    if len(sent_rtp) - rtp_from > 1 else float("nan"))
+        mic_gap, send_gap = longest_gap_ms(sent_at[sent_from:]), longest_gap_ms(sent_rtp[rtp_from:])
         records = []
         for _ in workers:
             got = await asyncio.to_thread(results.get, True, 300)

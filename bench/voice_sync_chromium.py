@@ -53,6 +53,7 @@ from voice_sync import (  # noqa: E402
     add_server_voice_args,
     click_microphone,
     server_voice_runs,
+    spread_text,
 )
 
 from client.webrtc import WhepViewer  # noqa: E402
@@ -308,14 +309,6 @@ def hold_text(hold: str | float, page: dict | None) -> str:
     """The --hold setting, and the page's own hold at the end when its lip sync ran."""
     setting = hold if isinstance(hold, str) else f"{hold:g} ms"
     return f"{setting} ({page['hold']} ms)" if page else setting
-
-
-def spread_text(values: list[float]) -> str:
-    """"median (p5 / p95)" in ms, or "-"."""
-    if not values:
-        return "-"
-    p5, p50, p95 = np.percentile(values, [5, 50, 95])
-    return f"{p50:.0f} ({p5:.0f} / {p95:.0f})"
 
 
 def playout_skew(rec: dict, skew: list[float]) -> str:

@@ -29,9 +29,9 @@ from avatar_core.body.skeleton import JOINT  # noqa: E402
 from avatar_core.metrics import webcam as W  # noqa: E402
 from avatar_core.synth.tracking_eval.protocol import with_variant  # noqa: E402
 from avatar_core.track.fit.sequence import live_config  # noqa: E402
-from avatar_core.track.fit.world_cues import WORLD_TO_CAMERA  # noqa: E402
+from avatar_core.track.fit.world_cues import TORSO_AXIS, WORLD_TO_CAMERA  # noqa: E402
 
-HIPS, SHOULDERS = (23, 24), (11, 12)
+HIPS, SHOULDERS = TORSO_AXIS[0]  # BlazePose's landmarks at either end of the axis
 
 
 def angle_deg(u: np.ndarray, v: np.ndarray) -> float:
@@ -55,10 +55,9 @@ def root_error_axes(fit: dict, truth: dict, cam) -> np.ndarray:
 def torso_axis_error(frame: W.WebcamFrame, body_model) -> float | None:
     """BlazePose's world torso axis against the true one (the body model's hip and shoulder
     joints in the webcam's frame), degrees; None when a hip or shoulder is not seen."""
-    world = frame.observations.world
-    if world is None or not np.isfinite(world[[*HIPS, *SHOULDERS]]).all():
+    seen = seen_torso_axis(frame.observations.world)
+    if seen is None:
         return None
-    seen = (world[list(SHOULDERS)].mean(0) - world[list(HIPS)].mean(0)) * WORLD_TO_CAMERA
     out = body_model({k: np.asarray(v)[None] for k, v in frame.truth.items()})
     joints = np.asarray(out.joints[0].detach().cpu().numpy(), dtype=np.float64)
     mid = lambda names: joints[[JOINT[n] for n in names]].mean(0)  # noqa: E731
@@ -70,6 +69,14 @@ def torso_axis_error(frame: W.WebcamFrame, body_model) -> float | None:
 def torso_axis(world: np.ndarray) -> np.ndarray:
     """[3] the hips' midpoint to the shoulders' of [33, 3] points."""
     return world[list(SHOULDERS)].mean(0) - world[list(HIPS)].mean(0)
+
+
+def seen_torso_axis(world: np.ndarray | None) -> np.ndarray | None:
+    """[3] BlazePose's torso axis in the fit's camera frame; None when a hip or shoulder has
+    no world point."""
+    if world is None or not np.isfinite(world[[*HIPS, *SHOULDERS]]).all():
+        return None
+    return torso_axis(world) * WORLD_TO_CAMERA
 
 
 def recordings_torso(folder: Path) -> None:
@@ -84,9 +91,9 @@ def recordings_torso(folder: Path) -> None:
             rec = pickle.load(f)
         errors, leans = [], []
         for obs, true_points in zip(rec.live, rec.true_points, strict=True):
-            if obs.world is None or not np.isfinite(obs.world[[*HIPS, *SHOULDERS]]).all():
+            seen = seen_torso_axis(obs.world)  # the fit's frame, as true_points
+            if seen is None:
                 continue
-            seen = torso_axis(obs.world) * WORLD_TO_CAMERA  # the fit's frame, as true_points
             true = torso_axis(np.asarray(true_points))
             errors.append(angle_deg(seen, true))
             leans.append([np.degrees(np.arctan2(v[2], v[1])) for v in (seen, true)])

@@ -169,17 +169,20 @@ def _truth(ds: Dataset, seq: str, tracked: dict[str, np.ndarray]) -> tuple[dict,
     return fuse_sequence(arrays, ds.sequences[seq], None)[0], "true_params.npz"
 
 
+def _webcam_to_world(webcam: Camera) -> Rotation:
+    """The fit's camera frame (x right, y up, z toward the camera) to the studio's world."""
+    return Rotation.from_matrix(webcam.R.T @ OPENCV_FROM_MODEL)
+
+
 def _world_orient(global_orient: np.ndarray, webcam: Camera) -> np.ndarray:
     """The fitted root rotation (relative to the webcam) in the studio's world."""
-    to_world = Rotation.from_matrix(webcam.R.T @ OPENCV_FROM_MODEL)
-    return (to_world * Rotation.from_rotvec(global_orient)).as_rotvec()
+    return (_webcam_to_world(webcam) * Rotation.from_rotvec(global_orient)).as_rotvec()
 
 
 def webcam_orient(global_orient: np.ndarray, webcam: Camera) -> np.ndarray:
     """A root in the studio's world (rotation vector) relative to the webcam, in the fit's
     camera frame: `_world_orient`'s inverse."""
-    to_world = Rotation.from_matrix(webcam.R.T @ OPENCV_FROM_MODEL)
-    return (to_world.inv() * Rotation.from_rotvec(global_orient)).as_rotvec()
+    return (_webcam_to_world(webcam).inv() * Rotation.from_rotvec(global_orient)).as_rotvec()
 
 
 def _fov_x_deg(cam: Camera) -> float:
