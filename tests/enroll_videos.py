@@ -4,6 +4,8 @@ an audio-only file; garbage; a truncated copy."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from fractions import Fraction
 from pathlib import Path
 
 import av
@@ -24,8 +26,11 @@ def pattern(index: int, width: int, height: int) -> np.ndarray:
 
 def write_video(path: Path, *, seconds: float = 4.0, fps: int = 10, width: int = 160,
                 height: int = 120, rotation: int = 0,
-                metadata: dict[str, str] | None = None) -> Path:
-    """A ``seconds`` long video of :func:`pattern` frames."""
+                metadata: dict[str, str] | None = None,
+                times_ms: Sequence[int] | None = None) -> Path:
+    """A ``seconds`` long video of :func:`pattern` frames; or, with ``times_ms``, one frame
+    at each of those times while the stream still declares ``fps`` (as a browser's
+    recorder does when frames come slower than the camera's rate)."""
     path = Path(path)
     options = {"movflags": "use_metadata_tags"} if metadata and path.suffix == ".mp4" else {}
     with av.open(str(path), "w", options=options) as out:
@@ -34,8 +39,13 @@ def write_video(path: Path, *, seconds: float = 4.0, fps: int = 10, width: int =
         stream.width, stream.height, stream.pix_fmt = width, height, "yuv420p"
         if rotation:
             stream.set_display_rotation(rotation)
-        for i in range(round(seconds * fps)):
+        if times_ms is not None:
+            stream.codec_context.time_base = Fraction(1, 1000)
+        count = round(seconds * fps) if times_ms is None else len(times_ms)
+        for i in range(count):
             frame = av.VideoFrame.from_ndarray(pattern(i, width, height), format="rgb24")
+            if times_ms is not None:
+                frame.pts, frame.time_base = int(times_ms[i]), Fraction(1, 1000)
             for packet in stream.encode(frame):
                 out.mux(packet)
         for packet in stream.encode():

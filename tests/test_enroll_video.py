@@ -107,3 +107,16 @@ def test_millisecond_timestamps_keep_the_full_frame_rate_cap(tmp_path):
     path = write_video(tmp_path / "page.webm", seconds=4, fps=30)
     video = read_video(path, VideoLimits(max_decode_fps=15))
     assert len(video.frames) == 60 and video.fps == pytest.approx(15.0, rel=0.02)
+
+
+def test_frames_slower_than_the_declared_rate_keep_every_slot(tmp_path):
+    """A browser's WebM under load: 30 fps declared, a frame every 200 ms. The frames kept
+    at 4 a second are planned from the packets' starts (an estimate from the duration less
+    a mean frame fell one short, and the upload was refused as corrupt)."""
+    times = [200 * i for i in range(49)]
+    path = write_video(tmp_path / "slow.webm", fps=30, times_ms=times)
+    assert probe_video(path).starts_span_s == pytest.approx(9.6, abs=1e-3)
+    video = read_video(path, VideoLimits(max_decode_fps=4.0))
+    assert len(video.frames) == 39  # one per 250 ms slot over 9.6 s
+    slots = np.floor(video.times_s * 4.0 + 0.05)
+    assert np.all(np.diff(slots) == 1)  # every slot once, in order

@@ -71,6 +71,7 @@ class VideoInfo:
     height: int
     rotation: int          # degrees counter-clockwise that turn the stored picture upright
     duration_s: float
+    starts_span_s: float   # the first to the last packet's start: what frame times span
     packets: int           # video packets (frames, for every codec a browser or phone writes)
     fps: float
     bytes: int
@@ -151,11 +152,11 @@ def _check_duration(seconds: float, limits: VideoLimits) -> None:
                       "Record 20 to 60 s: turn slowly left and right, smile, open your hands.")
 
 
-def _demux(container: Any, stream: Any, limits: VideoLimits) -> tuple[int, float]:
-    """Video packets and the duration they span, without decoding; refused as soon as
-    either passes its limit."""
+def _demux(container: Any, stream: Any, limits: VideoLimits) -> tuple[int, float, float]:
+    """Video packets, the duration they span and the span of their starts, without decoding;
+    refused as soon as packets or duration pass their limit."""
     base = stream.time_base or Fraction(1, 1000)
-    packets, first, last = 0, None, None
+    packets, first, last, last_start = 0, None, None, None
     try:
         for packet in container.demux(stream):
             if packet.size == 0 or packet.pts is None:
@@ -169,16 +170,18 @@ def _demux(container: Any, stream: Any, limits: VideoLimits) -> tuple[int, float
             end = start + float((packet.duration or 0) * base)
             first = start if first is None else min(first, start)
             last = end if last is None else max(last, end)
+            last_start = start if last_start is None else max(last_start, start)
             if last - first > limits.max_duration_s:
                 _check_duration(last - first, limits)
     except av.FFmpegError as exc:
         raise _corrupt(f"damaged after {packets} frames: {type(exc).__name__}") from None
     if packets == 0:
         raise _corrupt("its video stream holds no frames")
+    starts = (last_start - first) if last_start is not None and first is not None else 0.0
     span = (last - first) if last is not None and first is not None else 0.0
     if span <= 0 and stream.average_rate:  # one packet, or no packet durations
         span = packets / float(stream.average_rate)
-    return packets, span
+    return packets, span, starts
 
 
 def probe_video(path: str | Path, limits: VideoLimits | None = None) -> VideoInfo:
@@ -207,14 +210,14 @@ def probe_video(path: str | Path, limits: VideoLimits | None = None) -> VideoInf
             raise _corrupt("its video stream has no picture size")
         _check_size(stored_w, stored_h, limits)
         focal = _focal_35mm(container, stream)
-        packets, duration = _demux(container, stream, limits)
+        packets, duration, starts_span = _demux(container, stream, limits)
         _check_duration(duration, limits)
         fmt = container.format.name
     first = _first_frame(path)
     rotation = int(round(first.rotation / 90.0)) * 90 % 360
     width, height = (stored_h, stored_w) if rotation in (90, 270) else (stored_w, stored_h)
     return VideoInfo(container=fmt, codec=codec, width=width, height=height, rotation=rotation,
-                     duration_s=duration, packets=packets,
+                     duration_s=duration, starts_span_s=starts_span, packets=packets,
                      fps=packets / duration if duration > 0 else 0.0, bytes=size,
                      focal_35mm=focal)
 
@@ -239,9 +242,11 @@ def decode_plan(info: VideoInfo, limits: VideoLimits, long_side: int) -> tuple[i
     """The frames :func:`read_video` keeps and their width and height; EnrollmentRefused when
     they pass ``max_frames`` or ``max_decoded_bytes``. From the probe alone (no decoding)."""
     width, height = output_size(info.width, info.height, long_side)
-    # the first to the last frame's start: the duration less one frame
-    span = info.duration_s * (info.packets - 1) / info.packets
-    kept = min(info.packets, math.floor(span * limits.max_decode_fps + SLOT_SLACK) + 1)
+    # Slots are counted over the frames' starts as the demuxer read them. Not the duration
+    # less a mean frame: a browser's WebM under load spaces frames unevenly, and its last
+    # packet's duration says nothing of the mean (that estimate once fell a frame short).
+    slots = math.floor(info.starts_span_s * limits.max_decode_fps + SLOT_SLACK) + 1
+    kept = min(info.packets, slots)
     _check_frames(kept, width, height, limits)
     return kept, width, height
 
@@ -270,8 +275,9 @@ def read_video(path: str | Path, limits: VideoLimits | None = None, *,
                 slot = math.floor((t - start) / step + SLOT_SLACK)
                 if last is not None and slot <= last:
                     continue  # over max_decode_fps: skipped
-                if len(times) == kept:  # more pictures than the probe counted packets
-                    raise _corrupt(f"it decodes to more than its {info.packets} frames")
+                if len(times) == kept:  # more pictures, or later ones, than its packets declared
+                    raise _corrupt(f"it decodes to more frames than its {info.packets} "
+                                   "packets declared")
                 last = slot
                 picture = frame.reformat(width=stored_w, height=stored_h, format="rgb24",
                                          interpolation="AREA").to_ndarray()
