@@ -386,6 +386,65 @@ def _add_track(groups: argparse._SubParsersAction) -> None:
     _add_body_models(fit)
     fit.set_defaults(func=_track_fit)
     _add_build_embedding(track_cmds)
+    _add_build_world_correction(track_cmds)
+
+
+def _track_build_world_correction(args: argparse.Namespace) -> int:
+    from .synth.world_correction_build import (
+        CorrectionSpec,
+        build_world_correction,
+        write_asset,
+    )
+
+    try:
+        spec = CorrectionSpec(identities=tuple(args.identities), framings=tuple(args.framings),
+                              take=tuple(args.take), fps=args.fps, max_frames=args.max_frames,
+                              ridge=args.ridge)
+        bars: dict[str, tqdm] = {}
+
+        def progress(name: str, done: int, total: int) -> None:
+            bar = bars.get(name) or bars.setdefault(name, tqdm(total=total, unit="frame",
+                                                               desc=name))
+            bar.update(done - bar.n)
+
+        corr, report = build_world_correction(spec, args.work, args.body_models, progress)
+        for bar in bars.values():
+            bar.close()
+        out = write_asset(corr, report, args.out)
+    except (OSError, ValueError) as exc:
+        print(f"telesplat: error: {exc}", file=sys.stderr)
+        return 2
+    errors = report["train_bone_error_deg"]
+    for part in ("upper", "fore"):
+        before, after = (errors[k][f"{part}_median"] for k in ("blazepose", "corrected"))
+        print(f"{part:5s} arm bones, median deg: BlazePose {before:.1f} -> corrected "
+              f"{after:.1f} (training frames)")
+    print(f"world correction -> {out} (+ {out.with_suffix('.json').name}), "
+          f"{report['frames']} frames")
+    return 0
+
+
+def _add_build_world_correction(track_cmds: argparse._SubParsersAction) -> None:
+    from .synth import world_correction_build as wcb
+
+    build = track_cmds.add_parser(
+        "build-world-correction", help="fit the correction of BlazePose's world arm bones on "
+        "studio renders (identities and motions the webcam protocol does not score); writes "
+        "OUT.npz + OUT.json")
+    build.add_argument("--out", type=Path, required=True, help="OUT.npz (and OUT.json)")
+    build.add_argument("--work", type=Path, required=True,
+                       help="folder for the recordings (reused when present)")
+    build.add_argument("--identities", type=int, nargs="+", default=list(wcb.TRAIN_IDENTITIES))
+    build.add_argument("--framings", nargs="+", default=list(wcb.TRAIN_FRAMINGS))
+    build.add_argument("--take", nargs="+", default=list(wcb.TRAIN_TAKE),
+                       help="library motions played one after another")
+    build.add_argument("--fps", type=float, default=10.0)
+    build.add_argument("--max-frames", type=int, default=None, help="per condition")
+    build.add_argument("--ridge", type=float, default=wcb.CorrectionSpec.ridge)
+    build.add_argument("--body-models", type=Path, default=None,
+                       help="the synthetic family's folder (default: a cache folder beside "
+                            "the default models, written on first use)")
+    build.set_defaults(func=_track_build_world_correction)
 
 
 def _add_build_embedding(track_cmds: argparse._SubParsersAction) -> None:
@@ -623,7 +682,8 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-TRACK_COMMANDS = ("fetch-models", "landmarks", "fit", "-h", "--help", "build-embedding")
+TRACK_COMMANDS = ("fetch-models", "landmarks", "fit", "-h", "--help", "build-embedding",
+                  "build-world-correction")
 
 
 def _expand_shorthands(argv: list[str]) -> list[str]:

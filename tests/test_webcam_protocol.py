@@ -241,6 +241,14 @@ def test_a_recording_is_fitted_once_per_drive_and_variant():
     named = wp.fit_recording(rec, drives=("true_all_depth+arms",), variants=variants,
                              score_size=(80, 60), curve=False)
     assert list(named.metrics) == ["true_all_depth+arms"]
+    # BlazePose's world points swapped for the truth's, and run through the learned
+    # correction (a no-op here: these observations carry no world points)
+    worlds = wp.fit_recording(rec, drives=("arm_cues_true_world", "arm_cues_corrected"),
+                              score_size=(80, 60), curve=False)
+    assert worlds.metrics["arm_cues_true_world"]["psnr"] > 20.0
+    assert np.isfinite(worlds.metrics["arm_cues_corrected"]["psnr"])
+    assert wp.drive_observations(rec, 0, "arm_cues_true_world").world is not None
+    assert rec.live[0].world is None  # the recording untouched
     with pytest.raises(ValueError, match="unknown fit variant"):
         wp.fit_recording(rec, drives=("live+nope",), variants=variants, curve=False)
 

@@ -25,17 +25,7 @@ from ..track.fit.embedding import LandmarkEmbedding, anchor_joints
 from ..track.fit.fitter import FrameFitter
 from . import embedding_solve as solve
 from .embedding_spec import FRAMINGS, BuildSpec
-
-
-def _family(num_identities: int, model_dir: Path | None) -> Path:
-    """A synthetic family with at least `num_identities` identities (written once, under
-    the default cache's folder: same seed, same topology as the served model)."""
-    from .model_writer import default_model_dir, write_synthetic_models
-
-    root = model_dir or default_model_dir(0).parent / f"embedding-family-{num_identities}"
-    if not (root / "identities" / f"identity_{num_identities - 1}.npz").is_file():
-        write_synthetic_models(root, seed=0, num_identities=num_identities)
-    return root
+from .model_writer import synthetic_family
 
 
 class _Studio:
@@ -134,7 +124,7 @@ def build_embedding(spec: BuildSpec, model_dir: Path | None = None,
             arrays = {k: data[k] for k in data.files}
         root = Path(str(arrays.pop("family")))
     else:
-        root = _family(max(*spec.train_identities, *spec.held_out_identities, 0) + 1,
+        root = synthetic_family(max(*spec.train_identities, *spec.held_out_identities, 0) + 1,
                        model_dir)
         _, raw = collect(spec, spec.train_identities, spec.train_clips, root, progress)
         arrays = {f"train_{k}": v for k, v in raw.items()}

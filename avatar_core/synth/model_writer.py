@@ -348,6 +348,16 @@ def generator_version(files: BodyModelFiles) -> int | None:
     return version if isinstance(version, int) else None
 
 
+def synthetic_family(num_identities: int, model_dir: Path | None = None) -> Path:
+    """A synthetic family with at least `num_identities` identities (written once, under
+    the default cache's folder: same seed, same topology as the served model; its first
+    identities are the default family's, whose betas and colours depend on the index)."""
+    root = model_dir or default_model_dir(0).parent / f"embedding-family-{num_identities}"
+    if not (root / "identities" / f"identity_{num_identities - 1}.npz").is_file():
+        write_synthetic_models(root, seed=0, num_identities=num_identities)
+    return root
+
+
 def _rewrite(root: Path, seed: int) -> None:
     """Write the family into a scratch folder inside `root`, then move each file into place
     (atomic per file, the manifest last): a process reading the cache meanwhile never sees a

@@ -43,6 +43,7 @@ import torch
 
 from avatar_core.body.skeleton import JOINT
 from avatar_core.render.camera import Camera, look_at
+from avatar_core.track.fit.world_cues import WORLD_TO_CAMERA
 
 from .metrics import GROUPS, Posed, aa_to_matrix, evaluate_params, geodesic_deg
 from .protocol_drives import (
@@ -322,10 +323,12 @@ def drive_observations(rec: Recording, i: int, drive: str):
     """Frame i's observations as `drive` feeds them to the fit."""
     spec = DRIVES[drive]
     obs = rec.live[i]
-    if spec.true_2d or spec.true_depth:
+    if spec.true_2d or spec.true_depth or spec.true_world:
         obs = mix_observations(obs, rec.true_obs[i], spec.true_2d)
         if spec.true_depth:
             obs.world = true_world(rec.true_points[i], spec.true_depth)
+        if spec.true_world:  # the fit's camera frame -> BlazePose's world axes
+            obs.world = np.asarray(rec.true_points[i]) * WORLD_TO_CAMERA
     return obs
 
 

@@ -45,6 +45,8 @@ class Drive:
     embedding: bool = False               # the learned landmark embedding + image z
     pose_hands: bool | None = None        # `SequenceFitConfig.pose_hands`; None: as given
     arm_cues: bool = False                # `sequence.ARM_CUES`
+    true_world: bool = False              # BlazePose's world landmarks replaced by the truth
+    world_correction: bool = False        # BlazePose's world arm bones corrected (the asset)
 
 
 DRIVES = {
@@ -54,6 +56,10 @@ DRIVES = {
     "embedding_arm_cues": Drive("webcam, learned embedding + world bones + elbow hinge",
                                 embedding=True, arm_cues=True),
     "live_pose_hands": Drive("webcam, live fit + the pose's hand points", pose_hands=True),
+    "arm_cues_true_world": Drive("webcam + world bones and elbow hinge from true world "
+                                 "landmarks", arm_cues=True, true_world=True),
+    "arm_cues_corrected": Drive("webcam, world bones corrected + elbow hinge", arm_cues=True,
+                                world_correction=True),
     "true_body": Drive("true body 2D", ("pose",)),
     "true_body_face": Drive("true body + face 2D", ("pose", "face")),
     "true_all": Drive("all 2D true", ALL_PARTS),
@@ -89,6 +95,10 @@ def drive_config(name: str, base, embedding=None):
         fit = dataclasses.replace(fit, world_weight=TRUE_DEPTH_WEIGHT, embedding=None)
     pose_hands = base.pose_hands if drive.pose_hands is None else drive.pose_hands
     out = dataclasses.replace(base, fit=fit, pose_hands=pose_hands)
+    if drive.world_correction:
+        from avatar_core.track.fit.world_correction import load_world_correction
+
+        out = dataclasses.replace(out, world_correction=load_world_correction())
     return with_arm_cues(out) if drive.arm_cues else out
 
 

@@ -34,6 +34,7 @@ from .observations import (
 )
 from .one_euro import OneEuroFilter, ParamSmoother
 from .palm import rotation_angle_deg
+from .world_correction import WorldCorrection, correct_world
 from .world_cues import ARM_BONES, SHOULDER_LINE
 
 # Parameter -> owning group; body_pose rows listed separately (rows = joint index - 1).
@@ -85,6 +86,9 @@ class SequenceFitConfig:
     # One Euro on BlazePose's world landmarks before the fit, Hz at rest (0: off): they are
     # read afresh each frame, and their jitter passes into the world terms.
     world_min_cutoff: float = 0.0
+    # A learned correction of BlazePose's world arm bones (`world_correction`), applied to
+    # each frame's world landmarks before the fit; None: BlazePose's as they come.
+    world_correction: WorldCorrection | None = None
     fit: FitConfig = field(default_factory=FitConfig)
 
 
@@ -205,6 +209,8 @@ class SequenceFit:
             obs = without_pose_hands(obs)
         obs = without_edge_arm_points(obs, self.config.edge_margin * max(obs.image_size))
         obs = self._smoothed_world(obs, t)
+        if self.config.world_correction is not None and obs.world is not None:
+            obs = dataclasses.replace(obs, world=correct_world(obs, self.config.world_correction))
         fit = None
         if any(seen.values()):
             stale = not self.last_seen or t - max(self.last_seen.values()) > self.config.hold_s
