@@ -285,3 +285,37 @@ def test_a_variant_changes_the_drives_own_fit():
     assert config.fit.world_direction_weight == ARM_CUES["world_direction_weight"]
     assert with_variant(drive_config("live", SequenceFitConfig()), {}).fit == \
         SequenceFitConfig().fit
+
+
+def test_partial_truth_drives_swap_only_their_part():
+    """`arm_cues_true_forearms` keeps BlazePose's upper arms and lengths and turns only the
+    forearms onto the truth; `arm_cues_true_shoulders_2d` moves only the shoulders' pixels."""
+    from avatar_core.track.fit import correspondence as cor
+    from avatar_core.track.fit.observations import empty_observations
+    from avatar_core.track.fit.world_correction import bone_directions
+    from avatar_core.track.fit.world_cues import WORLD_TO_CAMERA
+
+    rng = np.random.default_rng(0)
+    truth_points = rng.normal(0, 0.3, (33, 3)) + [0.0, 0.0, -2.0]
+    live, true = empty_observations((640, 480)), empty_observations((640, 480))
+    for obs in (live, true):
+        obs.weights[cor.POSE_SLICE] = 1.0
+    live.pixels[cor.POSE_SLICE] = rng.uniform(0, 480, (33, 2))
+    true.pixels[cor.POSE_SLICE] = rng.uniform(0, 480, (33, 2))
+    live.world = rng.normal(0, 0.3, (33, 3))
+    n = 1
+    rec = wp.Recording(wp.Condition(0, "waist_up"), 5.0, [{}], [live], [true], [truth_points],
+                       [1.0], {}, {}, {"left_hand": np.zeros(n, bool),
+                                       "right_hand": np.zeros(n, bool)})
+    fore = wp.drive_observations(rec, 0, "arm_cues_true_forearms")
+    got_unit, got_len = bone_directions(fore.world * WORLD_TO_CAMERA)
+    live_unit, live_len = bone_directions(live.world * WORLD_TO_CAMERA)
+    true_unit, _ = bone_directions(truth_points)
+    np.testing.assert_allclose(got_len, live_len)
+    np.testing.assert_allclose(got_unit[[0, 2]], live_unit[[0, 2]])
+    np.testing.assert_allclose(got_unit[[1, 3]], true_unit[[1, 3]], atol=1e-12)
+    shoulders = wp.drive_observations(rec, 0, "arm_cues_true_shoulders_2d")
+    moved = np.flatnonzero((shoulders.pixels != live.pixels).any(1)) - cor.POSE_SLICE.start
+    assert moved.tolist() == [11, 12]
+    np.testing.assert_array_equal(shoulders.world, live.world)
+    assert rec.live[0] is live and np.array_equal(live.world, rec.live[0].world)

@@ -43,6 +43,8 @@ import torch
 
 from avatar_core.body.skeleton import JOINT
 from avatar_core.render.camera import Camera, look_at
+from avatar_core.track.fit.correspondence import POSE_SLICE
+from avatar_core.track.fit.world_correction import bone_directions, with_bone_directions
 from avatar_core.track.fit.world_cues import WORLD_TO_CAMERA
 
 from .metrics import GROUPS, Posed, aa_to_matrix, evaluate_params, geodesic_deg
@@ -323,12 +325,27 @@ def drive_observations(rec: Recording, i: int, drive: str):
     """Frame i's observations as `drive` feeds them to the fit."""
     spec = DRIVES[drive]
     obs = rec.live[i]
-    if spec.true_2d or spec.true_depth or spec.true_world:
-        obs = mix_observations(obs, rec.true_obs[i], spec.true_2d)
-        if spec.true_depth:
-            obs.world = true_world(rec.true_points[i], spec.true_depth)
-        if spec.true_world:  # the fit's camera frame -> BlazePose's world axes
-            obs.world = np.asarray(rec.true_points[i]) * WORLD_TO_CAMERA
+    if not (spec.true_2d or spec.true_depth or spec.true_world or spec.true_bones
+            or spec.true_pose_rows):
+        return obs
+    obs = mix_observations(obs, rec.true_obs[i], spec.true_2d)
+    points = np.asarray(rec.true_points[i], dtype=np.float64)
+    if spec.true_depth:
+        obs.world = true_world(points, spec.true_depth)
+    if spec.true_world:  # the fit's camera frame -> BlazePose's world axes
+        obs.world = points * WORLD_TO_CAMERA
+    if spec.true_bones and obs.world is not None:
+        unit = bone_directions(points)[0]
+        keep = np.ones(len(unit), bool)
+        keep[list(spec.true_bones)] = False
+        unit[keep] = np.nan
+        obs.world = with_bone_directions(obs.world, unit,
+                                         bone_directions(obs.world * WORLD_TO_CAMERA)[1])
+    true = rec.true_obs[i]
+    for row in spec.true_pose_rows:  # where both the tracker and the truth have the point
+        k = POSE_SLICE.start + row
+        if obs.weights[k] > 0 and true.weights[k] > 0:
+            obs.pixels[k] = true.pixels[k]
     return obs
 
 

@@ -15,7 +15,12 @@ configuration:
   (the arms' bones, or the torso: the shoulders' line and the nose against each shoulder)
   is given to the fit through its world term (`world_cues`), as if BlazePose's metric z were
   exact, on top of the tracked or the true 2D landmarks: what the remaining gap costs
-  because a monocular 2D fit cannot tell near from far.
+  because a monocular 2D fit cannot tell near from far;
+* ``arm_cues_corrected``: the arm cues on BlazePose's world arm bones through the learned
+  correction (`track.fit.world_correction`); ``arm_cues_true_world``: on the true pose points
+  in BlazePose's place (that correction's ceiling); ``arm_cues_true_forearms``,
+  ``arm_cues_true_upper_arms``: only those bones' directions true;
+  ``arm_cues_true_shoulders_2d``: only the shoulders' two 2D points true.
 """
 
 from __future__ import annotations
@@ -46,6 +51,10 @@ class Drive:
     pose_hands: bool | None = None        # `SequenceFitConfig.pose_hands`; None: as given
     arm_cues: bool = False                # `sequence.ARM_CUES`
     true_world: bool = False              # BlazePose's world landmarks replaced by the truth
+    # ARM_BONES indices whose world direction alone comes from the truth (each rebuilt on
+    # BlazePose's own near end at its own length; the other bones BlazePose's)
+    true_bones: tuple[int, ...] = ()
+    true_pose_rows: tuple[int, ...] = ()  # BlazePose rows whose 2D alone comes from the truth
     world_correction: bool = False        # BlazePose's world arm bones corrected (the asset)
 
 
@@ -60,6 +69,12 @@ DRIVES = {
                                  "landmarks", arm_cues=True, true_world=True),
     "arm_cues_corrected": Drive("webcam, world bones corrected + elbow hinge", arm_cues=True,
                                 world_correction=True),
+    "arm_cues_true_upper_arms": Drive("webcam + world bones, the upper arms' from the truth",
+                                      arm_cues=True, true_bones=(0, 2)),
+    "arm_cues_true_forearms": Drive("webcam + world bones, the forearms' from the truth",
+                                    arm_cues=True, true_bones=(1, 3)),
+    "arm_cues_true_shoulders_2d": Drive("webcam + world bones, the shoulders' 2D from the "
+                                        "truth", arm_cues=True, true_pose_rows=(11, 12)),
     "true_body": Drive("true body 2D", ("pose",)),
     "true_body_face": Drive("true body + face 2D", ("pose", "face")),
     "true_all": Drive("all 2D true", ALL_PARTS),

@@ -161,12 +161,18 @@ def correct_world(obs, corr: WorldCorrection) -> np.ndarray | None:
     is corrected; None when `obs` has no world points."""
     if obs.world is None:
         return None
-    out = np.array(obs.world, dtype=np.float64)
     fixed = corrected_directions(obs, corr)
     if fixed is None:
-        return out
-    unit, length = fixed
-    cam = out * WORLD_TO_CAMERA
+        return np.array(obs.world, dtype=np.float64)
+    return with_bone_directions(obs.world, *fixed)
+
+
+def with_bone_directions(world: np.ndarray, unit: np.ndarray, length: np.ndarray
+                         ) -> np.ndarray:
+    """[33, 3] BlazePose-axes `world` with each arm bone's far end moved to its near end plus
+    `length` [B] along `unit` [B, 3] (the fit's camera frame); bones with a NaN left as
+    they are."""
+    cam = np.array(world, dtype=np.float64) * WORLD_TO_CAMERA
     for b, (a, end) in enumerate(ARM_BONES):  # upper arms before their forearms
         if np.isfinite(unit[b]).all() and np.isfinite(length[b]):
             cam[end] = cam[a] + length[b] * unit[b]
