@@ -21,7 +21,8 @@ def _conditions(args):
 
     ids = [int(x) for x in args.identities.split(",") if x.strip()]
     framings = [x.strip() for x in args.framings.split(",") if x.strip()]
-    return [Condition(i, f) for i in ids for f in framings]
+    turns = [float(x) for x in args.turns.split(",") if x.strip()]
+    return [Condition(i, f, t) for i in ids for f in framings for t in turns]
 
 
 def _top_level_split(text: str) -> list[str]:
@@ -66,6 +67,8 @@ def main() -> None:
     ap.add_argument("--replay", type=Path, help="folder of recordings to fit and score")
     ap.add_argument("--identities", default="0,1")
     ap.add_argument("--framings", default="head_shoulders,waist_up")
+    ap.add_argument("--turns", default="0", help="comma-separated turns of the whole body "
+                    "about the vertical, deg (recordings named ID_FRAMING_turnDEG)")
     ap.add_argument("--fps", type=float, default=10.0)
     ap.add_argument("--max-frames", type=int, default=None)
     ap.add_argument("--drives", default="live", help="comma-separated protocol drives")
@@ -84,7 +87,7 @@ def main() -> None:
         for cond in _conditions(args):
             t0 = time.perf_counter()
             rec = wp.record_condition(cond, args.fps, max_frames=args.max_frames)
-            path = args.record / f"{cond.identity}_{cond.framing}.pkl"
+            path = args.record / f"{cond.name}.pkl"
             with open(path, "wb") as f:
                 pickle.dump(rec, f)
             print(f"wrote {path} ({len(rec.truth)} frames, {time.perf_counter() - t0:.0f} s)",
@@ -96,7 +99,7 @@ def main() -> None:
     variants = parse_variants(args.variants)
     runs = []
     for cond in _conditions(args):
-        path = args.replay / f"{cond.identity}_{cond.framing}.pkl"
+        path = args.replay / f"{cond.name}.pkl"
         with open(path, "rb") as f:
             rec = pickle.load(f)  # noqa: S301 (our own file)
         t0 = time.perf_counter()

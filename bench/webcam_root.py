@@ -2,7 +2,8 @@
 webcam` on a trained avatar, once per fit variant, with the root's error split along the
 webcam's own axes, the true and fitted root in the webcam's frame, and BlazePose's world torso
 axis (the hips' midpoint to the shoulders') against the true one. With `--recordings`, only
-that axis, on the studio protocol's recordings (bench/webcam_replay.py --record).
+that axis and the shoulders' line's turn, on the studio protocol's recordings
+(bench/webcam_replay.py --record, --turns for a turned body).
 
     ARMS="(11,13),(13,15),(12,14),(14,16),(12,11)"
     OMP_NUM_THREADS=1 PYTHONPATH=. python bench/webcam_root.py \
@@ -29,9 +30,14 @@ from avatar_core.body.skeleton import JOINT  # noqa: E402
 from avatar_core.metrics import webcam as W  # noqa: E402
 from avatar_core.synth.tracking_eval.protocol import with_variant  # noqa: E402
 from avatar_core.track.fit.sequence import live_config  # noqa: E402
-from avatar_core.track.fit.world_cues import TORSO_AXIS, WORLD_TO_CAMERA  # noqa: E402
+from avatar_core.track.fit.world_cues import (  # noqa: E402
+    SHOULDER_LINE,
+    TORSO_AXIS,
+    WORLD_TO_CAMERA,
+)
 
 HIPS, SHOULDERS = TORSO_AXIS[0]  # BlazePose's landmarks at either end of the axis
+RIGHT_SHOULDER, LEFT_SHOULDER = SHOULDER_LINE[0]
 
 
 def angle_deg(u: np.ndarray, v: np.ndarray) -> float:
@@ -79,30 +85,47 @@ def seen_torso_axis(world: np.ndarray | None) -> np.ndarray | None:
     return torso_axis(world) * WORLD_TO_CAMERA
 
 
+def line_turn_deg(world: np.ndarray) -> float:
+    """The shoulders' line's turn about the vertical (deg) in [33, 3] points in the fit's
+    camera frame (0: square to the camera)."""
+    line = world[LEFT_SHOULDER] - world[RIGHT_SHOULDER]
+    return float(np.degrees(np.arctan2(line[2], line[0])))
+
+
 def recordings_torso(folder: Path) -> None:
-    """BlazePose's world torso axis against the true pose points, per recording."""
+    """BlazePose's world torso axis and shoulders' line against the true pose points, per
+    recording."""
     import pickle
 
     print("| recording | frames with both hips seen | torso axis error median / p90 deg | "
-          "lean toward the camera, median deg: BlazePose / true |")
-    print("|---" * 4 + "|")
+          "lean toward the camera, median deg: BlazePose / true | shoulders' line turn, "
+          "median deg: BlazePose / true (ratio) |")
+    print("|---" * 5 + "|")
     for path in sorted(folder.glob("*.pkl")):
         with open(path, "rb") as f:
             rec = pickle.load(f)
-        errors, leans = [], []
+        errors, leans, turns = [], [], []
         for obs, true_points in zip(rec.live, rec.true_points, strict=True):
+            true_points = np.asarray(true_points)
+            if obs.world is not None and np.isfinite(obs.world[[*SHOULDERS]]).all():
+                turns.append([line_turn_deg(obs.world * WORLD_TO_CAMERA),
+                              line_turn_deg(true_points)])
             seen = seen_torso_axis(obs.world)  # the fit's frame, as true_points
             if seen is None:
                 continue
-            true = torso_axis(np.asarray(true_points))
+            true = torso_axis(true_points)
             errors.append(angle_deg(seen, true))
             leans.append([np.degrees(np.arctan2(v[2], v[1])) for v in (seen, true)])
+        turn = np.median(turns, axis=0) if turns else (np.nan, np.nan)
+        ratio = f"{turn[0] / turn[1]:.2f}" if abs(turn[1]) > 1.0 else "-"
+        turn_text = f"{turn[0]:+.1f} / {turn[1]:+.1f} ({ratio})"
         if not errors:
-            print(f"| {path.stem} | 0 of {len(rec.live)} | - | - |")
+            print(f"| {path.stem} | 0 of {len(rec.live)} | - | - | {turn_text} |")
             continue
         lean = np.median(leans, axis=0)
         print(f"| {path.stem} | {len(errors)} of {len(rec.live)} | {np.median(errors):.1f} / "
-              f"{np.percentile(errors, 90):.1f} | {lean[0]:+.1f} / {lean[1]:+.1f} |")
+              f"{np.percentile(errors, 90):.1f} | {lean[0]:+.1f} / {lean[1]:+.1f} | "
+              f"{turn_text} |")
 
 
 def main() -> int:

@@ -302,3 +302,34 @@ def test_the_torso_axis_weight_adds_its_bone_to_the_arm_bones(model_and_betas, c
 def test_bad_arm_cue_settings_are_refused(model_and_betas, fields):
     with pytest.raises(ValueError, match=next(iter(fields))):
         FrameFitter(*model_and_betas, FitConfig(**fields))
+
+
+def test_the_shoulders_line_turn_is_multiplied_and_bounded():
+    """`turned_line`: the turn about the vertical times the gain, the rise and horizontal
+    length kept, at most MAX_LINE_TURN_DEG; `direction_pairs` turns the shoulders' line
+    only."""
+    turn = math.radians(10.0)
+    line = np.array([0.3 * math.cos(turn), 0.02, 0.3 * math.sin(turn)])
+    got = world_cues.turned_line(line, 2.0)
+    assert math.degrees(math.atan2(got[2], got[0])) == pytest.approx(20.0)
+    assert got[1] == line[1] and np.hypot(got[0], got[2]) == pytest.approx(0.3)
+    np.testing.assert_allclose(world_cues.turned_line(line, 1.0), line, atol=1e-15)
+    far = world_cues.turned_line(np.array([0.0, 0.0, 0.3]), 2.0)  # 90 deg, doubled: bounded
+    assert math.degrees(math.atan2(far[2], far[0])) == pytest.approx(
+        world_cues.MAX_LINE_TURN_DEG)
+    obs = empty_observations((640, 480))
+    weight = np.ones(cor.NUM_KEYPOINTS)
+    obs.world = np.zeros((33, 3))
+    obs.world[11] = line * world_cues.WORLD_TO_CAMERA  # the right shoulder at 0
+    obs.world[13] = [0.2, 0.3, 0.05]
+    bones = (*world_cues.ARM_BONES[:1], *world_cues.SHOULDER_LINE)
+    plain = world_cues.direction_pairs(obs, weight, 10.0, bones)
+    doubled = world_cues.direction_pairs(obs, weight, 10.0, bones, line_yaw_gain=2.0)
+    np.testing.assert_allclose(doubled[2][0], plain[2][0])  # the upper arm as given
+    np.testing.assert_allclose(doubled[2][1], got / np.linalg.norm(got))
+
+
+@pytest.mark.parametrize("gain", [0.0, -1.0, math.nan, math.inf])
+def test_a_bad_shoulder_line_gain_is_refused(model_and_betas, gain):
+    with pytest.raises(ValueError, match="shoulder_line_yaw_gain"):
+        FrameFitter(*model_and_betas, FitConfig(shoulder_line_yaw_gain=gain))

@@ -319,3 +319,25 @@ def test_partial_truth_drives_swap_only_their_part():
     assert moved.tolist() == [11, 12]
     np.testing.assert_array_equal(shoulders.world, live.world)
     assert rec.live[0] is live and np.array_equal(live.world, rec.live[0].world)
+
+
+def test_a_turned_condition_turns_the_whole_body_about_the_vertical():
+    from scipy.spatial.transform import Rotation
+
+    from avatar_core.motion.rig import model_rig
+    from avatar_core.synth.actor import Actor
+    from avatar_core.synth.model_writer import ensure_models
+
+    files = ensure_models()
+    actor = Actor.load(files, 0)
+    rig = model_rig(files, actor.model)
+    transl = np.zeros(3)
+    straight = wp.take_params(actor, rig, transl, 5.0, max_frames=3)
+    turned = wp.take_params(actor, rig, transl, 5.0, max_frames=3, turn_deg=-30.0)
+    for a, b in zip(straight, turned, strict=True):
+        rel = Rotation.from_rotvec(b["global_orient"]) * \
+            Rotation.from_rotvec(np.asarray(a["global_orient"]).reshape(3)).inv()
+        np.testing.assert_allclose(rel.as_rotvec(), [0.0, np.radians(-30.0), 0.0], atol=1e-9)
+        np.testing.assert_array_equal(a["body_pose"], b["body_pose"])
+    assert wp.Condition(1, "waist_up", -30.0).name == "1_waist_up_turn-30"
+    assert wp.Condition(1, "waist_up").name == "1_waist_up"

@@ -85,10 +85,17 @@ Progress = Callable[[str, int, int], None]
 
 @dataclass
 class Condition:
-    """One identity filmed in one framing."""
+    """One identity filmed in one framing, its whole body turned `turn_deg` about the vertical
+    (positive: toward its own left; the protocol's takes face the webcam)."""
 
     identity: int
     framing: str
+    turn_deg: float = 0.0
+
+    @property
+    def name(self) -> str:
+        turn = f"_turn{self.turn_deg:+g}" if self.turn_deg else ""
+        return f"{self.identity}_{self.framing}{turn}"
 
 
 @dataclass
@@ -143,17 +150,27 @@ def score_camera(transl: np.ndarray, actor, width: int, height: int,
 
 
 def take_params(actor, rig, transl: np.ndarray, fps: float, max_frames: int | None = None,
-                names: Sequence[str] = TAKE, start_frame: int = 0
+                names: Sequence[str] = TAKE, start_frame: int = 0, turn_deg: float = 0.0
                 ) -> list[dict[str, np.ndarray]]:
-    """The true parameters of frames [start_frame, max_frames) of the take at `fps`."""
+    """The true parameters of frames [start_frame, max_frames) of the take at `fps`, the body
+    turned `turn_deg` about the vertical (through its root joint)."""
+    from scipy.spatial.transform import Rotation
+
     from avatar_core.motion.library import motion_sequence
 
     track = motion_sequence(list(names))
     n = int(math.floor(track.duration * fps + 1e-9)) + 1
     n = n if max_frames is None else min(n, max_frames)
     betas = np.asarray(actor.betas, dtype=np.float64)
-    return [{**track.sample(i / fps, rig), "transl": transl.copy(), "betas": betas}
-            for i in range(start_frame, n)]
+    turn = Rotation.from_euler("y", turn_deg, degrees=True)
+    out = []
+    for i in range(start_frame, n):
+        params = {**track.sample(i / fps, rig), "transl": transl.copy(), "betas": betas}
+        if turn_deg:
+            root = Rotation.from_rotvec(np.asarray(params["global_orient"]).reshape(3))
+            params["global_orient"] = (turn * root).as_rotvec()
+        out.append(params)
+    return out
 
 
 def motion_of_frames(names: Sequence[str], fps: float, frames: int, start_frame: int = 0
@@ -262,7 +279,7 @@ def _actor_setup(condition: Condition, fps: float, max_frames, take, start_frame
     cam = webcam_camera()
     transl = framed_transl(actor, cam, condition.framing)
     truth = take_params(actor, model_rig(files, actor.model), transl, fps, max_frames, take,
-                        start_frame)
+                        start_frame, condition.turn_deg)
     if len(truth) < 2:
         raise ValueError(f"the protocol needs at least 2 frames, got {len(truth)}")
     return files, actor, cam, transl, truth

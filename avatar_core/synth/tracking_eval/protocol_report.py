@@ -77,7 +77,10 @@ def summarise(runs: list[RunResult]) -> dict[str, Any]:
     return {
         "take": list(TAKE), "fps": runs[0].fps, "per_motion_psnr": per_motion,
         "seconds": [len(r.truth) / r.fps for r in runs],
-        "conditions": [{"identity": r.condition.identity, "framing": r.condition.framing,
+        "conditions": [{"identity": r.condition.identity,
+                        "framing": r.condition.framing + (
+                            f" turned {r.condition.turn_deg:+g} deg"
+                            if r.condition.turn_deg else ""),
                         "frames": len(r.truth), "metrics": r.metrics,
                         "presence": _presence([r]),
                         "track_ms": float(np.median(r.track_ms[1:] or r.track_ms))}

@@ -146,6 +146,9 @@ class FitConfig:
     # (docs/tracking.md).
     world_direction_weight: float = 0.0
     world_direction_bones: tuple[tuple, ...] = world_cues.ARM_BONES
+    # The shoulders' line's turn about the vertical, as BlazePose's world points give it,
+    # multiplied by this before it is a target (`world_cues.turned_line`; 1: as given).
+    shoulder_line_yaw_gain: float = 1.0
     # The torso's axis (`world_cues.TORSO_AXIS`, while both hips are in view) toward
     # BlazePose's, per rad^2 (0: off; the live cues' 2: docs/results.md "The root's lean and
     # BlazePose's torso axis").
@@ -189,6 +192,9 @@ class FrameFitter:
             value = getattr(cfg, name)
             if value is not None and not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a finite weight >= 0, got {value}")
+        if not (math.isfinite(cfg.shoulder_line_yaw_gain) and cfg.shoulder_line_yaw_gain > 0):
+            raise ValueError(f"shoulder_line_yaw_gain must be a finite gain > 0, got "
+                             f"{cfg.shoulder_line_yaw_gain}")
         if math.isnan(cfg.elbow_extension_deg) or cfg.elbow_extension_deg < 0:
             raise ValueError(f"elbow_extension_deg must be >= 0 (180 or more: off), got "
                              f"{cfg.elbow_extension_deg}")
@@ -509,7 +515,8 @@ class FrameFitter:
                            world_cues.joined_pairs(
                                world_cues.direction_pairs(obs, weight,
                                                           self.config.world_direction_weight,
-                                                          self.config.world_direction_bones),
+                                                          self.config.world_direction_bones,
+                                                          self.config.shoulder_line_yaw_gain),
                                world_cues.direction_pairs(obs, weight,
                                                           self.config.torso_axis_weight,
                                                           world_cues.TORSO_AXIS)))

@@ -239,11 +239,13 @@ class SequenceFit:
 # temporal prior on the body (placement and rotations) against the jitter the world
 # landmarks bring. And the torso's axis while both hips are in view (set on identity 1's
 # hips-in-view recording, checked on identity 0's and on a trained avatar's take:
-# docs/results.md "The root's lean and BlazePose's torso axis").
+# docs/results.md "The root's lean and BlazePose's torso axis"). And the shoulders' line's
+# turn doubled: BlazePose's turns about 0.6 of the body's (docs/results.md "The shoulders'
+# line turns too little").
 ARM_CUES = {"world_direction_weight": 100.0,
             "world_direction_bones": (*ARM_BONES, *SHOULDER_LINE),
             "elbow_hinge_weight": 10.0, "elbow_extension_deg": 5.0, "body_temporal_weight": 10.0,
-            "torso_axis_weight": 2.0}
+            "torso_axis_weight": 2.0, "shoulder_line_yaw_gain": 2.0}
 
 
 def with_arm_cues(config: SequenceFitConfig) -> SequenceFitConfig:

@@ -69,6 +69,11 @@ TORSO_AXIS = (((23, 24), (11, 12)),)
 # visibility over 0.5, and there the torso's axis cost up to 1.8 dB where with the hips in
 # view it gained 2.1-2.7 dB (docs/results.md).
 WORLD_ONLY = frozenset((23, 24))
+# BlazePose's world shoulders' line turns 0.35-0.92 of the body's turn about the vertical
+# (median 0.6 over two identities at +-15 and +-30 deg; 0.3 on a trained avatar's take:
+# docs/results.md "The shoulders' line turns too little"); the fit multiplies its turn by
+# `FitConfig.shoulder_line_yaw_gain`, to at most this (deg).
+MAX_LINE_TURN_DEG = 75.0
 WORLD_ONLY_MARGIN = 0.02
 MAX_END_LANDMARKS = 2
 # BlazePose's world axes (x right, y down, z away from the camera) -> the fit's camera frame
@@ -95,12 +100,24 @@ def valid_bone(bone) -> bool:
             and set(ends[0]) != set(ends[1]))
 
 
-def direction_pairs(obs, weight: np.ndarray, w: float, bones=ARM_BONES
+def turned_line(v: np.ndarray, gain: float) -> np.ndarray:
+    """[3] the shoulders' line `v` (camera frame, right shoulder to left) with its turn about
+    the vertical multiplied by `gain`, at most `MAX_LINE_TURN_DEG` either way; its rise and
+    its length in the horizontal plane kept."""
+    horizontal = float(np.hypot(v[0], v[2]))
+    turn = float(np.clip(gain * np.arctan2(v[2], v[0]), -np.radians(MAX_LINE_TURN_DEG),
+                         np.radians(MAX_LINE_TURN_DEG)))
+    return np.array([horizontal * np.cos(turn), v[1], horizontal * np.sin(turn)])
+
+
+def direction_pairs(obs, weight: np.ndarray, w: float, bones=ARM_BONES,
+                    line_yaw_gain: float = 1.0
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
     """(from rows [D, 2], to rows [D, 2] (an end's keypoint rows, their mean its point; one
     landmark is its row twice), target unit directions [D, 3] in the camera frame, sqrt
     weight [D]) of the `bones` whose landmarks are all used (or `WORLD_ONLY` and in view) and
-    have finite world points, distinct ends; None: none (or `w` 0, or no world landmarks)."""
+    have finite world points, distinct ends; None: none (or `w` 0, or no world landmarks).
+    The shoulders' line (`SHOULDER_LINE`) turned by `line_yaw_gain` (`turned_line`)."""
     if w <= 0 or obs.world is None:
         return None
     base = cor.POSE_SLICE.start
@@ -119,6 +136,8 @@ def direction_pairs(obs, weight: np.ndarray, w: float, bones=ARM_BONES
             continue
         a, b = (obs.world[list(e)].mean(axis=0) for e in ends)
         v = (b - a) * WORLD_TO_CAMERA
+        if line_yaw_gain != 1.0 and bone == SHOULDER_LINE[0]:
+            v = turned_line(v, line_yaw_gain)
         n = float(np.linalg.norm(v))
         if np.isfinite(n) and n > 1e-6:
             rows.append(tuple(np.resize(np.asarray(e) + base, MAX_END_LANDMARKS)
