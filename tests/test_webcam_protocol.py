@@ -341,3 +341,28 @@ def test_a_turned_condition_turns_the_whole_body_about_the_vertical():
         np.testing.assert_array_equal(a["body_pose"], b["body_pose"])
     assert wp.Condition(1, "waist_up", -30.0).name == "1_waist_up_turn-30"
     assert wp.Condition(1, "waist_up").name == "1_waist_up"
+
+
+def test_true_upper_arms_keep_blazepose_forearms():
+    """`arm_cues_true_upper_arms` moves the elbows, and each forearm follows at BlazePose's own
+    direction and length."""
+    from avatar_core.track.fit import correspondence as cor
+    from avatar_core.track.fit.observations import empty_observations
+    from avatar_core.track.fit.world_correction import bone_directions
+    from avatar_core.track.fit.world_cues import WORLD_TO_CAMERA
+
+    rng = np.random.default_rng(1)
+    live = empty_observations((640, 480))
+    live.weights[cor.POSE_SLICE] = 1.0
+    live.world = rng.normal(0, 0.3, (33, 3))
+    truth_points = rng.normal(0, 0.3, (33, 3))
+    rec = wp.Recording(wp.Condition(0, "waist_up"), 5.0, [{}], [live], [live], [truth_points],
+                       [1.0], {}, {}, {"left_hand": np.zeros(1, bool),
+                                       "right_hand": np.zeros(1, bool)})
+    upper = wp.drive_observations(rec, 0, "arm_cues_true_upper_arms")
+    got, got_len = bone_directions(upper.world * WORLD_TO_CAMERA)
+    live_unit, live_len = bone_directions(live.world * WORLD_TO_CAMERA)
+    np.testing.assert_allclose(got[[0, 2]], bone_directions(truth_points)[0][[0, 2]],
+                               atol=1e-12)
+    np.testing.assert_allclose(got[[1, 3]], live_unit[[1, 3]], atol=1e-12)
+    np.testing.assert_allclose(got_len, live_len)

@@ -352,12 +352,11 @@ def drive_observations(rec: Recording, i: int, drive: str):
     if spec.true_world:  # the fit's camera frame -> BlazePose's world axes
         obs.world = points * WORLD_TO_CAMERA
     if spec.true_bones and obs.world is not None:
-        unit = bone_directions(points)[0]
-        keep = np.ones(len(unit), bool)
-        keep[list(spec.true_bones)] = False
-        unit[keep] = np.nan
-        obs.world = with_bone_directions(obs.world, unit,
-                                         bone_directions(obs.world * WORLD_TO_CAMERA)[1])
+        # the other bones keep BlazePose's direction from wherever their near end moves to
+        unit, length = bone_directions(obs.world * WORLD_TO_CAMERA)
+        true_bones = list(spec.true_bones)
+        unit[true_bones] = bone_directions(points)[0][true_bones]
+        obs.world = with_bone_directions(obs.world, unit, length)
     true = rec.true_obs[i]
     for row in spec.true_pose_rows:  # where both the tracker and the truth have the point
         k = POSE_SLICE.start + row
