@@ -171,10 +171,13 @@ def test_the_build_command_is_reproducible_and_reuses_its_recordings(tmp_path):
     args = ["track", "build-world-correction", "--identities", "1", "--framings", "waist_up",
             "--take", "clapping", "--max-frames", "6", "--body-models", family]
     assert main([*args, "--work", str(tmp_path / "a"), "--out", str(tmp_path / "a.npz")]) == 0
-    recording = tmp_path / "a" / "1_waist_up.pkl"
+    recording, = (tmp_path / "a").glob("1_waist_up_*.pkl")
     stamp = recording.stat().st_mtime_ns
     assert main([*args, "--work", str(tmp_path / "a"), "--out", str(tmp_path / "b.npz")]) == 0
     assert recording.stat().st_mtime_ns == stamp  # reused, not filmed again
+    other = [*args[:args.index("--take") + 1], "wave", *args[args.index("--take") + 2:]]
+    assert main([*other, "--work", str(tmp_path / "a"), "--out", str(tmp_path / "w.npz")]) == 0
+    assert len(list((tmp_path / "a").glob("1_waist_up_*.pkl"))) == 2  # another take: filmed
     assert main([*args, "--work", str(tmp_path / "c"), "--out", str(tmp_path / "c.npz")]) == 0
     a, b, c = (wc.load_world_correction(tmp_path / f"{k}.npz") for k in "abc")
     np.testing.assert_array_equal(a.weights, b.weights)

@@ -4,12 +4,13 @@ Each training condition (an identity of a synthetic family with more identities 
 protocol's two, filmed in one framing, playing motions the protocol never plays) is rendered,
 tracked by the live tracker and paired with the true pose points
 (`tracking_eval.protocol.record_condition`). The correction is solved on those pairs, the
-mirror image of each frame included. Seeded and deterministic: the same spec gives the same
-asset.
+mirror image of each frame included. Deterministic: the renders' noise is seeded per identity
+and framing, and the same spec gives the same asset.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
@@ -36,13 +37,18 @@ class CorrectionSpec:
     fps: float = 10.0
     max_frames: int | None = None
     ridge: float = wc.DEFAULT_RIDGE
-    seed: int = 0
+
+    def recording_key(self) -> str:
+        """What a recording depends on beyond its identity and framing (the renders' noise is
+        seeded by those two), hashed: a work folder reused with another take is not read."""
+        text = json.dumps([list(self.take), self.fps, self.max_frames])
+        return hashlib.sha256(text.encode()).hexdigest()[:10]
 
 
 def record_training(spec: CorrectionSpec, work: Path, model_dir: Path | None = None,
                     progress: Callable[[str, int, int], None] | None = None) -> list[Path]:
-    """One recording per (identity, framing), pickled under `work` (kept: re-solving with
-    another ridge needs no new renders)."""
+    """One recording per (identity, framing), pickled under `work` and named with the spec's
+    `recording_key` (kept: re-solving with another ridge needs no new renders)."""
     import pickle
 
     from avatar_core.synth.tracking_eval.protocol import Condition, record_condition
@@ -53,7 +59,7 @@ def record_training(spec: CorrectionSpec, work: Path, model_dir: Path | None = N
     paths = []
     for identity in spec.identities:
         for framing in spec.framings:
-            path = work / f"{identity}_{framing}.pkl"
+            path = work / f"{identity}_{framing}_{spec.recording_key()}.pkl"
             if not path.exists():
                 models = models or synthetic_family(max(spec.identities) + 1, model_dir)
                 rec = record_condition(Condition(identity, framing), spec.fps,
