@@ -403,9 +403,9 @@ def _track_build_world_correction(args: argparse.Namespace) -> int:
         bars: dict[str, tqdm] = {}
 
         def progress(name: str, done: int, total: int) -> None:
-            bar = bars.get(name) or bars.setdefault(name, tqdm(total=total, unit="frame",
-                                                               desc=name))
-            bar.update(done - bar.n)
+            if name not in bars:  # one bar per condition filmed
+                bars[name] = tqdm(total=total, unit="frame", desc=name)
+            bars[name].update(done - bars[name].n)
 
         corr, report = build_world_correction(spec, args.work, args.body_models, progress)
         for bar in bars.values():

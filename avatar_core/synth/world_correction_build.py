@@ -59,10 +59,11 @@ def record_training(spec: CorrectionSpec, work: Path, model_dir: Path | None = N
     paths = []
     for identity in spec.identities:
         for framing in spec.framings:
-            path = work / f"{identity}_{framing}_{spec.recording_key()}.pkl"
+            condition = Condition(identity, framing)
+            path = work / f"{condition.name}_{spec.recording_key()}.pkl"
             if not path.exists():
                 models = models or synthetic_family(max(spec.identities) + 1, model_dir)
-                rec = record_condition(Condition(identity, framing), spec.fps,
+                rec = record_condition(condition, spec.fps,
                                        max_frames=spec.max_frames, model_dir=models,
                                        take=spec.take, progress=progress)
                 tmp = path.with_suffix(".tmp")

@@ -78,19 +78,18 @@ def bone_directions(world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return unit, length
 
 
-def features(world: np.ndarray, image: np.ndarray, image_size: tuple[int, int]
-             ) -> np.ndarray:
+def features(world: np.ndarray, image: np.ndarray, image_size: tuple[int, int],
+             unit: np.ndarray) -> np.ndarray:
     """[F] one frame's features: per row of `ROWS` its world and image point relative to the
     shoulders' midpoint in shoulder widths (0 where unused) and whether each is used; the
-    arm bones' unit directions (0 where unused); where the shoulders sit in the picture and
-    how wide they are."""
+    arm bones' unit directions `unit` [B, 3] (`bone_directions` of `world`; 0 where unused);
+    where the shoulders sit in the picture and how wide they are."""
     w_mid, i_mid = world[[11, 12]].mean(0), image[[11, 12]].mean(0)
     w_width = max(float(np.linalg.norm(world[11] - world[12])), MIN_SHOULDER_WIDTH)
     i_width = max(float(np.linalg.norm(image[11] - image[12])), MIN_SHOULDER_WIDTH)
     rows = list(ROWS)
     w_rel, i_rel = (world[rows] - w_mid) / w_width, (image[rows] - i_mid) / i_width
     w_used, i_used = np.isfinite(w_rel).all(1), np.isfinite(i_rel).all(1)
-    unit, _ = bone_directions(world)
     width = float(image_size[0])
     place = [(i_mid[0] - 0.5 * width) / width, (i_mid[1] + 0.5 * image_size[1]) / width,
              i_width / width]
@@ -117,7 +116,7 @@ def training_pair(obs, true_points: np.ndarray, mirror: bool = False
     true, _ = bone_directions(truth)
     mask = np.isfinite(seen).all(1) & np.isfinite(true).all(1)
     residual = np.where(mask[:, None], true - seen, 0.0)
-    return features(world, image, obs.image_size), residual.ravel(), mask
+    return features(world, image, obs.image_size, seen), residual.ravel(), mask
 
 
 def solve(x: np.ndarray, y: np.ndarray, mask: np.ndarray, ridge: float = DEFAULT_RIDGE
@@ -148,7 +147,7 @@ def corrected_directions(obs, corr: WorldCorrection) -> tuple[np.ndarray, np.nda
         return None
     world, image = points
     unit, length = bone_directions(world)
-    x = (features(world, image, obs.image_size) - corr.mean) / corr.scale
+    x = (features(world, image, obs.image_size, unit) - corr.mean) / corr.scale
     residual = np.einsum("f,bfk->bk", np.append(x, 1.0), corr.weights)  # [B, 3]
     fixed = unit + residual
     with np.errstate(invalid="ignore", divide="ignore"):

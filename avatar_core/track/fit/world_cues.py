@@ -69,13 +69,13 @@ TORSO_AXIS = (((23, 24), (11, 12)),)
 # visibility over 0.5, and there the torso's axis cost up to 1.8 dB where with the hips in
 # view it gained 2.1-2.7 dB (docs/results.md).
 WORLD_ONLY = frozenset((23, 24))
+WORLD_ONLY_MARGIN = 0.02
+MAX_END_LANDMARKS = 2
 # BlazePose's world shoulders' line turns 0.26-0.91 of the body's turn about the vertical
 # (median 0.6 over two identities, two framings, +-15 and +-30 deg; 0.3 on a trained avatar's
 # take: docs/results.md "The shoulders' line turns too little"); the fit multiplies its turn
 # by `FitConfig.shoulder_line_yaw_gain`, to at most this (deg).
 MAX_LINE_TURN_DEG = 75.0
-WORLD_ONLY_MARGIN = 0.02
-MAX_END_LANDMARKS = 2
 # BlazePose's world axes (x right, y down, z away from the camera) -> the fit's camera frame
 # (x right, y up, z toward the camera): measured on the studio recordings, where this sign
 # choice puts the shoulders' line 3-6 deg from the truth and every other choice >= 170 deg.
