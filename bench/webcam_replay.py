@@ -22,7 +22,9 @@ def _conditions(args):
     ids = [int(x) for x in args.identities.split(",") if x.strip()]
     framings = [x.strip() for x in args.framings.split(",") if x.strip()]
     turns = [float(x) for x in args.turns.split(",") if x.strip()]
-    return [Condition(i, f, t) for i in ids for f in framings for t in turns]
+    leans = [float(x) for x in args.leans.split(",") if x.strip()]
+    return [Condition(i, f, t, lean) for i in ids for f in framings for t in turns
+            for lean in leans]
 
 
 def _top_level_split(text: str) -> list[str]:
@@ -69,6 +71,8 @@ def main() -> None:
     ap.add_argument("--framings", default="head_shoulders,waist_up")
     ap.add_argument("--turns", default="0", help="comma-separated turns of the whole body "
                     "about the vertical, deg (recordings named ID_FRAMING_turnDEG)")
+    ap.add_argument("--leans", default="0", help="comma-separated forward leans of the whole "
+                    "body, deg (recordings named ID_FRAMING[_turnDEG]_leanDEG)")
     ap.add_argument("--fps", type=float, default=10.0)
     ap.add_argument("--max-frames", type=int, default=None)
     ap.add_argument("--drives", default="live", help="comma-separated protocol drives")

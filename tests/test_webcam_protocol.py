@@ -341,6 +341,34 @@ def test_a_turned_condition_turns_the_whole_body_about_the_vertical():
         np.testing.assert_array_equal(a["body_pose"], b["body_pose"])
     assert wp.Condition(1, "waist_up", -30.0).name == "1_waist_up_turn-30"
     assert wp.Condition(1, "waist_up").name == "1_waist_up"
+    assert wp.Condition(1, "waist_up", -30.0, 12.0).name == "1_waist_up_turn-30_lean+12"
+
+
+def test_a_leaned_condition_leans_forward_before_it_turns():
+    from scipy.spatial.transform import Rotation
+
+    from avatar_core.motion.rig import model_rig
+    from avatar_core.synth.actor import Actor
+    from avatar_core.synth.model_writer import ensure_models
+
+    files = ensure_models()
+    actor = Actor.load(files, 0)
+    rig = model_rig(files, actor.model)
+    transl = np.zeros(3)
+    straight = wp.take_params(actor, rig, transl, 5.0, max_frames=2)
+    leaned = wp.take_params(actor, rig, transl, 5.0, max_frames=2, lean_deg=12.0)
+    both = wp.take_params(actor, rig, transl, 5.0, max_frames=2, turn_deg=90.0, lean_deg=12.0)
+    up = np.array([0.0, 1.0, 0.0])  # the spine's direction at rest, in the root's frame
+    for a, b, c in zip(straight, leaned, both, strict=True):
+        root = Rotation.from_rotvec(np.asarray(a["global_orient"]).reshape(3))
+        rel = Rotation.from_rotvec(b["global_orient"]) * root.inv()
+        np.testing.assert_allclose(rel.as_rotvec(), [np.radians(12.0), 0.0, 0.0], atol=1e-9)
+        # the body faces +z, so a forward lean tips its up axis toward +z
+        assert rel.apply(up)[2] == pytest.approx(np.sin(np.radians(12.0)))
+        # turned a quarter to its left afterwards, the lean tips it toward +x
+        tipped = (Rotation.from_rotvec(c["global_orient"]) * root.inv()).apply(up)
+        np.testing.assert_allclose(tipped, [np.sin(np.radians(12.0)), np.cos(np.radians(12.0)),
+                                            0.0], atol=1e-9)
 
 
 def test_true_upper_arms_keep_blazepose_forearms():

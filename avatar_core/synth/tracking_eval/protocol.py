@@ -86,16 +86,19 @@ Progress = Callable[[str, int, int], None]
 @dataclass
 class Condition:
     """One identity filmed in one framing, its whole body turned `turn_deg` about the vertical
-    (positive: toward its own left; the protocol's takes face the webcam)."""
+    (positive: toward its own left; the protocol's takes face the webcam) and leaned
+    `lean_deg` about its own left-right axis (positive: forward, toward the webcam)."""
 
     identity: int
     framing: str
     turn_deg: float = 0.0
+    lean_deg: float = 0.0
 
     @property
     def name(self) -> str:
         turn = f"_turn{self.turn_deg:+g}" if self.turn_deg else ""
-        return f"{self.identity}_{self.framing}{turn}"
+        lean = f"_lean{self.lean_deg:+g}" if self.lean_deg else ""
+        return f"{self.identity}_{self.framing}{turn}{lean}"
 
 
 @dataclass
@@ -150,10 +153,11 @@ def score_camera(transl: np.ndarray, actor, width: int, height: int,
 
 
 def take_params(actor, rig, transl: np.ndarray, fps: float, max_frames: int | None = None,
-                names: Sequence[str] = TAKE, start_frame: int = 0, turn_deg: float = 0.0
-                ) -> list[dict[str, np.ndarray]]:
+                names: Sequence[str] = TAKE, start_frame: int = 0, turn_deg: float = 0.0,
+                lean_deg: float = 0.0) -> list[dict[str, np.ndarray]]:
     """The true parameters of frames [start_frame, max_frames) of the take at `fps`, the body
-    turned `turn_deg` about the vertical (through its root joint)."""
+    leaned `lean_deg` forward, then turned `turn_deg` about the vertical (both through its
+    root joint)."""
     from scipy.spatial.transform import Rotation
 
     from avatar_core.motion.library import motion_sequence
@@ -162,11 +166,13 @@ def take_params(actor, rig, transl: np.ndarray, fps: float, max_frames: int | No
     n = int(math.floor(track.duration * fps + 1e-9)) + 1
     n = n if max_frames is None else min(n, max_frames)
     betas = np.asarray(actor.betas, dtype=np.float64)
-    turn = Rotation.from_euler("y", turn_deg, degrees=True)
+    # the body faces +z: a positive rotation about x brings its head forward
+    turn = Rotation.from_euler("y", turn_deg, degrees=True) \
+        * Rotation.from_euler("x", lean_deg, degrees=True)
     out = []
     for i in range(start_frame, n):
         params = {**track.sample(i / fps, rig), "transl": transl.copy(), "betas": betas}
-        if turn_deg:
+        if turn_deg or lean_deg:
             root = Rotation.from_rotvec(np.asarray(params["global_orient"]).reshape(3))
             params["global_orient"] = (turn * root).as_rotvec()
         out.append(params)
@@ -279,7 +285,7 @@ def _actor_setup(condition: Condition, fps: float, max_frames, take, start_frame
     cam = webcam_camera()
     transl = framed_transl(actor, cam, condition.framing)
     truth = take_params(actor, model_rig(files, actor.model), transl, fps, max_frames, take,
-                        start_frame, condition.turn_deg)
+                        start_frame, condition.turn_deg, condition.lean_deg)
     if len(truth) < 2:
         raise ValueError(f"the protocol needs at least 2 frames, got {len(truth)}")
     return files, actor, cam, transl, truth

@@ -80,7 +80,9 @@ def summarise(runs: list[RunResult]) -> dict[str, Any]:
         "conditions": [{"identity": r.condition.identity,
                         "framing": r.condition.framing + (
                             f" turned {r.condition.turn_deg:+g} deg"
-                            if r.condition.turn_deg else ""),
+                            if r.condition.turn_deg else "") + (
+                            f" leaned {r.condition.lean_deg:+g} deg"
+                            if r.condition.lean_deg else ""),
                         "frames": len(r.truth), "metrics": r.metrics,
                         "presence": _presence([r]),
                         "track_ms": float(np.median(r.track_ms[1:] or r.track_ms))}
