@@ -36,6 +36,9 @@ def main() -> None:
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--parts", default=None,
                     help="comma-separated parts to swap alone and all-but (default: all)")
+    ap.add_argument("--arm-split", action="store_true",
+                    help="also the arms' world directions apart from their twist about each "
+                         "bone (part_swap.arm_split_variants)")
     ap.add_argument("--stride", type=int, default=1,
                     help="score every n-th frame (the renders are the cost)")
     ap.add_argument("--score-size", type=int, default=320, help="as the runs used (4:3)")
@@ -69,7 +72,7 @@ def main() -> None:
             actor = Actor.load(ensure_models(), res.condition.identity)
             cam = score_camera(framed_transl(actor, webcam_camera(), res.condition.framing),
                                actor, *size)
-            per_cond.append((res, score_swaps(actor, res, drive, cam, variants)))
+            per_cond.append((res, score_swaps(actor, res, drive, cam, variants, args.arm_split)))
             print(f"{drive} {res.condition}: done", flush=True)
         rows = {}
         for key, sel in [("all", None), *((f, f) for f in framings)]:

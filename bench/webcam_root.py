@@ -3,7 +3,8 @@ webcam` on a trained avatar, once per fit variant, with the root's error split a
 webcam's own axes, the true and fitted root in the webcam's frame, and BlazePose's world torso
 axis (the hips' midpoint to the shoulders') against the true one. With `--recordings`, only
 that axis and the shoulders' line's turn, on the studio protocol's recordings
-(bench/webcam_replay.py --record, --turns for a turned body).
+(bench/webcam_replay.py --record, --turns for a turned body). With `--runs`, the root's
+error split the same way on replayed runs (bench/webcam_replay.py --replay's runs.pkl).
 
     ARMS="(11,13),(13,15),(12,14),(14,16),(12,11)"
     OMP_NUM_THREADS=1 PYTHONPATH=. python bench/webcam_root.py \
@@ -128,11 +129,36 @@ def recordings_torso(folder: Path) -> None:
               f"{turn_text} |")
 
 
+def runs_root(paths: list[Path]) -> None:
+    """The root's error along the webcam's axes per condition and drive of replayed runs
+    (bench/webcam_replay.py --replay's runs.pkl): the protocol's webcam is the fit's frame."""
+    import pickle
+
+    from avatar_core.synth.tracking_eval.protocol import webcam_camera
+
+    cam = webcam_camera()
+    print("| condition | drive | root error about the webcam's x (lean) / y (turn) / z (roll), "
+          "mean deg | root error, mean deg |")
+    print("|---" * 4 + "|")
+    for path in paths:
+        with open(path, "rb") as f:
+            runs = pickle.load(f)  # noqa: S301 (our own file)
+        for run in runs:
+            for drive, fits in run.smooth.items():
+                axes = np.array([root_error_axes(fit, truth, cam)
+                                 for fit, truth in zip(fits, run.truth, strict=True)])
+                mean = " / ".join(f"{x:+.1f}" for x in axes.mean(0))
+                print(f"| {run.condition.name} | {drive} | {mean} | "
+                      f"{np.linalg.norm(axes, axis=1).mean():.1f} |")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("avatar", nargs="?")
     ap.add_argument("dataset", nargs="?")
     ap.add_argument("--recordings", type=Path, help="the studio protocol's recordings only")
+    ap.add_argument("--runs", type=Path, nargs="+",
+                    help="only the root's error split, on bench/webcam_replay.py's runs.pkl")
     ap.add_argument("--size", type=int, default=128)
     ap.add_argument("--max-frames", type=int, default=None)
     ap.add_argument("--variants", default="", help="as bench/webcam_replay.py's: "
@@ -140,6 +166,9 @@ def main() -> int:
     args = ap.parse_args()
     if args.recordings:
         recordings_torso(args.recordings)
+        return 0
+    if args.runs:
+        runs_root(args.runs)
         return 0
     if not (args.avatar and args.dataset):
         ap.error("an avatar and a dataset, or --recordings")

@@ -12,8 +12,10 @@ import math
 
 import numpy as np
 import torch
+from scipy.spatial.transform import Rotation
 
-from avatar_core.body.skeleton import JOINT
+from avatar_core.body.skeleton import JOINT, SMPLX_PARENTS
+from avatar_core.metrics.webcam import world_rotations
 
 # Part -> (parameter names, body_pose joints). Together they cover every fitted parameter
 # but `transl` and `betas` (the avatar is driven without `transl`; betas are the actor's).
@@ -49,6 +51,57 @@ def swap_parts(fitted: dict[str, np.ndarray], truth: dict[str, np.ndarray],
     return out
 
 
+def _turn_onto(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """[3, 3] the least rotation taking direction `a` onto `b` (a swing: no turn about
+    either)."""
+    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
+    axis = np.cross(a, b)
+    sin = np.linalg.norm(axis)
+    if sin < 1e-12:  # parallel; antiparallel does not arise between an arm and its fit
+        return np.eye(3)
+    return Rotation.from_rotvec(axis / sin * math.atan2(sin, float(a @ b))).as_matrix()
+
+
+def with_arm_directions(params: dict[str, np.ndarray], directions_from: dict[str, np.ndarray],
+                        rest_joints: np.ndarray) -> dict[str, np.ndarray]:
+    """A copy of `params` whose upper arms and forearms point where `directions_from`'s do
+    in the world, each turned there by the least rotation, so that the twist about each bone
+    stays `params`' own. Everything above the shoulders stays `params`'.
+    rest_joints: [J, 3] the body model's joints at rest (the bones' rest offsets)."""
+    world, target = world_rotations(params), world_rotations(directions_from)
+    out = {k: np.array(v, dtype=np.float64) for k, v in params.items()}
+    local = out["body_pose"].reshape(-1, 3)
+    for side in ("left", "right"):
+        shoulder, elbow, wrist = (JOINT[f"{side}_{j}"] for j in ("shoulder", "elbow", "wrist"))
+        upper = rest_joints[elbow] - rest_joints[shoulder]   # [3] at rest
+        fore = rest_joints[wrist] - rest_joints[elbow]
+        at_shoulder = _turn_onto(world[shoulder] @ upper, target[shoulder] @ upper) \
+            @ world[shoulder]
+        at_elbow = at_shoulder @ Rotation.from_rotvec(local[elbow - 1]).as_matrix()
+        at_elbow = _turn_onto(at_elbow @ fore, target[elbow] @ fore) @ at_elbow
+        local[shoulder - 1] = Rotation.from_matrix(
+            world[SMPLX_PARENTS[shoulder]].T @ at_shoulder).as_rotvec()
+        local[elbow - 1] = Rotation.from_matrix(at_shoulder.T @ at_elbow).as_rotvec()
+    out["body_pose"] = local.reshape(np.shape(params["body_pose"]))
+    return out
+
+
+def arm_split_variants(fitted: dict[str, np.ndarray], truth: dict[str, np.ndarray],
+                       rest_joints: np.ndarray) -> dict[str, dict[str, np.ndarray]]:
+    """label -> parameters: the arms' world directions (what the landmarks show) apart from
+    their twist about each bone, with the rest of the body as fitted or from the truth."""
+    rest_true = swap_parts(fitted, truth, [p for p in PARTS if p != "arms"])
+    return {
+        "fitted": fitted,
+        "arm directions true, twist fitted": with_arm_directions(fitted, truth, rest_joints),
+        "all true but arms": rest_true,
+        "all true but arm directions (twist true)": with_arm_directions(truth, fitted,
+                                                                        rest_joints),
+        "all true but arm twist (directions true)": with_arm_directions(rest_true, truth,
+                                                                        rest_joints),
+    }
+
+
 def swap_variants(parts=tuple(PARTS)) -> dict[str, tuple[str, ...]]:
     """label -> the parts taken from the truth: none, each part alone, all but each part."""
     out = {"fitted": ()}
@@ -67,30 +120,37 @@ def frame_psnr(pred, truth) -> float:
 
 
 def score_swaps(actor, res, drive: str, score_cam,
-                variants: dict[str, tuple[str, ...]] | None = None
+                variants: dict[str, tuple[str, ...]] | None = None, arm_split: bool = False
                 ) -> dict[str, dict[str, float]]:
     """Per variant: mean PSNR over the frames and the joint-angle errors of `drive`'s
-    smoothed parameters (what drove the avatar) with the variant's parts from the truth."""
+    smoothed parameters (what drove the avatar) with the variant's parts from the truth;
+    with `arm_split` also `arm_split_variants` (the arms' directions apart from their twist)."""
     from .protocol import joint_errors
 
     variants = variants or swap_variants()
-    fitted = res.smooth[drive]
-    psnr = {label: [] for label in variants}
-    swapped = {label: [] for label in variants}
-    for fit, truth in zip(fitted, res.truth, strict=True):
+    rest_joints = None
+    if arm_split:
+        with torch.no_grad():
+            rest_joints = actor.model({"betas": actor.betas}).joints[0].double().numpy()
+    psnr, swapped = {}, {}
+    for fit, truth in zip(res.smooth[drive], res.truth, strict=True):
         with torch.no_grad():
             reference = actor.render(actor.pose(truth), score_cam, background=(0, 0, 0),
                                      supersample=1)
-        for label, parts in variants.items():
-            params = swap_parts(fit, truth, parts)
-            swapped[label].append(params)
+        frame = {label: swap_parts(fit, truth, parts) for label, parts in variants.items()}
+        if arm_split:
+            frame.update({label: params for label, params in
+                          arm_split_variants(fit, truth, rest_joints).items()
+                          if label not in frame})
+        for label, params in frame.items():
+            swapped.setdefault(label, []).append(params)
             with torch.no_grad():
                 view = actor.render(actor.pose(params), score_cam, background=(0, 0, 0),
                                     supersample=1)
-            psnr[label].append(frame_psnr(view, reference))
+            psnr.setdefault(label, []).append(frame_psnr(view, reference))
     out = {}
-    for label in variants:
-        p = np.asarray(psnr[label])
+    for label, values in psnr.items():
+        p = np.asarray(values)
         out[label] = {"psnr": float(p[np.isfinite(p)].mean()),
                       **joint_errors(swapped[label], res.truth)}
     return out
