@@ -342,6 +342,9 @@ def test_a_turned_condition_turns_the_whole_body_about_the_vertical():
     assert wp.Condition(1, "waist_up", -30.0).name == "1_waist_up_turn-30"
     assert wp.Condition(1, "waist_up").name == "1_waist_up"
     assert wp.Condition(1, "waist_up", -30.0, 12.0).name == "1_waist_up_turn-30_lean+12"
+    assert wp.Condition(1, "waist_up", -30.0, 12.0).framing_label == \
+        "waist_up turned -30 deg leaned +12 deg"
+    assert wp.Condition(1, "waist_up").framing_label == "waist_up"
 
 
 def test_a_leaned_condition_leans_forward_before_it_turns():

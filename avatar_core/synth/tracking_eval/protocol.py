@@ -100,6 +100,13 @@ class Condition:
         lean = f"_lean{self.lean_deg:+g}" if self.lean_deg else ""
         return f"{self.identity}_{self.framing}{turn}{lean}"
 
+    @property
+    def framing_label(self) -> str:
+        """The framing and, where set, the turn and lean, in words (the reports' column)."""
+        turn = f" turned {self.turn_deg:+g} deg" if self.turn_deg else ""
+        lean = f" leaned {self.lean_deg:+g} deg" if self.lean_deg else ""
+        return f"{self.framing}{turn}{lean}"
+
 
 @dataclass
 class RunResult:
@@ -167,14 +174,14 @@ def take_params(actor, rig, transl: np.ndarray, fps: float, max_frames: int | No
     n = n if max_frames is None else min(n, max_frames)
     betas = np.asarray(actor.betas, dtype=np.float64)
     # the body faces +z: a positive rotation about x brings its head forward
-    turn = Rotation.from_euler("y", turn_deg, degrees=True) \
+    whole_body = Rotation.from_euler("y", turn_deg, degrees=True) \
         * Rotation.from_euler("x", lean_deg, degrees=True)
     out = []
     for i in range(start_frame, n):
         params = {**track.sample(i / fps, rig), "transl": transl.copy(), "betas": betas}
         if turn_deg or lean_deg:
             root = Rotation.from_rotvec(np.asarray(params["global_orient"]).reshape(3))
-            params["global_orient"] = (turn * root).as_rotvec()
+            params["global_orient"] = (whole_body * root).as_rotvec()
         out.append(params)
     return out
 

@@ -78,11 +78,7 @@ def summarise(runs: list[RunResult]) -> dict[str, Any]:
         "take": list(TAKE), "fps": runs[0].fps, "per_motion_psnr": per_motion,
         "seconds": [len(r.truth) / r.fps for r in runs],
         "conditions": [{"identity": r.condition.identity,
-                        "framing": r.condition.framing + (
-                            f" turned {r.condition.turn_deg:+g} deg"
-                            if r.condition.turn_deg else "") + (
-                            f" leaned {r.condition.lean_deg:+g} deg"
-                            if r.condition.lean_deg else ""),
+                        "framing": r.condition.framing_label,
                         "frames": len(r.truth), "metrics": r.metrics,
                         "presence": _presence([r]),
                         "track_ms": float(np.median(r.track_ms[1:] or r.track_ms))}
