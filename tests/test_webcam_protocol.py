@@ -321,16 +321,21 @@ def test_partial_truth_drives_swap_only_their_part():
     assert rec.live[0] is live and np.array_equal(live.world, rec.live[0].world)
 
 
-def test_a_turned_condition_turns_the_whole_body_about_the_vertical():
-    from scipy.spatial.transform import Rotation
-
+def _actor_rig():
+    """Identity 0 of the studio family and its motion rig."""
     from avatar_core.motion.rig import model_rig
     from avatar_core.synth.actor import Actor
     from avatar_core.synth.model_writer import ensure_models
 
     files = ensure_models()
     actor = Actor.load(files, 0)
-    rig = model_rig(files, actor.model)
+    return actor, model_rig(files, actor.model)
+
+
+def test_a_turned_condition_turns_the_whole_body_about_the_vertical():
+    from scipy.spatial.transform import Rotation
+
+    actor, rig = _actor_rig()
     transl = np.zeros(3)
     straight = wp.take_params(actor, rig, transl, 5.0, max_frames=3)
     turned = wp.take_params(actor, rig, transl, 5.0, max_frames=3, turn_deg=-30.0)
@@ -350,13 +355,7 @@ def test_a_turned_condition_turns_the_whole_body_about_the_vertical():
 def test_a_leaned_condition_leans_forward_before_it_turns():
     from scipy.spatial.transform import Rotation
 
-    from avatar_core.motion.rig import model_rig
-    from avatar_core.synth.actor import Actor
-    from avatar_core.synth.model_writer import ensure_models
-
-    files = ensure_models()
-    actor = Actor.load(files, 0)
-    rig = model_rig(files, actor.model)
+    actor, rig = _actor_rig()
     transl = np.zeros(3)
     straight = wp.take_params(actor, rig, transl, 5.0, max_frames=2)
     leaned = wp.take_params(actor, rig, transl, 5.0, max_frames=2, lean_deg=12.0)
