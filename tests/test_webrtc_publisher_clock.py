@@ -226,8 +226,10 @@ def test_a_whip_publishers_frames_and_voice_carry_capture_times_on_one_clock(srv
     # on this server's clock an image was captured no later than it arrived (decoded): the
     # WebRTC senders stamp its frames with that instant (before: with the arrival)
     assert all(x >= 0 for x in leads), leads
-    # and it arrived at its last packet, not a frame interval later (protocol/rtp_receiver.py)
-    assert sorted(leads)[len(leads) // 2] < period / 2 * 1e3, leads
+    # and it arrived at its last packet, not a frame interval later (protocol/rtp_receiver.py):
+    # a buffer that waits for the next frame holds every frame a period; the suite's load can
+    # delay many (a median of 240 ms was seen in a fresh-clone run), never all of them
+    assert min(leads) < period / 2 * 1e3, leads
 
 
 def test_a_whep_performers_voice_stays_off_the_clock_of_its_own_drives(srv):
