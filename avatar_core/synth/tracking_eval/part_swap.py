@@ -53,13 +53,8 @@ def swap_parts(fitted: dict[str, np.ndarray], truth: dict[str, np.ndarray],
 
 def _turn_onto(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """[3, 3] the least rotation taking direction `a` onto `b` (a swing: no turn about
-    either)."""
-    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
-    axis = np.cross(a, b)
-    sin = np.linalg.norm(axis)
-    if sin < 1e-12:  # parallel; antiparallel does not arise between an arm and its fit
-        return np.eye(3)
-    return Rotation.from_rotvec(axis / sin * math.atan2(sin, float(a @ b))).as_matrix()
+    either; scipy's answer for a single pair)."""
+    return Rotation.align_vectors(b[None], a[None])[0].as_matrix()
 
 
 def with_arm_directions(params: dict[str, np.ndarray], directions_from: dict[str, np.ndarray],
