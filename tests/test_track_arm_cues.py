@@ -261,10 +261,19 @@ def test_the_torso_axis_runs_from_the_hips_midpoint_to_the_shoulders(model_and_b
     step = 1e-6 * np.arange(1, 5)
     r2, _ = world_cues.direction_residuals(points + d_points @ step, d_points, pairs, False)
     np.testing.assert_allclose(r2 - r, jac @ step, atol=1e-10)
-    # A landmark out of the 2D fit and not WORLD_ONLY keeps its bone out.
+    # Told not to ask, the hips count wherever they are: below the frame too.
+    obs.pixels[POSE + 24] = [340.0, 520.0]
+    assert world_cues.direction_pairs(obs, weight, 10.0, world_cues.TORSO_AXIS) is None
+    a2, b2, u2, _ = world_cues.direction_pairs(obs, weight, 10.0, world_cues.TORSO_AXIS,
+                                               world_only_in_view=False)
+    assert a2.tolist() == a.tolist() and b2.tolist() == b.tolist()
+    np.testing.assert_allclose(u2, u)
+    # A landmark out of the 2D fit and not WORLD_ONLY keeps its bone out, even so.
     obs.world[13] = [0.3, -0.2, 0.0]
     weight[POSE + 13] = 0.0
     assert world_cues.direction_pairs(obs, weight, 10.0, ((11, 13),)) is None
+    assert world_cues.direction_pairs(obs, weight, 10.0, ((11, 13),),
+                                      world_only_in_view=False) is None
     # A hip that is not seen (no world point): no axis.
     obs.world[23] = np.nan
     assert world_cues.direction_pairs(obs, weight, 10.0, world_cues.TORSO_AXIS) is None

@@ -396,3 +396,45 @@ def test_true_upper_arms_keep_blazepose_forearms():
                                atol=1e-12)
     np.testing.assert_allclose(got[[1, 3]], live_unit[[1, 3]], atol=1e-12)
     np.testing.assert_allclose(got_len, live_len)
+
+
+def test_the_true_torso_axis_drive_moves_only_blazeposes_hips():
+    """`arm_cues_true_torso_axis`: BlazePose's hips' midpoint moves so that its axis to the
+    shoulders is the truth's (at BlazePose's length and hip width), nothing else moves, and
+    its fit uses the axis whether or not the hips are in view."""
+    from avatar_core.synth.tracking_eval.protocol_drives import drive_config
+    from avatar_core.track.fit import correspondence as cor
+    from avatar_core.track.fit.observations import empty_observations
+    from avatar_core.track.fit.sequence import SequenceFitConfig
+    from avatar_core.track.fit.world_cues import WORLD_TO_CAMERA
+
+    rng = np.random.default_rng(2)
+    live = empty_observations((640, 480))
+    live.weights[cor.POSE_SLICE] = 1.0
+    live.world = rng.normal(0, 0.3, (33, 3))
+    truth_points = rng.normal(0, 0.3, (33, 3))
+    rec = wp.Recording(wp.Condition(0, "waist_up"), 5.0, [{}], [live], [live], [truth_points],
+                       [1.0], {}, {}, {"left_hand": np.zeros(1, bool),
+                                       "right_hand": np.zeros(1, bool)})
+    got = wp.drive_observations(rec, 0, "arm_cues_true_torso_axis").world
+    unchanged = [i for i in range(33) if i not in (23, 24)]
+    np.testing.assert_array_equal(got[unchanged], live.world[unchanged])
+
+    def axis(points):
+        v = points[[11, 12]].mean(axis=0) - points[[23, 24]].mean(axis=0)
+        return v / np.linalg.norm(v), np.linalg.norm(v)
+
+    np.testing.assert_allclose(axis(got * WORLD_TO_CAMERA)[0], axis(truth_points)[0],
+                               atol=1e-12)
+    np.testing.assert_allclose(axis(got)[1], axis(live.world)[1])
+    np.testing.assert_allclose(got[23] - got[24], live.world[23] - live.world[24])
+    np.testing.assert_array_equal(live.world, rec.live[0].world)  # the recording untouched
+    # Missing BlazePose hips still get an axis (at a default length), never NaN.
+    live.world[[23, 24]] = np.nan
+    got = wp.drive_observations(rec, 0, "arm_cues_true_torso_axis").world
+    assert np.isfinite(got[[23, 24]]).all()
+    np.testing.assert_allclose(axis(got * WORLD_TO_CAMERA)[0], axis(truth_points)[0],
+                               atol=1e-12)
+    config = drive_config("arm_cues_true_torso_axis", SequenceFitConfig())
+    assert not config.fit.torso_axis_hips_in_view and config.fit.torso_axis_weight > 0
+    assert drive_config("arm_cues", SequenceFitConfig()).fit.torso_axis_hips_in_view

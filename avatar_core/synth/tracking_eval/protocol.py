@@ -54,6 +54,7 @@ from .protocol_drives import (
     check_drives,
     drive_config,
     true_world,
+    with_torso_axis,
 )
 from .scene import FOV_X_DEG, background, render_frame, webcam_camera
 
@@ -356,7 +357,7 @@ def drive_observations(rec: Recording, i: int, drive: str):
     spec = DRIVES[drive]
     obs = rec.live[i]
     if not (spec.true_2d or spec.true_depth or spec.true_world or spec.true_bones
-            or spec.true_pose_rows):
+            or spec.true_pose_rows or spec.true_torso_axis):
         return obs
     obs = mix_observations(obs, rec.true_obs[i], spec.true_2d)
     points = np.asarray(rec.true_points[i], dtype=np.float64)
@@ -370,6 +371,10 @@ def drive_observations(rec: Recording, i: int, drive: str):
         true_bones = list(spec.true_bones)
         unit[true_bones] = bone_directions(points)[0][true_bones]
         obs.world = with_bone_directions(obs.world, unit, length)
+    if spec.true_torso_axis and obs.world is not None:
+        axis = points[[11, 12]].mean(axis=0) - points[[23, 24]].mean(axis=0)
+        axis = axis * WORLD_TO_CAMERA / np.linalg.norm(axis)
+        obs.world = with_torso_axis(obs.world, axis)
     true = rec.true_obs[i]
     for row in spec.true_pose_rows:  # where both the tracker and the truth have the point
         k = POSE_SLICE.start + row

@@ -20,7 +20,10 @@ configuration:
   correction (`track.fit.world_correction`); ``arm_cues_true_world``: on the true pose points
   in BlazePose's place (that correction's ceiling); ``arm_cues_true_forearms``,
   ``arm_cues_true_upper_arms``: only those bones' directions true;
-  ``arm_cues_true_shoulders_2d``: only the shoulders' two 2D points true.
+  ``arm_cues_true_shoulders_2d``: only the shoulders' two 2D points true;
+  ``arm_cues_true_torso_axis``: BlazePose's world hips moved so that its torso axis is the
+  truth's, its shoulders kept, and the axis used in every frame (hips in view or not): what
+  a lean cue that follows the body would buy.
 """
 
 from __future__ import annotations
@@ -56,6 +59,7 @@ class Drive:
     true_bones: tuple[int, ...] = ()
     true_pose_rows: tuple[int, ...] = ()  # BlazePose rows whose 2D alone comes from the truth
     world_correction: bool = False        # BlazePose's world arm bones corrected (the asset)
+    true_torso_axis: bool = False         # BlazePose's torso axis from the truth, always used
 
 
 DRIVES = {
@@ -75,6 +79,8 @@ DRIVES = {
                                     arm_cues=True, true_bones=(1, 3)),
     "arm_cues_true_shoulders_2d": Drive("webcam + world bones, the shoulders' 2D from the "
                                         "truth", arm_cues=True, true_pose_rows=(11, 12)),
+    "arm_cues_true_torso_axis": Drive("webcam + world bones, the torso's axis from the truth",
+                                      arm_cues=True, true_torso_axis=True),
     "true_body": Drive("true body 2D", ("pose",)),
     "true_body_face": Drive("true body + face 2D", ("pose", "face")),
     "true_all": Drive("all 2D true", ALL_PARTS),
@@ -114,7 +120,27 @@ def drive_config(name: str, base, embedding=None):
         from avatar_core.track.fit.world_correction import load_world_correction
 
         out = dataclasses.replace(out, world_correction=load_world_correction())
-    return with_arm_cues(out) if drive.arm_cues else out
+    out = with_arm_cues(out) if drive.arm_cues else out
+    if drive.true_torso_axis:
+        out = dataclasses.replace(out, fit=dataclasses.replace(
+            out.fit, torso_axis_hips_in_view=False))
+    return out
+
+
+def with_torso_axis(world: np.ndarray, axis: np.ndarray) -> np.ndarray:
+    """[33, 3] BlazePose world landmarks with both hips moved so that the hips' midpoint to
+    the shoulders' points along `axis` (unit, BlazePose's axes), at BlazePose's own length and
+    hip width (0.3 m and 0.2 m where its hips are missing)."""
+    out = np.array(world, dtype=np.float64)
+    shoulders = out[[11, 12]].mean(axis=0)
+    hips = out[[23, 24]].mean(axis=0)
+    half = (out[23] - out[24]) / 2
+    length = float(np.linalg.norm(shoulders - hips))
+    if not (np.isfinite(length) and length > 1e-3 and np.all(np.isfinite(half))):
+        length, half = 0.3, np.array([0.1, 0.0, 0.0])
+    mid = shoulders - length * np.asarray(axis, dtype=np.float64)
+    out[23], out[24] = mid + half, mid - half
+    return out
 
 
 def true_world(model_points: np.ndarray, parts) -> np.ndarray:

@@ -153,6 +153,9 @@ class FitConfig:
     # BlazePose's, per rad^2 (0: off; the live cues' 2: docs/results.md "The root's lean and
     # BlazePose's torso axis").
     torso_axis_weight: float = 0.0
+    # False: the axis counts whether or not the hips are in view (a lean cue that holds
+    # there too; the live cue needs them: BlazePose's off-view hips cost up to 1.8 dB).
+    torso_axis_hips_in_view: bool = True
     dtype: torch.dtype = torch.float64
 
 
@@ -519,7 +522,9 @@ class FrameFitter:
                                                           self.config.shoulder_line_yaw_gain),
                                world_cues.direction_pairs(obs, weight,
                                                           self.config.torso_axis_weight,
-                                                          world_cues.TORSO_AXIS)))
+                                                          world_cues.TORSO_AXIS,
+                                                          world_only_in_view=self.config
+                                                          .torso_axis_hips_in_view)))
         stats = {"iterations": 0, "evaluations": 0}
         if not warm:  # coarse to fine: place the head and torso first, then the limbs
             n = self.config.placement_iterations

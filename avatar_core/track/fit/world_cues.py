@@ -111,13 +111,14 @@ def turned_line(v: np.ndarray, gain: float) -> np.ndarray:
 
 
 def direction_pairs(obs, weight: np.ndarray, w: float, bones=ARM_BONES,
-                    line_yaw_gain: float = 1.0
+                    line_yaw_gain: float = 1.0, world_only_in_view: bool = True
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
     """(from rows [D, 2], to rows [D, 2] (an end's keypoint rows, their mean its point; one
     landmark is its row twice), target unit directions [D, 3] in the camera frame, sqrt
     weight [D]) of the `bones` whose landmarks are all used (or `WORLD_ONLY` and in view) and
     have finite world points, distinct ends; None: none (or `w` 0, or no world landmarks).
-    The shoulders' line (`SHOULDER_LINE`) turned by `line_yaw_gain` (`turned_line`)."""
+    The shoulders' line (`SHOULDER_LINE`) turned by `line_yaw_gain` (`turned_line`);
+    `world_only_in_view` False: `WORLD_ONLY` landmarks count wherever their image points are."""
     if w <= 0 or obs.world is None:
         return None
     base = cor.POSE_SLICE.start
@@ -126,6 +127,8 @@ def direction_pairs(obs, weight: np.ndarray, w: float, bones=ARM_BONES,
     margin = WORLD_ONLY_MARGIN * max(w_img, h_img)
 
     def in_view(row: int) -> bool:
+        if not world_only_in_view:
+            return True
         x, y = obs.pixels[row, :2]
         return bool(margin <= x < w_img - margin and margin <= y < h_img - margin)
 
