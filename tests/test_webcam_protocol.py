@@ -438,3 +438,44 @@ def test_the_true_torso_axis_drive_moves_only_blazeposes_hips():
     config = drive_config("arm_cues_true_torso_axis", SequenceFitConfig())
     assert not config.fit.torso_axis_hips_in_view and config.fit.torso_axis_weight > 0
     assert drive_config("arm_cues", SequenceFitConfig()).fit.torso_axis_hips_in_view
+
+
+def test_the_true_torso_drive_turns_blazeposes_shoulders_and_keeps_its_arm_bones():
+    """`arm_cues_true_torso`: the shoulders' line is the truth's about BlazePose's own midpoint
+    and width, each arm bone keeps BlazePose's direction and length from its moved shoulder,
+    the torso's axis is the truth's, and the line's turn is not multiplied again."""
+    from avatar_core.synth.tracking_eval.protocol_drives import drive_config
+    from avatar_core.track.fit import correspondence as cor
+    from avatar_core.track.fit.observations import empty_observations
+    from avatar_core.track.fit.sequence import SequenceFitConfig
+    from avatar_core.track.fit.world_correction import bone_directions
+    from avatar_core.track.fit.world_cues import WORLD_TO_CAMERA
+
+    rng = np.random.default_rng(3)
+    live = empty_observations((640, 480))
+    live.weights[cor.POSE_SLICE] = 1.0
+    live.world = rng.normal(0, 0.3, (33, 3))
+    truth = rng.normal(0, 0.3, (33, 3))
+    rec = wp.Recording(wp.Condition(0, "waist_up"), 5.0, [{}], [live], [live], [truth],
+                       [1.0], {}, {}, {"left_hand": np.zeros(1, bool),
+                                       "right_hand": np.zeros(1, bool)})
+    got = wp.drive_observations(rec, 0, "arm_cues_true_torso").world
+    cam, live_cam = got * WORLD_TO_CAMERA, live.world * WORLD_TO_CAMERA
+
+    def unit(v):
+        return v / np.linalg.norm(v)
+
+    np.testing.assert_allclose(unit(cam[11] - cam[12]), unit(truth[11] - truth[12]), atol=1e-12)
+    np.testing.assert_allclose(got[[11, 12]].mean(0), live.world[[11, 12]].mean(0), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(got[11] - got[12]),
+                               np.linalg.norm(live.world[11] - live.world[12]))
+    for a, b in zip(bone_directions(cam), bone_directions(live_cam), strict=True):
+        np.testing.assert_allclose(a, b, atol=1e-12)
+    axis = cam[[11, 12]].mean(0) - cam[[23, 24]].mean(0)
+    np.testing.assert_allclose(unit(axis), unit(truth[[11, 12]].mean(0) - truth[[23, 24]].mean(0)),
+                               atol=1e-12)
+    kept = [i for i in range(33) if i not in (11, 12, 13, 14, 15, 16, 23, 24)]
+    np.testing.assert_array_equal(got[kept], live.world[kept])
+    fit = drive_config("arm_cues_true_torso", SequenceFitConfig()).fit
+    assert fit.shoulder_line_yaw_gain == 1.0 and not fit.torso_axis_hips_in_view
+    assert drive_config("arm_cues", SequenceFitConfig()).fit.shoulder_line_yaw_gain == 2.0

@@ -54,6 +54,7 @@ from .protocol_drives import (
     check_drives,
     drive_config,
     true_world,
+    with_shoulder_line,
     with_torso_axis,
 )
 from .scene import FOV_X_DEG, background, render_frame, webcam_camera
@@ -357,7 +358,7 @@ def drive_observations(rec: Recording, i: int, drive: str):
     spec = DRIVES[drive]
     obs = rec.live[i]
     if not (spec.true_2d or spec.true_depth or spec.true_world or spec.true_bones
-            or spec.true_pose_rows or spec.true_torso_axis):
+            or spec.true_pose_rows or spec.true_torso_axis or spec.true_shoulder_line):
         return obs
     obs = mix_observations(obs, rec.true_obs[i], spec.true_2d)
     points = np.asarray(rec.true_points[i], dtype=np.float64)
@@ -371,6 +372,9 @@ def drive_observations(rec: Recording, i: int, drive: str):
         true_bones = list(spec.true_bones)
         unit[true_bones] = bone_directions(points)[0][true_bones]
         obs.world = with_bone_directions(obs.world, unit, length)
+    if spec.true_shoulder_line and obs.world is not None:
+        line = points[11] - points[12]  # right shoulder to left (world_cues.SHOULDER_LINE)
+        obs.world = with_shoulder_line(obs.world, line * WORLD_TO_CAMERA / np.linalg.norm(line))
     if spec.true_torso_axis and obs.world is not None:
         axis = points[[11, 12]].mean(axis=0) - points[[23, 24]].mean(axis=0)
         axis = axis * WORLD_TO_CAMERA / np.linalg.norm(axis)

@@ -23,7 +23,10 @@ configuration:
   ``arm_cues_true_shoulders_2d``: only the shoulders' two 2D points true;
   ``arm_cues_true_torso_axis``: BlazePose's world hips moved so that its torso axis is the
   truth's, its shoulders kept, and the axis used in every frame (hips in view or not): what
-  a lean cue that follows the body would buy.
+  a lean cue that follows the body would buy; ``arm_cues_true_torso``: the shoulders' line
+  from the truth as well (at its own turn: no gain), each arm bone kept at BlazePose's
+  direction and length from its moved shoulder: what a cue for the torso's whole orientation
+  would buy.
 """
 
 from __future__ import annotations
@@ -60,6 +63,7 @@ class Drive:
     true_pose_rows: tuple[int, ...] = ()  # BlazePose rows whose 2D alone comes from the truth
     world_correction: bool = False        # BlazePose's world arm bones corrected (the asset)
     true_torso_axis: bool = False         # BlazePose's torso axis from the truth, always used
+    true_shoulder_line: bool = False      # BlazePose's shoulders' line from the truth
 
 
 DRIVES = {
@@ -81,6 +85,9 @@ DRIVES = {
                                         "truth", arm_cues=True, true_pose_rows=(11, 12)),
     "arm_cues_true_torso_axis": Drive("webcam + world bones, the torso's axis from the truth",
                                       arm_cues=True, true_torso_axis=True),
+    "arm_cues_true_torso": Drive("webcam + world bones, the torso's axis and shoulders' line "
+                                 "from the truth", arm_cues=True, true_torso_axis=True,
+                                 true_shoulder_line=True),
     "true_body": Drive("true body 2D", ("pose",)),
     "true_body_face": Drive("true body + face 2D", ("pose", "face")),
     "true_all": Drive("all 2D true", ALL_PARTS),
@@ -124,7 +131,28 @@ def drive_config(name: str, base, embedding=None):
     if drive.true_torso_axis:
         out = dataclasses.replace(out, fit=dataclasses.replace(
             out.fit, torso_axis_hips_in_view=False))
+    if drive.true_shoulder_line:
+        out = dataclasses.replace(out, fit=dataclasses.replace(out.fit,
+                                                               shoulder_line_yaw_gain=1.0))
     return out
+
+
+def with_shoulder_line(world: np.ndarray, line: np.ndarray) -> np.ndarray:
+    """[33, 3] BlazePose world landmarks with both shoulders moved about their midpoint, at
+    their own width, so that the right shoulder to the left points along `line` (unit,
+    BlazePose's axes); each arm bone then starts at its moved shoulder with BlazePose's own
+    direction and length. Unchanged where a shoulder is missing."""
+    from avatar_core.track.fit.world_correction import bone_directions, with_bone_directions
+    from avatar_core.track.fit.world_cues import WORLD_TO_CAMERA
+
+    out = np.array(world, dtype=np.float64)
+    mid, width = out[[11, 12]].mean(axis=0), float(np.linalg.norm(out[11] - out[12]))
+    if not (np.isfinite(width) and width > 1e-6):
+        return out
+    unit, length = bone_directions(out * WORLD_TO_CAMERA)
+    half = width / 2 * np.asarray(line, dtype=np.float64)
+    out[11], out[12] = mid + half, mid - half
+    return with_bone_directions(out, unit, length)
 
 
 def with_torso_axis(world: np.ndarray, axis: np.ndarray) -> np.ndarray:
