@@ -172,7 +172,8 @@ def test_a_few_frames_of_the_protocol_through_the_real_tracker():
         pytest.skip(f"cannot fetch the MediaPipe landmark models: {exc}")
     # The first 0.6 s at 5 fps: the right arm rising into the wave.
     summary = run_protocol((0,), ("waist_up",), 5.0, max_frames=4, score_size=(160, 120),
-                           drives=("live", "embedding", "true_all", "true_all_depth"))
+                           drives=("live", "embedding", "arm_cues", "true_all",
+                                   "true_all_depth"))
     live, true = summary["overall"]["live"], summary["overall"]["true_all"]
     assert summary["conditions"][0]["frames"] == 4
     assert summary["presence"]["face"] == 1.0 and summary["presence"]["pose"] == 1.0
@@ -188,9 +189,13 @@ def test_a_few_frames_of_the_protocol_through_the_real_tracker():
     assert depth["forearms"] < true["forearms"] and depth["elbows"] < true["elbows"]
     embedded = summary["overall"]["embedding"]
     assert np.isfinite(embedded["psnr"]) and embedded["fit_ms"] > 0
+    # The live path's cues (BlazePose's world bones) turn the forearms toward the truth.
+    cued = summary["overall"]["arm_cues"]
+    assert np.isfinite(cued["psnr"]) and cued["forearms"] < live["forearms"]
     md = protocol_markdown(summary)
     for label in ("webcam, live fit", "webcam, learned embedding + 3D cues", "all 2D true",
-                  "all 2D true + true arm and torso depth"):
+                  "all 2D true + true arm and torso depth",
+                  "webcam, world bone directions + elbow hinge"):
         assert f"| {label} |" in md
 
 
