@@ -24,6 +24,11 @@ process), record for every event, on time.monotonic() (one clock for every proce
   handover);
 - the server's voice drops (overflow of listener buffers), its CPU and each viewer's.
 
+``--video-decode first``: in each viewer process only the first viewer decodes its video (and
+is scored for lip sync); the others receive every packet of both tracks but drop their video
+frames undecoded (`skip_video_decode`), so that on a small machine the 16 viewers' decoding
+does not take the cores the server needs. Their audio gaps are still measured.
+
 Each line of the table is one run: (viewers, processes, clock, drives/s, voice) under a cap,
 the server's ``webrtc_max_bitrate`` (TELESPLAT_WEBRTC_MAX_BITRATE), on the video encoder;
 servers side by side for each ``--pacing``, ``--sender-clock`` (``webrtc_sender_clock``) and
@@ -190,6 +195,30 @@ def time_audio_rtp(pc) -> list[float]:
     return out
 
 
+class _DroppedFrames:
+    """Stands in for an aiortc video receiver's decoder queue: encoded frames go nowhere;
+    the end marker (None) reaches the decoder thread, so the receiver still stops."""
+
+    def __init__(self, original) -> None:
+        self.original = original
+
+    def put(self, task) -> None:
+        if task is None:
+            self.original.put(None)
+
+
+def skip_video_decode(pc) -> None:
+    """Every video frame this peer receives from now on is reassembled and dropped, never
+    decoded (RTP, RTCP and the audio track go on as before)."""
+    for transceiver in pc.getTransceivers():
+        if transceiver.kind == "video":
+            receiver = transceiver.receiver
+            queue_name = "_RTCRtpReceiver__decoder_queue"  # aiortc 1.x's private queue
+            if not hasattr(receiver, queue_name):
+                raise RuntimeError("this aiortc has no decoder queue to bypass")
+            setattr(receiver, queue_name, _DroppedFrames(getattr(receiver, queue_name)))
+
+
 class Ear:
     """One viewer's record: mouth-open edges and click onsets (time.monotonic(), one clock for
     every process of the machine)."""
@@ -206,6 +235,7 @@ class Ear:
         self.packet_times: list[float] = []
         self.packet_seqs: list[int] = []  # RTP sequence numbers: a gap with none missing
         self.frames = 0
+        self.decodes = True  # False: its video is dropped undecoded (skip_video_decode)
         self.lost = False  # its peer closed during the run
         self.missed_arrivals = 0  # clicks whose packet's arrival was not seen (then: decode)
         self._open = False
@@ -266,6 +296,8 @@ class Ear:
         return out
 
     async def watch_video(self, end: float) -> None:
+        if not self.decodes:
+            return
         track = await self.viewer._track  # the raw av.VideoFrame: its pts is the RTP timestamp
         while time.monotonic() < end:
             try:
@@ -333,11 +365,12 @@ def pair(events: list[float], later: list[float], window: float = EVENT_EVERY_S
 
 
 async def listen_in_process(url: str, token: str, room: str, count: int, size: int,
-                            open_pixels: int, mouth_clock: str, voice: bool, ready, go
-                            ) -> list[dict]:
+                            open_pixels: int, mouth_clock: str, voice: bool, ready, go,
+                            video_decode: str = "all") -> list[dict]:
     """``count`` viewers in this process: joined, first frame seen, then ``ready`` gets the
     count; recording until the end time ``go`` gives. The process's longest garbage-collector
-    pause while recording is returned too (a pause stalls its receiving)."""
+    pause while recording is returned too (a pause stalls its receiving). ``video_decode``
+    "first": only the first viewer decodes its video."""
     ears = [Ear(WhepViewer(url, room, token, width=size, height=size, role="watch",
                            voices=1, timeout_s=60), open_pixels, mouth_clock)
             for _ in range(count)]
@@ -345,6 +378,10 @@ async def listen_in_process(url: str, token: str, room: str, count: int, size: i
         await ear.viewer.start()
         ear.hook()
     await asyncio.gather(*(e.viewer.next_frame() for e in ears))
+    if video_decode == "first":
+        for ear in ears[1:]:
+            skip_video_decode(ear.viewer.pc)
+            ear.decodes = False
     pauses: list[float] = []  # this process's collector pauses while recording (ms)
     gc_watch = GcWatch(lambda generation, ms: pauses.append(ms))
     gc_watch.start()
@@ -362,15 +399,16 @@ async def listen_in_process(url: str, token: str, room: str, count: int, size: i
     return [{"mouth": e.mouth, "clicks": e.clicks, "packets": e.packet_times,
              "seqs": e.packet_seqs, "frames": e.frames, "cpu": cpu / count,
              "sr_offsets": e.sr_offsets(), "missed_arrivals": e.missed_arrivals,
-             "lost": e.lost, "gc_max_ms": gc_max_ms} for e in ears]
+             "lost": e.lost, "gc_max_ms": gc_max_ms, "decodes": e.decodes} for e in ears]
 
 
-def viewer_process(args: tuple, ready, go, results, nice: int = 0) -> None:
+def viewer_process(args: tuple, ready, go, results, nice: int = 0,
+                   video_decode: str = "all") -> None:
     """One viewer process; ``nice``: how much lower its priority than the bench's (viewers
     elsewhere, off the server's and the performer's cores)."""
     os.nice(nice)
     try:
-        results.put(asyncio.run(listen_in_process(*args, ready, go)))
+        results.put(asyncio.run(listen_in_process(*args, ready, go, video_decode)))
     except BaseException as exc:  # the parent waits for a result: say what went wrong
         ready.put(0)
         results.put(repr(exc))
@@ -507,7 +545,8 @@ def loop_lag_text(before: dict[str, float], after: dict[str, float]) -> str:
 async def run(url: str, token: str, viewers: int, events: int, size: int,
               open_pixels: int, pid: int, voice: bool = True, processes: int = 4,
               mouth_clock: str = "arrival", drive_hz: float = 30.0,
-              edges: str = "tick", viewer_nice: int = 0, performer_nice: int = 0) -> dict:
+              edges: str = "tick", viewer_nice: int = 0, performer_nice: int = 0,
+              video_decode: str = "all") -> dict:
     async with httpx.AsyncClient(base_url=url, timeout=30) as http:
         room = (await http.post("/v1/rooms", headers={"Authorization": f"Bearer {token}"},
                                 json={"seats": [{"avatar": "demo"}]})).json()["id"]
@@ -535,13 +574,13 @@ async def run(url: str, token: str, viewers: int, events: int, size: int,
         if processes == 0:  # the viewers in this process, beside the performer (as before)
             here = asyncio.create_task(listen_in_process(
                 url, token, room, viewers, size, open_pixels, mouth_clock, voice, ready,
-                gos[0]))
+                gos[0], video_decode))
             here.add_done_callback(lambda t: results.put(t.result()))
             workers = [here]
         else:
             workers = [ctx.Process(target=viewer_process, daemon=True, args=(
                 (url, token, room, c, size, open_pixels, mouth_clock, voice), ready, go,
-                results, viewer_nice)) for c, go in zip(counts, gos, strict=True)]
+                results, viewer_nice, video_decode)) for c, go in zip(counts, gos, strict=True)]
             for w in workers:
                 w.start()
         joined = [await asyncio.to_thread(ready.get, True, 300) for _ in workers]
@@ -597,6 +636,11 @@ async def run(url: str, token: str, viewers: int, events: int, size: int,
         watch.join(10)
     offsets, missed, gaps, mouth_lags, click_lags = [], 0, [], [], []
     for rec in records:
+        at = np.asarray(rec["packets"])  # the events' span: not the joins' and leaves' stalls
+        times = np.diff(at[(at >= fired[0] - 0.5) & (at <= fired[-1] + EVENT_EVERY_S)])
+        gaps.append(float(times.max() * 1e3) if len(times) else float("nan"))
+        if not rec["decodes"]:  # no picture: its audio gaps only
+            continue
         for f, mouth, click in zip(fired, pair(fired, rec["mouth"]), pair(fired, rec["clicks"]),
                                    strict=True):
             if mouth is None or click is None:
@@ -605,9 +649,6 @@ async def run(url: str, token: str, viewers: int, events: int, size: int,
                 offsets.append((click - mouth) * 1e3)
                 mouth_lags.append((mouth - f) * 1e3)
                 click_lags.append((click - f) * 1e3)
-        at = np.asarray(rec["packets"])  # the events' span: not the joins' and leaves' stalls
-        times = np.diff(at[(at >= fired[0] - 0.5) & (at <= fired[-1] + EVENT_EVERY_S)])
-        gaps.append(float(times.max() * 1e3) if len(times) else float("nan"))
     arr = np.asarray(offsets)
     sr = np.asarray([x for rec in records for x in rec["sr_offsets"]])
     first = records[0]
@@ -708,6 +749,9 @@ def main() -> int:
     parser.add_argument("--viewer-nice", type=int, default=0, help="the viewer processes' "
                         "niceness over the bench's: on one machine, 16 viewers take the cores "
                         "the performer and the server need (viewers are elsewhere in use)")
+    parser.add_argument("--video-decode", default="all", choices=("all", "first"),
+                        help="first: in each viewer process only the first viewer decodes "
+                        "its video (the others drop it undecoded; their audio gaps count)")
     parser.add_argument("--mouth-clock", default="arrival", help="arrival (the frame's last "
                         "RTP packet, as the click's), decode, or arrival,decode")
     add_server_voice_args(parser)
@@ -743,7 +787,7 @@ def main() -> int:
                     r = asyncio.run(run(url, token, n, args.events, args.size,
                                         args.open_pixels, proc.pid, voice == "on", procs,
                                         clock, hz, edges, args.viewer_nice,
-                                        args.performer_nice))
+                                        args.performer_nice, args.video_decode))
                     print(f"| {pacing} | {sender_clock} | {delay} | {n} | {procs} | {clock} | "
                           f"{hz:g} | {edges} | {cap or 'default'} | "
                           f"{r['events']} | {r['paired']} | {r['missed']} | {r['median_ms']:.0f} | "

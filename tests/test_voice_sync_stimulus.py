@@ -69,3 +69,32 @@ def test_an_extra_edge_is_a_drive_between_the_ticks(voice_sync):
 def test_an_unknown_edge_mode_is_refused(voice_sync):
     with pytest.raises(ValueError, match="tick or extra"):
         voice_sync.JawDrives(lambda d: None, 30.0, "sometimes")
+
+
+def test_a_viewer_that_skips_video_decoding_drops_frames_and_still_stops(voice_sync):
+    """`--video-decode first`: a peer's video receiver hands no frame to its decoder thread,
+    but its end marker still reaches it (so the receiver stops); audio is left alone."""
+    from aiortc import RTCPeerConnection
+
+    async def run():
+        pc = RTCPeerConnection()
+        try:
+            pc.addTransceiver("video", direction="recvonly")
+            pc.addTransceiver("audio", direction="recvonly")
+            def queues_now():
+                return {t.kind: t.receiver._RTCRtpReceiver__decoder_queue
+                        for t in pc.getTransceivers()}
+
+            queues = queues_now()
+            voice_sync.skip_video_decode(pc)
+            now = queues_now()
+            assert now["audio"] is queues["audio"]
+            assert isinstance(now["video"], voice_sync._DroppedFrames)
+            now["video"].put(("vp8", b"frame"))
+            assert queues["video"].empty()
+            now["video"].put(None)
+            assert queues["video"].get_nowait() is None
+        finally:
+            await pc.close()
+
+    asyncio.run(run())
