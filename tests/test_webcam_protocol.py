@@ -378,22 +378,30 @@ def test_a_leaned_condition_leans_forward_before_it_turns():
                                             0.0], atol=1e-9)
 
 
-def test_true_upper_arms_keep_blazepose_forearms():
-    """`arm_cues_true_upper_arms` moves the elbows, and each forearm follows at BlazePose's own
-    direction and length."""
+def _one_frame_recording(seed: int):
+    """(BlazePose's observations with random world landmarks, random true pose points [33, 3],
+    a one-frame recording of the two) for the partial-truth drives."""
     from avatar_core.track.fit import correspondence as cor
     from avatar_core.track.fit.observations import empty_observations
-    from avatar_core.track.fit.world_correction import bone_directions
-    from avatar_core.track.fit.world_cues import WORLD_TO_CAMERA
 
-    rng = np.random.default_rng(1)
+    rng = np.random.default_rng(seed)
     live = empty_observations((640, 480))
     live.weights[cor.POSE_SLICE] = 1.0
     live.world = rng.normal(0, 0.3, (33, 3))
-    truth_points = rng.normal(0, 0.3, (33, 3))
-    rec = wp.Recording(wp.Condition(0, "waist_up"), 5.0, [{}], [live], [live], [truth_points],
+    truth = rng.normal(0, 0.3, (33, 3))
+    rec = wp.Recording(wp.Condition(0, "waist_up"), 5.0, [{}], [live], [live], [truth],
                        [1.0], {}, {}, {"left_hand": np.zeros(1, bool),
                                        "right_hand": np.zeros(1, bool)})
+    return live, truth, rec
+
+
+def test_true_upper_arms_keep_blazepose_forearms():
+    """`arm_cues_true_upper_arms` moves the elbows, and each forearm follows at BlazePose's own
+    direction and length."""
+    from avatar_core.track.fit.world_correction import bone_directions
+    from avatar_core.track.fit.world_cues import WORLD_TO_CAMERA
+
+    live, truth_points, rec = _one_frame_recording(1)
     upper = wp.drive_observations(rec, 0, "arm_cues_true_upper_arms")
     got, got_len = bone_directions(upper.world * WORLD_TO_CAMERA)
     live_unit, live_len = bone_directions(live.world * WORLD_TO_CAMERA)
@@ -408,19 +416,10 @@ def test_the_true_torso_axis_drive_moves_only_blazeposes_hips():
     shoulders is the truth's (at BlazePose's length and hip width), nothing else moves, and
     its fit uses the axis whether or not the hips are in view."""
     from avatar_core.synth.tracking_eval.protocol_drives import drive_config
-    from avatar_core.track.fit import correspondence as cor
-    from avatar_core.track.fit.observations import empty_observations
     from avatar_core.track.fit.sequence import SequenceFitConfig
     from avatar_core.track.fit.world_cues import WORLD_TO_CAMERA
 
-    rng = np.random.default_rng(2)
-    live = empty_observations((640, 480))
-    live.weights[cor.POSE_SLICE] = 1.0
-    live.world = rng.normal(0, 0.3, (33, 3))
-    truth_points = rng.normal(0, 0.3, (33, 3))
-    rec = wp.Recording(wp.Condition(0, "waist_up"), 5.0, [{}], [live], [live], [truth_points],
-                       [1.0], {}, {}, {"left_hand": np.zeros(1, bool),
-                                       "right_hand": np.zeros(1, bool)})
+    live, truth_points, rec = _one_frame_recording(2)
     got = wp.drive_observations(rec, 0, "arm_cues_true_torso_axis").world
     unchanged = [i for i in range(33) if i not in (23, 24)]
     np.testing.assert_array_equal(got[unchanged], live.world[unchanged])
@@ -450,20 +449,11 @@ def test_the_true_torso_drive_turns_blazeposes_shoulders_and_keeps_its_arm_bones
     and width, each arm bone keeps BlazePose's direction and length from its moved shoulder,
     the torso's axis is the truth's, and the line's turn is not multiplied again."""
     from avatar_core.synth.tracking_eval.protocol_drives import drive_config
-    from avatar_core.track.fit import correspondence as cor
-    from avatar_core.track.fit.observations import empty_observations
     from avatar_core.track.fit.sequence import SequenceFitConfig
     from avatar_core.track.fit.world_correction import bone_directions
     from avatar_core.track.fit.world_cues import WORLD_TO_CAMERA
 
-    rng = np.random.default_rng(3)
-    live = empty_observations((640, 480))
-    live.weights[cor.POSE_SLICE] = 1.0
-    live.world = rng.normal(0, 0.3, (33, 3))
-    truth = rng.normal(0, 0.3, (33, 3))
-    rec = wp.Recording(wp.Condition(0, "waist_up"), 5.0, [{}], [live], [live], [truth],
-                       [1.0], {}, {}, {"left_hand": np.zeros(1, bool),
-                                       "right_hand": np.zeros(1, bool)})
+    live, truth, rec = _one_frame_recording(3)
     got = wp.drive_observations(rec, 0, "arm_cues_true_torso").world
     cam, live_cam = got * WORLD_TO_CAMERA, live.world * WORLD_TO_CAMERA
 

@@ -37,7 +37,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from avatar_core.track.fit.sequence import with_arm_cues
-from avatar_core.track.fit.world_cues import DEPTH_PAIRS
+from avatar_core.track.fit.world_correction import bone_directions, with_bone_directions
+from avatar_core.track.fit.world_cues import DEPTH_PAIRS, WORLD_TO_CAMERA
 
 ALL_PARTS = ("pose", "face", "left_hand", "right_hand")
 # BlazePose pairs (landmark, reference) of each part whose true depth a drive may give.
@@ -142,9 +143,6 @@ def with_shoulder_line(world: np.ndarray, line: np.ndarray) -> np.ndarray:
     their own width, so that the right shoulder to the left points along `line` (unit,
     BlazePose's axes); each arm bone then starts at its moved shoulder with BlazePose's own
     direction and length. Unchanged where a shoulder is missing."""
-    from avatar_core.track.fit.world_correction import bone_directions, with_bone_directions
-    from avatar_core.track.fit.world_cues import WORLD_TO_CAMERA
-
     out = np.array(world, dtype=np.float64)
     mid, width = out[[11, 12]].mean(axis=0), float(np.linalg.norm(out[11] - out[12]))
     if not (np.isfinite(width) and width > 1e-6):
