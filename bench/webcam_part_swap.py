@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import pickle
 from pathlib import Path
 
 import numpy as np
@@ -51,11 +50,9 @@ def main() -> None:
         score_camera,
         webcam_camera,
     )
+    from avatar_core.synth.tracking_eval.protocol_report import load_runs
 
-    runs = []
-    for path in args.runs:
-        with open(path, "rb") as f:
-            runs.extend(pickle.load(f))  # noqa: S301 (our own file)
+    runs = load_runs(args.runs)
     for res in runs:
         res.truth = res.truth[::args.stride]
         res.smooth = {d: v[::args.stride] for d, v in res.smooth.items()}

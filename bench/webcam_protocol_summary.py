@@ -10,7 +10,6 @@ in view and its own landmarks are not seen.
 from __future__ import annotations
 
 import argparse
-import pickle
 from pathlib import Path
 
 import numpy as np
@@ -64,12 +63,13 @@ def main() -> None:
     args = ap.parse_args()
 
     from avatar_core.synth.tracking_eval.protocol import run_metrics, temporal_curve
-    from avatar_core.synth.tracking_eval.protocol_report import summarise, write_protocol
+    from avatar_core.synth.tracking_eval.protocol_report import (
+        load_runs,
+        summarise,
+        write_protocol,
+    )
 
-    runs = []
-    for path in args.runs:
-        with open(path, "rb") as f:
-            runs.extend(pickle.load(f))  # noqa: S301 (our own file)
+    runs = load_runs(args.runs)
     size = (args.score_size, args.score_size * 3 // 4)
     declined = []
     for res in runs if args.recompute else ():

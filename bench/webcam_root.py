@@ -35,6 +35,7 @@ from avatar_core.track.fit.world_cues import (  # noqa: E402
     SHOULDER_LINE,
     TORSO_AXIS,
     WORLD_TO_CAMERA,
+    torso_axis,
 )
 
 HIPS, SHOULDERS = TORSO_AXIS[0]  # BlazePose's landmarks at either end of the axis
@@ -71,11 +72,6 @@ def torso_axis_error(frame: W.WebcamFrame, body_model) -> float | None:
     true = frame.camera.R @ (mid(("left_shoulder", "right_shoulder"))
                              - mid(("left_hip", "right_hip")))
     return angle_deg(seen, W.OPENCV_FROM_MODEL @ true)
-
-
-def torso_axis(world: np.ndarray) -> np.ndarray:
-    """[3] the hips' midpoint to the shoulders' of [33, 3] points."""
-    return world[list(SHOULDERS)].mean(0) - world[list(HIPS)].mean(0)
 
 
 def seen_torso_axis(world: np.ndarray | None) -> np.ndarray | None:
@@ -132,24 +128,20 @@ def recordings_torso(folder: Path) -> None:
 def runs_root(paths: list[Path]) -> None:
     """The root's error along the webcam's axes per condition and drive of replayed runs
     (bench/webcam_replay.py --replay's runs.pkl): the protocol's webcam is the fit's frame."""
-    import pickle
-
     from avatar_core.synth.tracking_eval.protocol import webcam_camera
+    from avatar_core.synth.tracking_eval.protocol_report import load_runs
 
     cam = webcam_camera()
     print("| condition | drive | root error about the webcam's x (lean) / y (turn) / z (roll), "
           "mean deg | root error, mean deg |")
     print("|---" * 4 + "|")
-    for path in paths:
-        with open(path, "rb") as f:
-            runs = pickle.load(f)  # noqa: S301 (our own file)
-        for run in runs:
-            for drive, fits in run.smooth.items():
-                axes = np.array([root_error_axes(fit, truth, cam)
-                                 for fit, truth in zip(fits, run.truth, strict=True)])
-                mean = " / ".join(f"{x:+.1f}" for x in axes.mean(0))
-                print(f"| {run.condition.name} | {drive} | {mean} | "
-                      f"{np.linalg.norm(axes, axis=1).mean():.1f} |")
+    for run in load_runs(paths):
+        for drive, fits in run.smooth.items():
+            axes = np.array([root_error_axes(fit, truth, cam)
+                             for fit, truth in zip(fits, run.truth, strict=True)])
+            mean = " / ".join(f"{x:+.1f}" for x in axes.mean(0))
+            print(f"| {run.condition.name} | {drive} | {mean} | "
+                  f"{np.linalg.norm(axes, axis=1).mean():.1f} |")
 
 
 def main() -> int:

@@ -106,6 +106,7 @@ class Actor:
     face_groups: np.ndarray  # [F + Fa] int8: the face's only texture group, -1 if it blends
     closed: np.ndarray  # [F + Fa] bool: face of a closed surface (back faces may be culled)
     appearance: app.Appearance
+    rest_joints: np.ndarray  # [55, 3] float64 joints at rest with the identity's betas
     _lock: threading.Lock = field(default_factory=threading.Lock, init=False, repr=False)
 
     @property
@@ -143,7 +144,8 @@ class Actor:
             canonical=np.concatenate([rest, acc.vertices]).astype(np.float32),
             group_weights=weights, face_groups=_face_groups(weights, all_faces),
             closed=np.concatenate([body_closed, acc.closed]),
-            appearance=app.make_appearance(palette, identity, rest, materials, joints, seed))
+            appearance=app.make_appearance(palette, identity, rest, materials, joints, seed),
+            rest_joints=np.asarray(joints, dtype=np.float64))
 
     def pose(self, params: dict[str, Any]) -> PosedActor:
         """World geometry for unbatched SMPL-X params (`motion.pose_to_params`); the actor's

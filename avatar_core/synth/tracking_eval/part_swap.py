@@ -123,10 +123,6 @@ def score_swaps(actor, res, drive: str, score_cam,
     from .protocol import joint_errors
 
     variants = variants or swap_variants()
-    rest_joints = None
-    if arm_split:
-        with torch.no_grad():
-            rest_joints = actor.model({"betas": actor.betas}).joints[0].double().numpy()
     psnr, swapped = {}, {}
     for fit, truth in zip(res.smooth[drive], res.truth, strict=True):
         with torch.no_grad():
@@ -135,7 +131,7 @@ def score_swaps(actor, res, drive: str, score_cam,
         frame = {label: swap_parts(fit, truth, parts) for label, parts in variants.items()}
         if arm_split:
             frame.update({label: params for label, params in
-                          arm_split_variants(fit, truth, rest_joints).items()
+                          arm_split_variants(fit, truth, actor.rest_joints).items()
                           if label not in frame})
         for label, params in frame.items():
             swapped.setdefault(label, []).append(params)

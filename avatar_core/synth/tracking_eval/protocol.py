@@ -45,7 +45,7 @@ from avatar_core.body.skeleton import JOINT
 from avatar_core.render.camera import Camera, look_at
 from avatar_core.track.fit.correspondence import POSE_SLICE
 from avatar_core.track.fit.world_correction import bone_directions, with_bone_directions
-from avatar_core.track.fit.world_cues import WORLD_TO_CAMERA
+from avatar_core.track.fit.world_cues import WORLD_TO_CAMERA, torso_axis
 
 from .metrics import GROUPS, Posed, aa_to_matrix, evaluate_params, geodesic_deg
 from .protocol_drives import (
@@ -376,9 +376,8 @@ def drive_observations(rec: Recording, i: int, drive: str):
         line = points[11] - points[12]  # right shoulder to left (world_cues.SHOULDER_LINE)
         obs.world = with_shoulder_line(obs.world, line * WORLD_TO_CAMERA / np.linalg.norm(line))
     if spec.true_torso_axis and obs.world is not None:
-        axis = points[[11, 12]].mean(axis=0) - points[[23, 24]].mean(axis=0)
-        axis = axis * WORLD_TO_CAMERA / np.linalg.norm(axis)
-        obs.world = with_torso_axis(obs.world, axis)
+        axis = torso_axis(points) * WORLD_TO_CAMERA
+        obs.world = with_torso_axis(obs.world, axis / np.linalg.norm(axis))
     true = rec.true_obs[i]
     for row in spec.true_pose_rows:  # where both the tracker and the truth have the point
         k = POSE_SLICE.start + row
@@ -506,8 +505,7 @@ def bone_direction_errors(actor, pred: Posed, truth: Posed) -> dict[str, float]:
     forearms: where the arm points, free of the twist that landmarks cannot see (a turn of
     the upper arm about itself traded for the elbow's own axis leaves the bones in place but
     moves the local angles of both joints)."""
-    with torch.no_grad():
-        rest = actor.model({"betas": actor.betas}).joints[0].double().numpy()
+    rest = actor.rest_joints
     out = {}
     for label, bones in BONES.items():
         errs = []

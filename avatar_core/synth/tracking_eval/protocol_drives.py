@@ -38,7 +38,7 @@ import numpy as np
 
 from avatar_core.track.fit.sequence import with_arm_cues
 from avatar_core.track.fit.world_correction import bone_directions, with_bone_directions
-from avatar_core.track.fit.world_cues import DEPTH_PAIRS, WORLD_TO_CAMERA
+from avatar_core.track.fit.world_cues import DEPTH_PAIRS, WORLD_TO_CAMERA, torso_axis
 
 ALL_PARTS = ("pose", "face", "left_hand", "right_hand")
 # BlazePose pairs (landmark, reference) of each part whose true depth a drive may give.
@@ -158,13 +158,11 @@ def with_torso_axis(world: np.ndarray, axis: np.ndarray) -> np.ndarray:
     the shoulders' points along `axis` (unit, BlazePose's axes), at BlazePose's own length and
     hip width (0.3 m and 0.2 m where its hips are missing)."""
     out = np.array(world, dtype=np.float64)
-    shoulders = out[[11, 12]].mean(axis=0)
-    hips = out[[23, 24]].mean(axis=0)
     half = (out[23] - out[24]) / 2
-    length = float(np.linalg.norm(shoulders - hips))
+    length = float(np.linalg.norm(torso_axis(out)))
     if not (np.isfinite(length) and length > 1e-3 and np.all(np.isfinite(half))):
         length, half = 0.3, np.array([0.1, 0.0, 0.0])
-    mid = shoulders - length * np.asarray(axis, dtype=np.float64)
+    mid = out[[11, 12]].mean(axis=0) - length * np.asarray(axis, dtype=np.float64)
     out[23], out[24] = mid + half, mid - half
     return out
 

@@ -31,6 +31,18 @@ METRIC_KEYS = ("psnr", "root", "shoulders", "elbows", "wrists", "neck_head", "up
                "forearms", "jitter_px", "fit_ms")
 
 
+def load_runs(paths: Sequence[str | Path]) -> list[RunResult]:
+    """The replayed runs of each runs.pkl in `paths` (bench/webcam_replay.py --replay), in
+    order: our own pickles, never a stranger's file."""
+    import pickle
+
+    runs: list[RunResult] = []
+    for path in paths:
+        with open(path, "rb") as f:
+            runs.extend(pickle.load(f))  # noqa: S301 (our own file)
+    return runs
+
+
 def _weighted(rows: list[tuple[float, int]]) -> float:
     vals = [(v, w) for v, w in rows if v is not None and np.isfinite(v) and w]
     return float(np.average([v for v, _ in vals], weights=[w for _, w in vals])) if vals \

@@ -82,6 +82,13 @@ MAX_LINE_TURN_DEG = 75.0
 WORLD_TO_CAMERA = np.array([1.0, -1.0, -1.0])
 
 
+def torso_axis(points: np.ndarray) -> np.ndarray:
+    """[3] the hips' midpoint to the shoulders' (`TORSO_AXIS`) of [33, 3] pose points, in
+    their own frame."""
+    ((hips, shoulders),) = TORSO_AXIS
+    return points[list(shoulders)].mean(axis=0) - points[list(hips)].mean(axis=0)
+
+
 def bone_end(end) -> tuple[int, ...]:
     """A bone's end as its landmarks: an int is one, a tuple its own."""
     return (int(end),) if isinstance(end, int | np.integer) else tuple(int(i) for i in end)
