@@ -439,6 +439,14 @@ class Settings(BaseModel):
     webrtc_max_sctp_streams: int = Field(
         16, ge=1, description="SCTP stream ids (data channels) one WebRTC peer may use; "
                               "chunks on more are dropped.")
+    webrtc_shared_encode: bool = Field(
+        True, description="One video encode per picture for all the WebRTC viewers who see it "
+                          "(server/webrtc/fanout.py); off: aiortc encodes for each viewer.")
+    webrtc_keyframe_min_interval_s: float = Field(
+        0.5, ge=0.0, le=10.0, description="With webrtc_shared_encode: the least time between "
+                                          "keyframes asked of a shared video stream (a viewer "
+                                          "joining or behind, a picture-loss request); what "
+                                          "one viewer asks, all its viewers receive.")
     webrtc_sender_clock: Literal["capture", "send"] = Field(
         "capture", description="What a WebRTC viewer's RTP timestamps and RTCP sender reports "
                                "(video and voice) count: capture (the performer's capture "

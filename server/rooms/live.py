@@ -74,6 +74,7 @@ class LiveRoom:
         self._closing: set[asyncio.Task] = set()
         self._speaking_task: asyncio.Task | None = None
         self.voice_mix: Any = None  # the room's mixed voice, while someone asked (voice_mix.py)
+        self.video_fanout: Any = None  # its WebRTC viewers' shared encodes (webrtc/fanout.py)
         self._announced: tuple[bool, ...] = (False,) * len(self.seats)
         self._announced_at = -float("inf")
 

@@ -83,6 +83,14 @@ class FrameJob:
     def versions(self) -> tuple[int, ...]:
         return tuple(d.version for d in self.seats)
 
+    @property
+    def group(self) -> Hashable:
+        """What picture this is, whatever the drive state: jobs of one group differ only in
+        the state they show (one render of a group in flight; one WebRTC video stream)."""
+        owner = FrameEncoders.output_key(self.participant, self.request)
+        return (self.view.model_dump_json(exclude={"moving"}), self.request.model_dump_json(),
+                self.jpeg_quality, owner, self.raw, self.render_scale)
+
 
 @dataclass
 class Frame:
@@ -102,6 +110,7 @@ class Frame:
     # each seat's (t_capture, server arrival, capture instant on the server's clock) of the
     # drive shown: the one clock (voice sync, the WebRTC senders' timestamps)
     seat_drives: tuple[tuple[float | None, float | None, float | None], ...] = ()
+    group: Hashable = None            # its job's group (FrameJob.group): the picture it is
 
 
 @dataclass
@@ -277,7 +286,8 @@ class SceneFrames:
                                 rgb=rgb if job.raw else None, preview=job.preview,
                                 captured=job.seats[0].captured,
                                 seat_drives=tuple((d.captured, d.arrived, d.captured_at)
-                                                  for d in job.seats)))
+                                                  for d in job.seats),
+                                group=job.group if job.raw else None))
         return frames
 
     def _count_cost(self, stats: list[dict]) -> None:
@@ -333,10 +343,7 @@ class Scene:
         future returned is the caller's own: cancelling it leaves a render others still
         wait for alone, and abandons one nobody else waits for (see the module docstring).
         Its ``work`` is the render's own future (done when no thread works on it)."""
-        versions = job.versions
-        owner = FrameEncoders.output_key(job.participant, job.request)
-        group = (job.view.model_dump_json(exclude={"moving"}), job.request.model_dump_json(),
-                 job.jpeg_quality, owner, job.raw, job.render_scale)
+        versions, group = job.versions, job.group
         key = (versions, *group)
         with self._lock:
             render = self._frames.get(key)

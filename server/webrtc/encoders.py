@@ -89,3 +89,36 @@ def install_encoder(sender: Any, mime_type: str, low: int, high: int) -> Any | N
     encoder = factory(low, high)
     setattr(sender, SENDER_ENCODER_SLOT, encoder)
     return encoder
+
+
+H264_START_CODE = b"\x00\x00\x00\x01"
+
+
+class RawVp8Encoder(ClampedVp8Encoder):
+    """Each frame's whole VP8 bitstream as its one payload, for a fan-out (server/webrtc/
+    fanout.py): every viewer's sender packs it with aiortc's ``pack``, under its own picture
+    ids."""
+
+    @classmethod
+    def _packetize(cls, buffer: bytes, picture_id: int) -> list[bytes]:
+        return [buffer] if buffer else []  # empty: the rate control dropped the frame
+
+    @staticmethod
+    def is_keyframe(data: bytes) -> bool:
+        return not data[0] & 1  # the frame tag's inverted key-frame bit (RFC 6386, 9.1)
+
+
+class RawH264Encoder(ClampedH264Encoder):
+    """Each frame's NAL units in one Annex B bitstream (what aiortc's ``pack`` splits)."""
+
+    @classmethod
+    def _packetize(cls, packages: Any) -> list[bytes]:
+        units = [u for u in packages if u]
+        return [b"".join(H264_START_CODE + u for u in units)] if units else []
+
+    @staticmethod
+    def is_keyframe(data: bytes) -> bool:
+        return any(u and u[0] & 0x1F == 5 for u in H264Encoder._split_bitstream(data))  # IDR
+
+
+RAW_ENCODERS = {"video/vp8": RawVp8Encoder, "video/h264": RawH264Encoder}

@@ -2,10 +2,12 @@
 
 The session is the stream's own (server/stream/session.py: latest-wins render loop, pacing,
 fair share, seat and presence) composed with a :class:`~.transport.WebRTCTransport`: its
-frames are raw RGB arrays handed to a :class:`~.track.LatestFrameTrack` and its messages use
-the data channel. aiortc encodes in its own threads; rendering stays where the scene's frames
-are made. A peer ends on DELETE, when its room closes, when its transport fails or never
-connects (``webrtc_connect_timeout_s``), when its data channel carries a message past
+frames go to a :class:`~.fanout.FanoutTrack` (the room's one encode of each picture, shared by
+its viewers; ``webrtc_shared_encode``) or, stamped or with sharing off, as raw RGB arrays to a
+:class:`~.track.LatestFrameTrack` that aiortc encodes for this peer; its messages use the data
+channel. Encoders run in threads; rendering stays where the scene's frames are made. A peer
+ends on DELETE, when its room closes, when its transport fails or never connects
+(``webrtc_connect_timeout_s``), when its data channel carries a message past
 ``webrtc_max_message_bytes`` (its :class:`~.sctp.SctpGuard`), and at server shutdown; each
 path goes through :meth:`WebRTCPeer.close`.
 """
@@ -33,6 +35,7 @@ from ..stream.session import Session, error_message
 from .audio import VoiceTrack, opus_payload_type, publish_voice, refuse_voice
 from .channel import DataChannel
 from .encoders import install_encoder
+from .fanout import FanoutTrack, room_fanout
 from .ingest import ingest
 from .negotiate import Kind, Offer, answer, configuration
 from .publisher_clock import PublisherClock
@@ -57,7 +60,7 @@ class WebRTCPeer:
         # Data-channel bytes budgeted before aiortc reassembles them (server/webrtc/sctp.py).
         self.guard = SctpGuard(GuardLimits.from_settings(ctx.settings), self._too_large,
                                metrics=ctx.metrics, name=resource)
-        self.track: LatestFrameTrack | None = None
+        self.track: LatestFrameTrack | FanoutTrack | None = None
         self.epoch: CaptureEpoch | None = None  # webrtc_sender_clock = capture: both tracks'
         self.publisher_clock = PublisherClock()  # what it publishes, on its reports' clock
         self.participant: Session | None = None
@@ -79,7 +82,9 @@ class WebRTCPeer:
         s = self.ctx.settings
         # capture clock: both tracks' timestamps and sender reports count from this epoch
         self.epoch = CaptureEpoch.now() if s.webrtc_sender_clock == "capture" else None
-        if offer.watch_mid is not None:
+        if offer.watch_mid is not None and s.webrtc_shared_encode and not stamp:
+            self.track = FanoutTrack(epoch=self.epoch, max_lag_s=s.webrtc_max_sync_lag_s)
+        elif offer.watch_mid is not None:  # a stamped frame is this peer's own picture
             self.track = LatestFrameTrack(epoch=self.epoch,
                                           max_lag_s=s.webrtc_max_sync_lag_s)
         self.pc.on("datachannel", self.channel.attach)
@@ -89,6 +94,8 @@ class WebRTCPeer:
         self.pc.on("connectionstatechange", self._on_state)
         try:
             transport = WebRTCTransport(self.channel, self.track, stamp)
+            if isinstance(self.track, FanoutTrack):
+                self.track.captured_at_of = transport.captured_at
             self.participant, welcome = await seat_participant(
                 self.ctx, self.room, role, seat, name, transport, request=request)
             self.channel.welcome = encode(welcome)
@@ -115,6 +122,9 @@ class WebRTCPeer:
                           if t.mid == offer.watch_mid)
             self.encoder = install_encoder(sender, self.codec, s.webrtc_min_bitrate,
                                            s.webrtc_max_bitrate)
+            if isinstance(self.track, FanoutTrack):  # the encoder only packs, the room's encodes
+                self.track.attach(room_fanout(self.room.live, s), sender, self.codec,
+                                  self.encoder)
         if self.epoch is not None:
             self._report_capture_clock(offer)
         self._spawn(self._connect_deadline(s.webrtc_connect_timeout_s), "deadline")

@@ -36,19 +36,20 @@ class LatestFrameTrack(MediaStreamTrack):
                  epoch: CaptureEpoch | None = None, max_lag_s: float = MAX_LAG_S) -> None:
         super().__init__()
         self.repeat_after_s = repeat_after_s
-        self.max_lag_s = max_lag_s
-        self.lag_clamped = 0  # frames stamped at max_lag_s because their picture lagged more
+        self.clock = FrameTimestamps(epoch, max_lag_s)
         self._pending: tuple[np.ndarray, asyncio.Future, float | None] | None = None
         self._new = asyncio.Event()
         self._last: np.ndarray | None = None  # [H, W, 3] uint8, the newest taken
-        self._start = time.monotonic()
-        self._pts = -1
-        self.epoch = epoch  # None: timestamps on the send time
-        self.stamps = None if epoch is None else CaptureStamps()
-        self._captured_at: float | None = None  # the last new capture instant taken
-        self._lag = 0.0  # from that capture to the encoder taking it
         self.sent = 0       # distinct frames handed to the encoder
         self.repeated = 0   # repeats of the last one
+
+    @property
+    def stamps(self) -> CaptureStamps | None:
+        return self.clock.stamps
+
+    @property
+    def lag_clamped(self) -> int:
+        return self.clock.lag_clamped
 
     async def deliver(self, rgb: np.ndarray, captured_at: float | None = None) -> None:
         """Offer ``rgb`` ([H, W, 3] uint8) showing the drive captured at ``captured_at``
@@ -87,10 +88,34 @@ class LatestFrameTrack(MediaStreamTrack):
                 break
         # A new frame object each time: the encoder may still hold the one before.
         frame = av.VideoFrame.from_ndarray(self._last, format="rgb24")
-        frame.pts, frame.time_base = self._next_pts(captured_at), VIDEO_TIME_BASE
+        frame.pts, frame.time_base = self.clock.next(captured_at), VIDEO_TIME_BASE
         return frame
 
-    def _next_pts(self, captured_at: float | None) -> int:
+    def stop(self) -> None:
+        super().stop()
+        if self._pending is not None:
+            _settle(self._pending[1])
+            self._pending = None
+        self._new.set()  # a waiting recv sees the end
+
+
+class FrameTimestamps:
+    """A video track's 90 kHz timestamps, strictly increasing: on a capture epoch each frame's
+    is the capture instant of the drive it shows (None: no new drive in it, the moment of
+    sending less the last picture lag), at most ``max_lag_s`` before the moment of sending;
+    without an epoch, the moment of sending."""
+
+    def __init__(self, epoch: CaptureEpoch | None, max_lag_s: float = MAX_LAG_S) -> None:
+        self.epoch = epoch
+        self.max_lag_s = max_lag_s
+        self.stamps = None if epoch is None else CaptureStamps()
+        self.lag_clamped = 0  # frames stamped at max_lag_s because their picture lagged more
+        self._start = time.monotonic()
+        self._pts = -1
+        self._captured_at: float | None = None  # the last new capture instant taken
+        self._lag = 0.0  # from that capture to its sending
+
+    def next(self, captured_at: float | None) -> int:
         now = time.monotonic()
         if self.epoch is None:
             self._pts = max(int((now - self._start) * VIDEO_CLOCK_RATE), self._pts + 1)
@@ -109,13 +134,6 @@ class LatestFrameTrack(MediaStreamTrack):
         self._pts = max(self.epoch.ticks(captured_at, VIDEO_CLOCK_RATE), self._pts + 1, 0)
         self.stamps.note(self._pts, self.epoch.monotonic + self._pts / VIDEO_CLOCK_RATE)
         return self._pts
-
-    def stop(self) -> None:
-        super().stop()
-        if self._pending is not None:
-            _settle(self._pending[1])
-            self._pending = None
-        self._new.set()  # a waiting recv sees the end
 
 
 def _settle(future: asyncio.Future) -> None:

@@ -1,5 +1,7 @@
 """A session's WebRTC transport: messages on the ``telesplat`` data channel, frames on the
-video track (raw RGB arrays, which aiortc encodes in its own threads)."""
+video track: the scene's frames to the room's shared stream of the picture (server/webrtc/
+fanout.py: one encode for every viewer of it), or, stamped or with ``webrtc_shared_encode``
+off, raw RGB arrays that aiortc encodes for this peer alone."""
 
 from __future__ import annotations
 
@@ -10,13 +12,14 @@ from protocol.stamp import stamp as stamp_frame
 from ..rooms.voice import Listener
 from ..stream.scene import Frame
 from .channel import DataChannel
+from .fanout import FanoutTrack
 from .track import LatestFrameTrack
 
 
 class WebRTCTransport:
     raw_frames = True
 
-    def __init__(self, channel: DataChannel, track: LatestFrameTrack | None,
+    def __init__(self, channel: DataChannel, track: LatestFrameTrack | FanoutTrack | None,
                  stamp: bool) -> None:
         self.channel = channel
         self.track = track  # None: a WHIP peer that only publishes, and so renders nothing
@@ -34,13 +37,20 @@ class WebRTCTransport:
     async def send(self, data: bytes) -> None:
         await self.channel.send(data)
 
-    async def deliver(self, frame: Frame, number: int) -> int:
-        rgb = frame.rgb  # shared with the room's other raw participants: stamp a copy
-        if self.stamp:
-            rgb = stamp_frame(rgb.copy(), frame.seq)
+    def captured_at(self, frame: Frame) -> float | None:
+        """The capture instant (server clock) of the drive of its clock's seat ``frame``
+        shows: its video's timestamp on the capture clock."""
         drives = frame.seat_drives
-        await self.track.deliver(rgb, drives[self.clock_position][2]
-                                 if self.clock_position < len(drives) else None)
+        return drives[self.clock_position][2] if self.clock_position < len(drives) else None
+
+    async def deliver(self, frame: Frame, number: int) -> int:
+        if isinstance(self.track, FanoutTrack):  # one encode for the picture's viewers
+            await self.track.deliver(frame)
+        else:
+            rgb = frame.rgb  # shared with the room's other raw participants: stamp a copy
+            if self.stamp:
+                rgb = stamp_frame(rgb.copy(), frame.seq)
+            await self.track.deliver(rgb, self.captured_at(frame))
         now = time.monotonic()  # the encoder took it: the voice waits as long as it did
         for position, listener in self.voices:
             if position < len(frame.seat_drives):
