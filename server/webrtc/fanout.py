@@ -34,8 +34,8 @@ from aiortc.mediastreams import VIDEO_TIME_BASE, MediaStreamError
 
 from ..stream.scene import Frame
 from .encoders import RAW_ENCODERS
-from .sender_clock import CaptureEpoch, CaptureStamps
-from .track import MAX_LAG_S, REPEAT_AFTER_S, FrameTimestamps
+from .sender_clock import CaptureEpoch
+from .track import MAX_LAG_S, REPEAT_AFTER_S, CaptureClocked, FrameTimestamps
 
 log = logging.getLogger(__name__)
 
@@ -229,7 +229,7 @@ def room_fanout(live: Any, settings: Any) -> VideoFanout:
     return live.video_fanout
 
 
-class FanoutTrack(MediaStreamTrack):
+class FanoutTrack(CaptureClocked, MediaStreamTrack):
     """A WebRTC viewer's video: the encoded frames of its picture's shared stream, as
     ``av.Packet``s its sender packs. ``deliver`` offers the scene's frames it is handed;
     nothing is offered before the sender asks for its first frame (its transport is up)."""
@@ -254,14 +254,6 @@ class FanoutTrack(MediaStreamTrack):
         self.repeated = 0   # repeats (and keyframes) of the picture it had
         self.skipped = 0    # frames not sent: waiting for a keyframe, or fallen behind
         self.overflows = 0  # times it fell QUEUE_FRAMES behind
-
-    @property
-    def stamps(self) -> CaptureStamps | None:
-        return self.clock.stamps
-
-    @property
-    def lag_clamped(self) -> int:
-        return self.clock.lag_clamped
 
     def attach(self, fanout: VideoFanout, sender: Any, mime: str, sender_encoder: Any) -> None:
         """Streams of ``fanout`` (the room's), sent by ``sender`` as ``mime``;

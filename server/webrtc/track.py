@@ -29,7 +29,22 @@ REPEAT_AFTER_S = 0.5
 MAX_LAG_S = 1.0  # the default of webrtc_max_sync_lag_s
 
 
-class LatestFrameTrack(MediaStreamTrack):
+class CaptureClocked:
+    """A video track whose timestamps a :class:`FrameTimestamps` (``clock``) gives: what the
+    capture-clock sender reports read (server/webrtc/sender_clock.py)."""
+
+    clock: FrameTimestamps
+
+    @property
+    def stamps(self) -> CaptureStamps | None:
+        return self.clock.stamps
+
+    @property
+    def lag_clamped(self) -> int:
+        return self.clock.lag_clamped
+
+
+class LatestFrameTrack(CaptureClocked, MediaStreamTrack):
     kind = "video"
 
     def __init__(self, repeat_after_s: float = REPEAT_AFTER_S,
@@ -42,14 +57,6 @@ class LatestFrameTrack(MediaStreamTrack):
         self._last: np.ndarray | None = None  # [H, W, 3] uint8, the newest taken
         self.sent = 0       # distinct frames handed to the encoder
         self.repeated = 0   # repeats of the last one
-
-    @property
-    def stamps(self) -> CaptureStamps | None:
-        return self.clock.stamps
-
-    @property
-    def lag_clamped(self) -> int:
-        return self.clock.lag_clamped
 
     async def deliver(self, rgb: np.ndarray, captured_at: float | None = None) -> None:
         """Offer ``rgb`` ([H, W, 3] uint8) showing the drive captured at ``captured_at``
