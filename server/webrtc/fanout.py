@@ -143,8 +143,6 @@ class SharedVideo:
                 picture = Picture(payloads[0], keyframe, frame if new else None)
                 for viewer in list(self.viewers):
                     viewer.push(picture)
-        except asyncio.CancelledError:
-            raise
         except Exception:  # a codec error: the viewers end (their peers close), the server goes on
             log.exception("a shared WebRTC video stream failed; its %d viewers end",
                           len(self.viewers))
