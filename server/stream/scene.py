@@ -33,6 +33,7 @@ from __future__ import annotations
 import collections
 import concurrent.futures
 import dataclasses
+import functools
 import threading
 import time
 from collections.abc import Hashable
@@ -83,7 +84,7 @@ class FrameJob:
     def versions(self) -> tuple[int, ...]:
         return tuple(d.version for d in self.seats)
 
-    @property
+    @functools.cached_property  # asked by the scene on the loop, again by the render thread
     def group(self) -> Hashable:
         """What picture this is, whatever the drive state: jobs of one group differ only in
         the state they show (one render of a group in flight; one WebRTC video stream)."""
